@@ -1,0 +1,30 @@
+//! # loglio-core
+//!
+//! The LOG-LIO LiDAR-inertial odometry as a `#![no_std]` library with no allocator: every byte
+//! of working memory is owned by the caller (storage structs with `const fn new()` that can live
+//! in a `static`, or slices the caller provides), and nothing inside reads a clock or draws a
+//! random number. Inputs are bytes and timestamps, outputs are values, so a run is deterministic
+//! and its memory is fixed at start-up.
+//!
+//! One module per concept of the paper (Huang et al., "LOG-LIO", RA-L 2023):
+//!
+//! | concept | module |
+//! |---|---|
+//! | points of a scan, their time and pixel | [`scan`] |
+//! | range-image geometry of a spinning LiDAR | [`range_image`] |
+//! | Ring FALS normals | `ring_fals` |
+//! | wire formats (Velodyne, Ouster, IMU frames) | `sensor` |
+//! | IMU samples, initialisation and propagation | [`imu`] |
+//! | voxel map with incremental distributions | `voxel_map`, `surfel` |
+//! | data association | `association` |
+//! | iterated error-state Kalman filter | `eskf` |
+//! | the per-scan pipeline | `odometry` |
+#![no_std]
+#![cfg_attr(not(test), forbid(unsafe_code))]
+
+#[macro_use]
+mod fmt;
+
+pub mod imu;
+pub mod range_image;
+pub mod scan;

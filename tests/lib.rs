@@ -1,0 +1,2 @@
+//! Shared helpers for loglio's cross-crate tests (the tests themselves are the `[[test]]`
+//! targets beside this file).
