@@ -28,3 +28,4 @@ mod fmt;
 pub mod imu;
 pub mod range_image;
 pub mod scan;
+pub mod sensor;

@@ -1,0 +1,4 @@
+//! Wire formats: zero-copy views over the bytes sensors send, with checked lengths, and parsed
+//! representations (after smoltcp's `wire` module).
+
+pub mod imu_frame;
