@@ -29,3 +29,4 @@ pub mod imu;
 pub mod range_image;
 pub mod scan;
 pub mod sensor;
+pub mod so3;
