@@ -30,3 +30,5 @@ pub mod range_image;
 pub mod scan;
 pub mod sensor;
 pub mod so3;
+#[cfg(test)]
+mod testutil;
