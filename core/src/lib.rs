@@ -25,6 +25,7 @@
 #[macro_use]
 mod fmt;
 
+pub mod eskf;
 pub mod imu;
 pub mod range_image;
 pub mod scan;
