@@ -25,6 +25,7 @@
 #[macro_use]
 mod fmt;
 
+pub mod downsample;
 pub mod eskf;
 pub mod imu;
 pub mod range_image;
@@ -33,3 +34,4 @@ pub mod sensor;
 pub mod so3;
 #[cfg(test)]
 mod testutil;
+pub mod undistort;
