@@ -28,6 +28,7 @@ mod fmt;
 pub mod downsample;
 pub mod eskf;
 pub mod imu;
+pub mod output;
 pub mod range_image;
 pub mod scan;
 pub mod sensor;
