@@ -391,22 +391,31 @@ impl InfoAccumulator {
     /// if any input is non-finite or the variance is not positive.
     #[inline]
     pub fn add(&mut self, h: &HRow, residual: f64, variance: f64) -> bool {
-        let n = self.n;
+        // Fixed trip counts let the compiler unroll the rank-1 update.
+        if self.n == 6 {
+            self.add_n::<6>(h, residual, variance)
+        } else {
+            self.add_n::<12>(h, residual, variance)
+        }
+    }
+
+    #[inline(always)]
+    fn add_n<const N: usize>(&mut self, h: &HRow, residual: f64, variance: f64) -> bool {
         let positive = variance > 0.0; // false for NaN too
-        if !positive
-            || !variance.is_finite()
-            || !residual.is_finite()
-            || !h[..n].iter().all(|v| v.is_finite())
-        {
+        let mut finite = residual.is_finite() && variance.is_finite();
+        for v in &h[..N] {
+            finite &= v.is_finite();
+        }
+        if !positive || !finite {
             self.rejected += 1;
             return false;
         }
         let w = 1.0 / variance;
-        for i in 0..n {
+        for i in 0..N {
             let hi = h[i] * w;
             self.htz[i] -= hi * residual;
             let row = &mut self.hth[i];
-            for j in i..n {
+            for j in i..N {
                 row[j] += hi * h[j];
             }
         }
@@ -942,14 +951,18 @@ impl Eskf {
     fn solve(&self, x: &State, x_prior: &State, p_prior: &StateCov, acc: &InfoAccumulator) -> Option<Step> {
         // Prior in the tangent space at x: P_k = J⁻¹ P J⁻ᵀ, δ_prior = J⁻¹ (x ⊟ x_prior), with
         // J⁻¹ = Jr(δθ) on the rotation blocks (x ⊞ δ ⊟ x_prior ≈ δ_prior + Jr⁻¹(δθ) δ).
-        let dxp = x.boxminus(x_prior);
-        let mut jinv = StateCov::identity();
+        // J⁻¹ is the identity outside the two rotation blocks: apply it block-wise.
+        let mut dxp = x.boxminus(x_prior);
+        let mut pk = *p_prior;
         for i in [idx::ROT, idx::EXT_ROT] {
-            let th = V3::new(dxp[i], dxp[i + 1], dxp[i + 2]);
-            jinv.fixed_view_mut::<3, 3>(i, i).copy_from(&so3::right_jacobian(&th));
+            let jr = so3::right_jacobian(&V3::new(dxp[i], dxp[i + 1], dxp[i + 2]));
+            let rows = jr * pk.fixed_rows::<3>(i);
+            pk.fixed_rows_mut::<3>(i).copy_from(&rows);
+            let cols = pk.fixed_columns::<3>(i) * jr.transpose();
+            pk.fixed_columns_mut::<3>(i).copy_from(&cols);
+            let d = jr * dxp.fixed_rows::<3>(i);
+            dxp.fixed_rows_mut::<3>(i).copy_from(&d);
         }
-        let pk = jinv * p_prior * jinv.transpose();
-        let dxp = jinv * dxp;
 
         let mut omega = acc.information();
         let mut b = acc.information_vector();
