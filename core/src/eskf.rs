@@ -1107,4 +1107,6 @@ fn add_process_noise(p: &mut StateCov, cfg: &EskfConfig, dt: f64, q_scale: f64) 
 }
 
 #[cfg(test)]
+mod sequence_tests;
+#[cfg(test)]
 mod tests;

@@ -141,6 +141,57 @@ impl Helix {
     }
 }
 
+/// A drive along world x at `speed` with a lateral and vertical sway and small roll, pitch and
+/// yaw oscillations (yaw about 0: the vehicle faces +x): every derivative in closed form.
+#[derive(Clone, Copy, Debug)]
+pub struct Drive {
+    pub speed: f64,
+    /// (amplitude m, frequency rad/s) of the surge on top of the speed, the sway (y) and the heave (z).
+    pub surge: (f64, f64),
+    pub sway: (f64, f64),
+    pub heave: (f64, f64),
+    /// (amplitude rad, frequency rad/s) of roll, pitch and yaw.
+    pub roll: (f64, f64),
+    pub pitch: (f64, f64),
+    pub yaw: (f64, f64),
+}
+
+impl Drive {
+    /// 1.5 m/s down a corridor with a gentle sway.
+    pub fn corridor() -> Self {
+        Self {
+            speed: 1.5,
+            surge: (0.3, 0.4),
+            sway: (0.2, 0.5),
+            heave: (0.05, 1.1),
+            roll: (0.03, 1.3),
+            pitch: (0.04, 0.9),
+            yaw: (0.08, 0.6),
+        }
+    }
+
+    pub fn at(&self, t: f64) -> Motion {
+        let (s, c) = (libm::sin, libm::cos);
+        let osc = |(a, f): (f64, f64)| (a * s(f * t), a * f * c(f * t), -a * f * f * s(f * t));
+        let (sx, vx, ax) = osc(self.surge);
+        let (sy, vy, ay) = osc(self.sway);
+        let (sz, vz, az) = osc(self.heave);
+        let pos = Vector3::new(self.speed * t + sx, sy, sz);
+        let vel = Vector3::new(self.speed + vx, vy, vz);
+        let acc = Vector3::new(ax, ay, az);
+        let (phi, dphi, _) = osc(self.roll);
+        let (theta, dtheta, _) = osc(self.pitch);
+        let (psi, dpsi, _) = osc(self.yaw);
+        let omega = Vector3::new(
+            dphi - dpsi * s(theta),
+            dtheta * c(phi) + dpsi * c(theta) * s(phi),
+            -dtheta * s(phi) + dpsi * c(theta) * c(phi),
+        );
+        let rot = UnitQuaternion::from_euler_angles(phi, theta, psi).to_rotation_matrix().into_inner();
+        Motion { rot, pos, vel, acc, omega }
+    }
+}
+
 /// IMU sample times: `t0_ns + k * dt_ns`.
 pub fn sample_time(t0_ns: u64, dt_ns: u64, k: u64) -> u64 {
     t0_ns + k * dt_ns
@@ -173,6 +224,20 @@ mod tests {
             let (a, b) = (h.at(t - e), h.at(t + e));
             let om = so3::log(&(a.rot.transpose() * b.rot)) / (2.0 * e);
             assert!((om - m.omega).norm() < 1e-8, "{t}: {om:?} vs {:?}", m.omega);
+            assert!(((b.pos - a.pos) / (2.0 * e) - m.vel).norm() < 1e-8);
+            assert!(((b.vel - a.vel) / (2.0 * e) - m.acc).norm() < 1e-8);
+        }
+    }
+
+    #[test]
+    fn drive_derivatives_match_finite_differences() {
+        let d = Drive::corridor();
+        for t in [0.0, 1.7, 13.2] {
+            let m = d.at(t);
+            let e = 1e-5;
+            let (a, b) = (d.at(t - e), d.at(t + e));
+            let om = so3::log(&(a.rot.transpose() * b.rot)) / (2.0 * e);
+            assert!((om - m.omega).norm() < 1e-8);
             assert!(((b.pos - a.pos) / (2.0 * e) - m.vel).norm() < 1e-8);
             assert!(((b.vel - a.vel) / (2.0 * e) - m.acc).norm() < 1e-8);
         }

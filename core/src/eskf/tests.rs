@@ -409,6 +409,8 @@ struct PlaneMeas {
     points: Vec<(V3, usize)>,
     planes: Vec<Plane>,
     variance: f64,
+    /// Per-point variances (overrides `variance` when not empty).
+    per_point: Vec<f64>,
     calls: usize,
 }
 
@@ -417,10 +419,10 @@ impl Measurements for PlaneMeas {
         assert_eq!(iteration, self.calls);
         self.calls += 1;
         let lin = PointToPlane::new(x);
-        for (p, k) in &self.points {
+        for (i, (p, k)) in self.points.iter().enumerate() {
             let pl = &self.planes[*k];
             let (r, h) = lin.row(p, &pl.n, pl.d);
-            acc.add(&h, r, self.variance);
+            acc.add(&h, r, self.per_point.get(i).copied().unwrap_or(self.variance));
         }
     }
 }
@@ -485,7 +487,13 @@ fn to_lidar(truth: &State, pts: &[(V3, usize)]) -> Vec<(V3, usize)> {
 }
 
 fn meas(truth: &State, world: (Vec<(V3, usize)>, Vec<Plane>), sigma: f64) -> PlaneMeas {
-    PlaneMeas { points: to_lidar(truth, &world.0), planes: world.1, variance: sigma * sigma, calls: 0 }
+    PlaneMeas {
+        points: to_lidar(truth, &world.0),
+        planes: world.1,
+        variance: sigma * sigma,
+        per_point: Vec::new(),
+        calls: 0,
+    }
 }
 
 fn prior_cov(s_pos: f64, s_rot: f64) -> StateCov {
@@ -547,13 +555,17 @@ fn update_converges_to_true_pose_in_box_room() {
 }
 
 /// The information form equals the textbook covariance form K = P Hᵀ (H P Hᵀ + R)⁻¹ on a small
-/// problem (one iteration from the prior, so both are the same linear update).
+/// problem (one iteration from the prior, so both are the same linear update), with a different
+/// noise per measurement (as surfels and planes will have).
 #[test]
 fn information_form_equals_covariance_form() {
     let prior = prior_state();
     let mut truth = prior;
     truth.pos += V3::new(0.01, -0.02, 0.005);
     let mut m = meas(&truth, box_room(2), 0.05);
+    m.per_point = (0..24)
+        .map(|i| if i % 3 == 0 { 0.02f64.powi(2) } else { 0.05f64.powi(2) + 1e-4 * i as f64 })
+        .collect();
     let p0 = prior_cov(0.1, 0.02);
     let cfg = EskfConfig { max_iterations: 1, ..Default::default() };
     let mut f = Eskf::from_state(cfg, prior, p0, T0, None, 1.0);
@@ -571,7 +583,8 @@ fn information_form_equals_covariance_form() {
         }
         z[row] = -r;
     }
-    let s = h * p0 * h.transpose() + SMatrix::<f64, N, N>::identity() * m.variance;
+    let r = SMatrix::<f64, N, N>::from_diagonal(&SVector::<f64, N>::from_column_slice(&m.per_point));
+    let s = h * p0 * h.transpose() + r;
     let k = p0 * h.transpose() * s.try_inverse().unwrap();
     let dx = k * z;
     let p_post = (StateCov::identity() - k * h) * p0;
@@ -804,4 +817,90 @@ fn degeneracy_analysis_is_unit_free() {
     assert_eq!(b.axes, 1);
     assert_eq!(a.count, b.count);
     assert!((b.lever_arm / a.lever_arm - 1e3).abs() < 1e-6);
+}
+
+/// From IMU initialisation to the filter: a stationary, tilted IMU (m/s^2 or g units) gives a
+/// gravity-aligned state whose propagation stays put, and the rough start's covariance is wider.
+#[test]
+fn filter_from_initialisation_stays_put_when_stationary() {
+    use crate::imu::{ImuInitConfig, ImuInitializer, InitStatus, STANDARD_GRAVITY};
+    for unit in [1.0, STANDARD_GRAVITY] {
+        let mut rng = Rng::new(31);
+        let truth = UnitQuaternion::from_euler_angles(0.15, -0.25, 0.8);
+        let f_body = truth.inverse() * V3::new(0.0, 0.0, G);
+        let bias = V3::new(0.003, -0.002, 0.001);
+        let sample = |k: u64, rng: &mut Rng| {
+            let g = bias + rng.gauss3() * 0.002;
+            let a = (f_body + rng.gauss3() * 0.02) / unit;
+            ImuSample {
+                t_ns: T0 + k * 5_000_000,
+                gyro: [g.x as f32, g.y as f32, g.z as f32],
+                acc: [a.x as f32, a.y as f32, a.z as f32],
+            }
+        };
+        let mut init = ImuInitializer::new(ImuInitConfig::default());
+        let mut k = 0;
+        let ready = loop {
+            if let InitStatus::Ready(r) = init.push(&sample(k, &mut rng)) {
+                break r;
+            }
+            k += 1;
+        };
+        let mut f = Eskf::new(EskfConfig::default(), &ready, UnitQuaternion::identity(), V3::zeros());
+        assert_eq!(f.time_ns(), ready.t_ns);
+        assert_eq!(f.state().grav.vec(), V3::new(0.0, 0.0, -G));
+        assert_eq!(f.acc_scale(), unit);
+        // Tilt and yaw variances in the world frame: roll/pitch at the tilt floor, yaw tiny.
+        let r = f.state().rot.to_rotation_matrix().into_inner();
+        let world = r * f.covariance().fixed_view::<3, 3>(idx::ROT, idx::ROT) * r.transpose();
+        assert!((world[(0, 0)] - 1e-6).abs() < 1e-9 && (world[(2, 2)] - 1e-8).abs() < 1e-12, "{world}");
+        assert_eq!(f.covariance()[(idx::EXT_ROT, idx::EXT_ROT)], 0.0);
+        // 2 s at rest. The residual errors of the window's means (tilt 1.4e-4 rad, gyro bias
+        // 1.4e-4 rad/s, vertical bias 1.4e-3 m/s^2) and the sample noise give about 4 mm/s per axis
+        // of velocity error (1σ) after 2 s; bounds at about 3σ.
+        for _ in 0..400 {
+            k += 1;
+            f.predict(&sample(k, &mut rng));
+        }
+        let drift = f.state().pos.norm();
+        assert!(drift < 0.02, "unit {unit}: drift {drift}");
+        assert!(f.state().vel.norm() < 0.025, "unit {unit}: vel {:?}", f.state().vel);
+        finite_and_symmetric(&f);
+    }
+    // A rough start: wider attitude, velocity and gyro-bias uncertainty.
+    let rough = crate::imu::ImuInit {
+        t_ns: T0,
+        last_sample: still_sample(T0),
+        rotation: UnitQuaternion::identity(),
+        gyro_bias: V3::zeros(),
+        acc_bias: V3::zeros(),
+        acc_scale: 1.0,
+        gravity: G,
+        rough: true,
+        samples: 200,
+        gyro_std: 0.05,
+        acc_std: 0.5,
+        gyro_rms: 0.06,
+    };
+    let f = Eskf::new(EskfConfig::default(), &rough, UnitQuaternion::identity(), V3::zeros());
+    let s = EskfConfig::default().initial;
+    assert_eq!(f.covariance()[(idx::ROT, idx::ROT)], s.rough_tilt * s.rough_tilt);
+    assert_eq!(f.covariance()[(idx::VEL, idx::VEL)], s.rough_vel * s.rough_vel);
+    assert_eq!(f.covariance()[(idx::BG, idx::BG)], 0.06 * 0.06);
+}
+
+/// Switching the extrinsic estimation at run time resets its block.
+#[test]
+fn extrinsic_flag_switches_at_run_time() {
+    let mut f = still_filter();
+    let on = EskfConfig { estimate_extrinsic: true, ..*f.config() };
+    f.set_config(on);
+    assert_eq!(f.covariance()[(idx::EXT_POS, idx::EXT_POS)], 0.05 * 0.05);
+    f.predict(&still_sample(T0 + 5_000_000));
+    let off = EskfConfig { estimate_extrinsic: false, ..*f.config() };
+    f.set_config(off);
+    for i in idx::EXT_ROT..idx::VEL {
+        assert!(f.covariance().row(i).iter().all(|v| *v == 0.0));
+        assert!(f.covariance().column(i).iter().all(|v| *v == 0.0));
+    }
 }
