@@ -229,3 +229,34 @@ mod tests {
         assert_eq!(c.accepted(), 6);
     }
 }
+
+#[cfg(test)]
+mod footprint {
+    extern crate std;
+    use core::mem::size_of;
+
+    use crate::downsample::VoxelDownsampler;
+    use crate::eskf::{Eskf, InfoAccumulator};
+    use crate::imu::{ImuInitializer, ImuQueue};
+    use crate::undistort::ImuTrajectory;
+
+    /// The fixed memory of the estimation stages (the README states these figures).
+    #[test]
+    fn memory_footprint_is_fixed() {
+        let sizes = [
+            ("Eskf", size_of::<Eskf>()),
+            ("InfoAccumulator", size_of::<InfoAccumulator>()),
+            ("ImuInitializer", size_of::<ImuInitializer>()),
+            ("ImuQueue<256>", size_of::<ImuQueue<256>>()),
+            ("ImuTrajectory<64>", size_of::<ImuTrajectory<64>>()),
+            ("VoxelDownsampler<32768>", size_of::<VoxelDownsampler<32768>>()),
+        ];
+        for (n, s) in sizes {
+            std::println!("{n}: {s} bytes");
+        }
+        assert!(size_of::<Eskf>() < 5 * 1024);
+        // 60 bytes per slot, 152 per knot.
+        assert!(size_of::<VoxelDownsampler<32768>>() <= 32768 * 60 + 8);
+        assert!(size_of::<ImuTrajectory<64>>() <= 64 * 152 + 32);
+    }
+}
