@@ -859,9 +859,10 @@ impl Eskf {
         };
         let dt = secs(t_ns - self.t_ns);
         let span = dt.max(secs(t_ns.saturating_sub(h.t_ns)));
-        let out = if span > self.cfg.max_hold_s {
+        if span > self.cfg.max_hold_s {
             return self.jump(t_ns, span);
-        } else if span > self.cfg.max_gap_s {
+        }
+        let out = if span > self.cfg.max_gap_s {
             self.integrate(&h.gyro_vec(), &(h.acc_vec() * self.acc_scale), dt, self.cfg.gap_inflation);
             self.counters.gaps = self.counters.gaps.saturating_add(1);
             self.flags.0 |= PropagationFlags::GAP;
