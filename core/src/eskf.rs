@@ -37,7 +37,11 @@
 //! with a fixed extrinsic): `K_b = P Eᵀ (I + Ω P_mm)⁻¹` (a 12 x 12 solve, `P_mm` the measured block
 //! of `P`), `δ = K_b b + (K_b Ω - I) δ_prior` (restricted suitably), and the posterior
 //! `P⁺ = (I - K_b Ω E) P = (P⁻¹ + EᵀΩE)⁻¹`. Every iteration re-linearises; the loop stops after
-//! `max_iterations` or when the pose step is below `converge_pos` / `converge_rot`.
+//! `max_iterations` or when the pose step is below `converge_pos` / `converge_rot`. The prior is
+//! moved to the iterate's tangent space with the right Jacobians of the two rotations (the S2
+//! gravity block uses the identity: gravity barely moves in an update); the posterior is that of
+//! the last linearisation point, which the converged last step moves by less than the
+//! convergence thresholds.
 //!
 //! # Degeneracy
 //!
@@ -56,6 +60,12 @@
 //! and not used: a confident prior (right after initialisation) would flag every direction, and
 //! in a long corridor the prior along the axis weakens until any spurious scan information looks
 //! strong, which is exactly the failure to avoid.
+//!
+//! Known limit of the relative test: in a long narrow corridor the roll information falls
+//! relative to the yaw and pitch information as (width / visible length)². With the default
+//! threshold 1e-3, a 3 m wide corridor seen evenly over ±60 m keeps roll observable (ratio
+//! 1.2e-3), over ±100 m flags it too (4.3e-4): roll is then left to the IMU, which keeps it
+//! through gravity. Lower `degeneracy_threshold` for such sites.
 
 use nalgebra::{Matrix3, Matrix6, SMatrix, SVector, UnitQuaternion, Vector2, Vector3};
 
@@ -980,17 +990,25 @@ impl Eskf {
         let s = SMatrix::<f64, H_DIM, H_DIM>::identity() + omega * p_mm;
         let s_inv = s.lu().try_inverse()?;
         let mut kb: SMatrix<f64, DIM, H_DIM> = pk.fixed_view::<DIM, H_DIM>(0, 0) * s_inv;
+        let mut modified = false;
         if degeneracy.count > 0 {
             // Schmidt gain: no correction along the degenerate pose directions.
             let rows: SMatrix<f64, 6, H_DIM> = proj * kb.fixed_rows::<6>(0);
             kb.fixed_rows_mut::<6>(0).copy_from(&rows);
+            modified = true;
+        }
+        if !self.cfg.estimate_extrinsic && kb.fixed_view::<6, 6>(idx::EXT_ROT, 0).iter().any(|v| *v != 0.0) {
+            // A fixed extrinsic correlated with the pose (a caller-provided covariance): hold it
+            // anyway. (Ω and b are zero in the extrinsic columns when it is not estimated.)
+            kb.fixed_view_mut::<6, 6>(idx::EXT_ROT, 0).fill(0.0);
+            modified = true;
         }
         let kh = kb * omega; // K H restricted to the measured columns (DIM x 12)
         let dx = kb * b + kh * dxp.fixed_rows::<H_DIM>(0) - dxp;
         // Posterior.
         let t = pk - kh * pk.fixed_rows::<H_DIM>(0); // (I - KH) P
-        let post = if degeneracy.count > 0 {
-            // Joseph form, exact for the Schmidt gain: (I-KH) P (I-KH)ᵀ + K R Kᵀ.
+        let post = if modified {
+            // Joseph form, exact for any gain: (I-KH) P (I-KH)ᵀ + K R Kᵀ.
             t - t.fixed_columns::<H_DIM>(0) * kh.transpose() + kb * omega * kb.transpose()
         } else {
             t

@@ -701,12 +701,18 @@ fn extrinsic_is_corrected_when_the_pose_is_known() {
     // The pose stayed where its tight prior put it.
     let (ep, er) = pose_errors(x, &truth);
     assert!(ep.amax() < 1e-6 && er.amax() < 1e-6);
-    // Without the flag the extrinsic columns are ignored and the extrinsic stays.
+    // Without the flag the extrinsic columns are ignored and the extrinsic stays, even when the
+    // caller's covariance correlates it with the pose.
+    for i in idx::EXT_ROT..idx::VEL {
+        p[(i, i - idx::EXT_ROT)] = 5e-6; // correlation 0.5
+        p[(i - idx::EXT_ROT, i)] = 5e-6;
+    }
     let mut m = meas(&truth, box_room(15), 0.01);
     let mut g = Eskf::from_state(EskfConfig::default(), prior, p, T0, None, 1.0);
-    g.update(&mut m);
+    assert_eq!(g.update(&mut m).outcome, UpdateOutcome::Updated);
     assert_eq!(g.state().ext_rot, prior.ext_rot);
     assert_eq!(g.state().ext_pos, prior.ext_pos);
+    finite_and_symmetric(&g);
 }
 
 struct Empty;
@@ -903,4 +909,36 @@ fn extrinsic_flag_switches_at_run_time() {
         assert!(f.covariance().row(i).iter().all(|v| *v == 0.0));
         assert!(f.covariance().column(i).iter().all(|v| *v == 0.0));
     }
+}
+
+/// Only a ground plane (an open field): x, y and the yaw are unobservable; z, roll and pitch are
+/// corrected, the others stay at the prior.
+#[test]
+fn ground_plane_only_is_degenerate_in_x_y_and_yaw() {
+    let mut prior = prior_state();
+    prior.rot = so3::exp_quat(&V3::new(0.0, 0.0, 0.0));
+    let mut truth = prior;
+    truth.pos += V3::new(0.3, -0.2, 0.1);
+    truth.rot *= so3::exp_quat(&V3::new(0.02, -0.03, 0.04));
+    let mut pts = Vec::new();
+    for i in 0..30 {
+        for j in 0..30 {
+            pts.push((V3::new(-15.0 + i as f64, -15.0 + j as f64, -1.5), 0));
+        }
+    }
+    let mut m = meas(&truth, (pts, std::vec![Plane::new(V3::z(), V3::new(0.0, 0.0, -1.5))]), 0.01);
+    let mut f = Eskf::from_state(EskfConfig::default(), prior, prior_cov(0.5, 0.05), T0, None, 1.0);
+    let r = f.update(&mut m);
+    let x = f.state();
+    assert_eq!(r.degeneracy.count, 3, "{r:?}");
+    assert_eq!(r.degeneracy.axes, 0b100011);
+    let step = x.boxminus(&prior);
+    assert!(step[0].abs() < 1e-9 && step[1].abs() < 1e-9 && step[5].abs() < 1e-9, "{step:?}");
+    // z, roll and pitch reach the truth.
+    let (ep, er) = pose_errors(x, &truth);
+    assert!(ep.z.abs() < 1e-3, "{ep:?}");
+    // The tilt is right: the ground's normal seen from the body matches the truth (the body-frame
+    // error vector itself keeps x, y parts of ~1e-3 from the uncorrected yaw: a product of angles).
+    let tilt = (x.rot.inverse() * V3::z()).angle(&(truth.rot.inverse() * V3::z()));
+    assert!(tilt < 1e-6, "{tilt} {er:?}");
 }
