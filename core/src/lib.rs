@@ -25,7 +25,14 @@
 #[macro_use]
 mod fmt;
 
+pub mod downsample;
+pub mod eskf;
 pub mod imu;
+pub mod output;
 pub mod range_image;
 pub mod scan;
 pub mod sensor;
+pub mod so3;
+#[cfg(test)]
+mod testutil;
+pub mod undistort;

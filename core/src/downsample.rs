@@ -1,0 +1,453 @@
+//! Voxel downsampling of a scan that keeps averaged normals (paper section IV-A).
+//!
+//! Points are binned into cubic voxels of side `voxel` (keys `floor(p / voxel)`) in a
+//! fixed-capacity open-addressing hash grid ([`VoxelDownsampler`], caller-owned,
+//! `const`-constructible; clearing it between scans is O(1) through a generation counter).
+//! Each voxel outputs one point: **the input point nearest to the voxel's centroid**, not the
+//! centroid itself. A real point keeps a coherent time (which undistortion needs), pixel and
+//! intensity, and it lies on the measured surface, where a centroid of points on a corner or a
+//! curved surface would not. Ties go to the earliest point.
+//!
+//! The voxel's normal is the mean of its points' valid normals ([`normal_is_valid`]: finite and
+//! roughly unit length; invalid ones do not contribute), renormalised. If the mean's length (the
+//! mean resultant length, 1 when all agree) is below `min_normal_agreement`, the normals disagree
+//! (an edge, or noise) and the voxel gets [`INVALID_NORMAL`]. Normals are assumed consistently
+//! oriented (towards the sensor, as the visibility check needs), so opposite normals cancel and
+//! count as disagreement.
+//!
+//! The output is written in place: the first `kept` entries of the slices, in the order in which
+//! the voxels were first seen in the input (deterministic). This is safe because a voxel's chosen
+//! point never comes before the voxel's position in that order.
+
+// Parallel xyz arrays read clearest as indexed loops.
+#![allow(clippy::needless_range_loop)]
+
+use crate::scan::ScanPoint;
+
+/// The normal written where there is none.
+pub const INVALID_NORMAL: [f32; 3] = [0.0; 3];
+
+/// Whether `n` is a usable normal: finite, with a length between 0.5 and 1.5.
+#[inline]
+pub fn normal_is_valid(n: &[f32; 3]) -> bool {
+    let l2 = n[0] * n[0] + n[1] * n[1] + n[2] * n[2];
+    l2.is_finite() && l2 > 0.25 && l2 < 2.25
+}
+
+/// Settings of the downsampling.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct DownsampleConfig {
+    /// Voxel side, m.
+    pub voxel: f32,
+    /// Smallest mean resultant length of a voxel's normals that still gives it a normal
+    /// (0.9 lets the normals spread by about 25 deg on average).
+    pub min_normal_agreement: f32,
+}
+
+impl Default for DownsampleConfig {
+    fn default() -> Self {
+        Self { voxel: 0.4, min_normal_agreement: 0.9 }
+    }
+}
+
+/// Why downsampling could not run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum DownsampleError {
+    /// The capacity `N` is not a power of two.
+    Capacity,
+    /// The voxel size is not a positive finite number.
+    VoxelSize,
+    /// The normals slice is not as long as the points slice.
+    LengthMismatch,
+}
+
+impl core::fmt::Display for DownsampleError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str(match self {
+            Self::Capacity => "downsampler capacity must be a power of two",
+            Self::VoxelSize => "voxel size must be positive and finite",
+            Self::LengthMismatch => "normals and points differ in length",
+        })
+    }
+}
+
+impl core::error::Error for DownsampleError {}
+
+/// Counters of one downsampling.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct DownsampleStats {
+    /// Points written (one per voxel).
+    pub kept: u32,
+    /// Input points dropped: non-finite, or too far for an `i32` voxel key.
+    pub dropped_invalid: u32,
+    /// Input points dropped because their voxel did not fit (more than `3N/4` voxels).
+    pub dropped_overflow: u32,
+    /// Output voxels without a valid normal (no valid input normal, or disagreement).
+    pub normals_invalid: u32,
+    /// ... of which because the normals disagreed.
+    pub normals_disagree: u32,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct Cell {
+    key: [i32; 3],
+    generation: u32,
+    count: u32,
+    /// Sum of positions relative to the voxel's corner (small numbers: f32 is enough).
+    sum: [f32; 3],
+    nsum: [f32; 3],
+    ncount: u32,
+    best: u32,
+    best_d2: f32,
+}
+
+impl Cell {
+    const EMPTY: Cell = Cell {
+        key: [0; 3],
+        generation: 0,
+        count: 0,
+        sum: [0.0; 3],
+        nsum: [0.0; 3],
+        ncount: 0,
+        best: 0,
+        best_d2: f32::INFINITY,
+    };
+}
+
+/// The hash grid: `N` slots (a power of two), at most `3N/4` voxels per scan. 60 bytes per slot.
+#[derive(Debug)]
+pub struct VoxelDownsampler<const N: usize> {
+    cells: [Cell; N],
+    order: [u32; N],
+    generation: u32,
+}
+
+impl<const N: usize> Default for VoxelDownsampler<N> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+#[inline]
+fn hash(k: &[i32; 3]) -> u32 {
+    let mut h = (k[0] as u32).wrapping_mul(0x9E37_79B1)
+        ^ (k[1] as u32).wrapping_mul(0x85EB_CA77)
+        ^ (k[2] as u32).wrapping_mul(0xC2B2_AE3D);
+    h ^= h >> 15;
+    h = h.wrapping_mul(0x2C1B_3C6D);
+    h ^= h >> 12;
+    h
+}
+
+impl<const N: usize> VoxelDownsampler<N> {
+    /// An empty grid.
+    pub const fn new() -> Self {
+        Self { cells: [Cell::EMPTY; N], order: [0; N], generation: 0 }
+    }
+
+    /// Most voxels one scan may produce.
+    pub const fn max_voxels() -> usize {
+        N - N / 4
+    }
+
+    fn key(p: &[f32; 3], inv: f32) -> Option<[i32; 3]> {
+        let mut k = [0i32; 3];
+        for a in 0..3 {
+            let v = libm::floorf(p[a] * inv);
+            // Finite and within i32 (2^31 voxels of 0.1 m is 2e8 m: beyond any scan).
+            if !v.is_finite() || v.abs() >= 2.0e9 {
+                return None;
+            }
+            k[a] = v as i32;
+        }
+        Some(k)
+    }
+
+    /// The slot of `key`: `Ok(slot)` if present, `Err(slot)` with the empty slot to insert at.
+    fn find(&self, key: &[i32; 3]) -> Result<usize, usize> {
+        let mask = N - 1;
+        let mut i = hash(key) as usize & mask;
+        loop {
+            let c = &self.cells[i];
+            if c.generation != self.generation {
+                return Err(i);
+            }
+            if c.key == *key {
+                return Ok(i);
+            }
+            i = (i + 1) & mask;
+        }
+    }
+
+    /// Downsamples in place (module docs): on return the first `kept` points (and normals) are
+    /// the output.
+    pub fn downsample(
+        &mut self,
+        cfg: &DownsampleConfig,
+        points: &mut [ScanPoint],
+        mut normals: Option<&mut [[f32; 3]]>,
+    ) -> Result<DownsampleStats, DownsampleError> {
+        if !N.is_power_of_two() || N < 4 {
+            return Err(DownsampleError::Capacity);
+        }
+        let positive = cfg.voxel > 0.0; // false for NaN
+        if !positive || !cfg.voxel.is_finite() {
+            return Err(DownsampleError::VoxelSize);
+        }
+        if normals.as_ref().is_some_and(|n| n.len() != points.len()) {
+            return Err(DownsampleError::LengthMismatch);
+        }
+        // New generation: every slot becomes empty without touching it.
+        self.generation = self.generation.wrapping_add(1);
+        if self.generation == 0 {
+            self.cells = [Cell::EMPTY; N];
+            self.generation = 1;
+        }
+        let inv = 1.0 / cfg.voxel;
+        let mut stats = DownsampleStats::default();
+        let mut used = 0usize;
+        let max = Self::max_voxels();
+
+        // Pass 1: accumulate.
+        for (i, p) in points.iter().enumerate() {
+            let Some(key) = Self::key(&p.xyz, inv) else {
+                stats.dropped_invalid += 1;
+                continue;
+            };
+            let slot = match self.find(&key) {
+                Ok(s) => s,
+                Err(s) => {
+                    if used >= max {
+                        stats.dropped_overflow += 1;
+                        continue;
+                    }
+                    self.cells[s] = Cell { key, generation: self.generation, ..Cell::EMPTY };
+                    self.order[used] = s as u32;
+                    used += 1;
+                    s
+                }
+            };
+            let c = &mut self.cells[slot];
+            c.count += 1;
+            for a in 0..3 {
+                c.sum[a] += p.xyz[a] - key[a] as f32 * cfg.voxel;
+            }
+            if let Some(ns) = normals.as_deref() {
+                let n = &ns[i];
+                if normal_is_valid(n) {
+                    c.ncount += 1;
+                    for a in 0..3 {
+                        c.nsum[a] += n[a];
+                    }
+                }
+            }
+        }
+
+        // Pass 2: the point nearest to each centroid.
+        for (i, p) in points.iter().enumerate() {
+            let Some(key) = Self::key(&p.xyz, inv) else { continue };
+            let Ok(slot) = self.find(&key) else { continue };
+            let c = &mut self.cells[slot];
+            let mut d2 = 0.0;
+            for a in 0..3 {
+                let centroid = c.sum[a] / c.count as f32;
+                let d = (p.xyz[a] - key[a] as f32 * cfg.voxel) - centroid;
+                d2 += d * d;
+            }
+            if d2 < c.best_d2 {
+                c.best_d2 = d2;
+                c.best = i as u32;
+            }
+        }
+
+        // Output, compacted in first-seen order.
+        for k in 0..used {
+            let c = self.cells[self.order[k] as usize];
+            points[k] = points[c.best as usize];
+            if let Some(ns) = normals.as_deref_mut() {
+                ns[k] = if c.ncount == 0 {
+                    stats.normals_invalid += 1;
+                    INVALID_NORMAL
+                } else {
+                    let m = c.nsum.map(|v| v / c.ncount as f32);
+                    let len = libm::sqrtf(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
+                    let agree = len >= cfg.min_normal_agreement && len > 0.0; // false for NaN
+                    if !agree {
+                        stats.normals_invalid += 1;
+                        stats.normals_disagree += 1;
+                        INVALID_NORMAL
+                    } else {
+                        m.map(|v| v / len)
+                    }
+                };
+            }
+        }
+        stats.kept = used as u32;
+        Ok(stats)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+    use std::vec::Vec;
+
+    use super::*;
+    use crate::testutil::Rng;
+
+    fn pt(x: f32, y: f32, z: f32, t: f32) -> ScanPoint {
+        ScanPoint { xyz: [x, y, z], t, ..Default::default() }
+    }
+
+    fn cfg(voxel: f32) -> DownsampleConfig {
+        DownsampleConfig { voxel, ..Default::default() }
+    }
+
+    #[test]
+    fn counts_order_and_nearest_to_centroid() {
+        let mut rng = Rng::new(5);
+        // Random points in [-1, 1)^3; voxel 0.5: up to 64 voxels.
+        let mut pts: Vec<ScanPoint> = (0..3000)
+            .map(|i| {
+                let u = |r: &mut Rng| (r.uniform() * 2.0 - 1.0) as f32;
+                pt(u(&mut rng), u(&mut rng), u(&mut rng), i as f32 * 1e-5)
+            })
+            .collect();
+        let orig = pts.clone();
+        let mut ds = std::boxed::Box::new(VoxelDownsampler::<256>::new());
+        let st = ds.downsample(&cfg(0.5), &mut pts, None).unwrap();
+        assert_eq!(st.kept, 64);
+        assert_eq!(st.dropped_invalid + st.dropped_overflow, 0);
+        // Brute force: per voxel (first-seen order) the point nearest to the centroid.
+        let key = |p: &ScanPoint| p.xyz.map(|v| (v / 0.5).floor() as i32);
+        let mut keys: Vec<[i32; 3]> = Vec::new();
+        for p in &orig {
+            if !keys.contains(&key(p)) {
+                keys.push(key(p));
+            }
+        }
+        for (k, kk) in keys.iter().enumerate() {
+            let members: Vec<&ScanPoint> = orig.iter().filter(|p| key(p) == *kk).collect();
+            let mut c = [0.0f64; 3];
+            for m in &members {
+                for a in 0..3 {
+                    c[a] += m.xyz[a] as f64 / members.len() as f64;
+                }
+            }
+            let d = |p: &ScanPoint| (0..3).map(|a| (p.xyz[a] as f64 - c[a]).powi(2)).sum::<f64>();
+            let best = members.iter().min_by(|a, b| d(a).partial_cmp(&d(b)).unwrap()).unwrap();
+            // f32 sums may pick a different point only when two are equally near (within 1e-9 m²).
+            assert!(d(&pts[k]) - d(best) < 1e-9, "voxel {k}");
+            assert_eq!(key(&pts[k]), *kk);
+            // The point is an input point, with its own time.
+            assert!(orig.iter().any(|o| o == &pts[k]));
+        }
+    }
+
+    #[test]
+    fn deterministic_across_runs_and_grids() {
+        let mut rng = Rng::new(8);
+        let pts: Vec<ScanPoint> = (0..5000)
+            .map(|i| {
+                pt(
+                    (rng.uniform() * 20.0 - 10.0) as f32,
+                    (rng.uniform() * 20.0) as f32,
+                    rng.uniform() as f32,
+                    i as f32,
+                )
+            })
+            .collect();
+        let ns: Vec<[f32; 3]> = (0..5000).map(|_| [0.0, 0.0, 1.0]).collect();
+        let run = |ds: &mut VoxelDownsampler<4096>| {
+            let (mut p, mut n) = (pts.clone(), ns.clone());
+            let st = ds.downsample(&cfg(0.4), &mut p, Some(&mut n)).unwrap();
+            p.truncate(st.kept as usize);
+            n.truncate(st.kept as usize);
+            (p, n, st)
+        };
+        let mut a = std::boxed::Box::new(VoxelDownsampler::<4096>::new());
+        let mut b = std::boxed::Box::new(VoxelDownsampler::<4096>::new());
+        let first = run(&mut a);
+        // Same grid reused (generation bump) and a fresh grid give identical output.
+        assert_eq!(first, run(&mut a));
+        assert_eq!(first, run(&mut b));
+        assert!(first.2.kept > 1000);
+    }
+
+    #[test]
+    fn normals_are_averaged_invalid_excluded_disagreement_flagged() {
+        let s = libm::sinf(0.2);
+        let c = libm::cosf(0.2);
+        let mut pts = Vec::new();
+        let mut ns = Vec::new();
+        // Voxel A (x in [0, 1)): normals at +-0.2 rad about z-axis around +x, plus invalid ones.
+        for (n, x) in [
+            ([c, s, 0.0], 0.1),
+            ([c, -s, 0.0], 0.2),
+            ([0.0; 3], 0.3),
+            ([f32::NAN, 0.0, 0.0], 0.4),
+            ([5.0, 0.0, 0.0], 0.5),
+        ] {
+            pts.push(pt(x, 0.5, 0.5, x));
+            ns.push(n);
+        }
+        // Voxel B (x in [1, 2)): opposite normals.
+        for (n, x) in [([0.0, 0.0, 1.0], 1.1), ([0.0, 0.0, -1.0], 1.2)] {
+            pts.push(pt(x, 0.5, 0.5, x));
+            ns.push(n);
+        }
+        // Voxel C (x in [2, 3)): only invalid normals.
+        pts.push(pt(2.5, 0.5, 0.5, 2.5));
+        ns.push([0.0; 3]);
+        let mut ds = VoxelDownsampler::<16>::new();
+        let st = ds.downsample(&cfg(1.0), &mut pts, Some(&mut ns)).unwrap();
+        assert_eq!(st.kept, 3);
+        // A: the bisector, +x (the invalid normals did not pull it).
+        assert!((ns[0][0] - 1.0).abs() < 1e-6 && ns[0][1].abs() < 1e-6, "{:?}", ns[0]);
+        assert_eq!(ns[1], INVALID_NORMAL);
+        assert_eq!(ns[2], INVALID_NORMAL);
+        assert_eq!((st.normals_invalid, st.normals_disagree), (2, 1));
+        // Times travel with the chosen points: A's centroid x is 0.3, so the 0.3 point is chosen.
+        assert_eq!(pts[0].t, 0.3);
+        assert!(pts[1].t == 1.1 || pts[1].t == 1.2);
+        assert_eq!(pts[2].t, 2.5);
+    }
+
+    #[test]
+    fn negative_coordinates_floor_and_bad_points_are_counted() {
+        let mut pts = std::vec![
+            pt(-0.1, 0.0, 0.0, 0.0),
+            pt(0.1, 0.0, 0.0, 1.0),
+            pt(f32::NAN, 0.0, 0.0, 2.0),
+            pt(1e30, 0.0, 0.0, 3.0),
+            pt(-0.2, 0.0, 0.0, 4.0),
+        ];
+        let mut ds = VoxelDownsampler::<16>::new();
+        let st = ds.downsample(&cfg(1.0), &mut pts, None).unwrap();
+        assert_eq!((st.kept, st.dropped_invalid), (2, 2));
+        // -0.1 and -0.2 share voxel -1 (first seen), 0.1 is voxel 0.
+        assert!(pts[0].xyz[0] < 0.0);
+        assert_eq!(pts[1].xyz[0], 0.1);
+    }
+
+    #[test]
+    fn overflow_is_counted_and_errors_reported() {
+        let mut pts: Vec<ScanPoint> = (0..20).map(|i| pt(i as f32 + 0.5, 0.0, 0.0, 0.0)).collect();
+        let mut ds = VoxelDownsampler::<16>::new();
+        let st = ds.downsample(&cfg(1.0), &mut pts, None).unwrap();
+        assert_eq!(st.kept, 12);
+        assert_eq!(st.dropped_overflow, 8);
+        assert_eq!(pts[11].xyz[0], 11.5);
+        let mut bad = VoxelDownsampler::<12>::new();
+        assert_eq!(bad.downsample(&cfg(1.0), &mut pts, None), Err(DownsampleError::Capacity));
+        assert_eq!(ds.downsample(&cfg(0.0), &mut pts, None), Err(DownsampleError::VoxelSize));
+        assert_eq!(ds.downsample(&cfg(f32::NAN), &mut pts, None), Err(DownsampleError::VoxelSize));
+        let mut ns = [[0.0f32; 3]; 3];
+        assert_eq!(ds.downsample(&cfg(1.0), &mut pts, Some(&mut ns)), Err(DownsampleError::LengthMismatch));
+        // Empty input.
+        assert_eq!(ds.downsample(&cfg(1.0), &mut [], None).unwrap().kept, 0);
+    }
+}

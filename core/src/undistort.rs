@@ -1,0 +1,491 @@
+//! Backward propagation (undistortion): every point of a scan, and its normal, moved to the
+//! LiDAR frame at the scan-end time, using the IMU poses the filter passed through during the
+//! scan.
+//!
+//! The odometry records the filter's state at every IMU sample of the scan in an
+//! [`ImuTrajectory`] (fixed capacity, caller-owned):
+//!
+//! ```text
+//! traj.clear(scan.start_ns);
+//! traj.push(eskf.time_ns(), eskf.state());        // the state at the previous scan end
+//! for each IMU sample s with s.t_ns <= scan_end_ns:
+//!     eskf.predict(&s);  traj.push(eskf.time_ns(), eskf.state());
+//! eskf.predict_to(scan_end_ns);  traj.push(eskf.time_ns(), eskf.state());
+//! traj.undistort(eskf.state(), points, Some(normals));
+//! ```
+//!
+//! Between two knots the pose is interpolated with the rate the filter integrated over that
+//! segment (`R(τ) = R_k Exp(ω τ)`, `ω = Log(R_kᵀ R_k+1)/Δt`) and a cubic Hermite curve through the
+//! knots' positions and velocities (exact at both knots). Outside the knots the motion is
+//! extrapolated at constant velocity and rate (counted). A point at time `t` with LiDAR-frame
+//! position `p` becomes `R_ILᵀ (R_eᵀ (R(t) (R_IL p + t_IL) + p(t) - p_e) - t_IL)`, its normal
+//! `R_ILᵀ R_eᵀ R(t) R_IL n`, where `e` is the end state (the same as the reference's backward
+//! propagation, plus the normals, as LOG-LIO does). Points that share a time (one firing) share
+//! the transform, which is computed once.
+//!
+//! When more knots arrive than fit, the last knot is replaced (the last two segments merge into
+//! one, counted), so the buffer always ends at the newest pose; size it for the IMU rate (e.g.
+//! 64 knots for a 400 Hz IMU and 10 Hz scans).
+
+use nalgebra::{Matrix3, Vector3};
+
+use crate::eskf::State;
+use crate::scan::ScanPoint;
+use crate::so3;
+
+type M3 = Matrix3<f64>;
+type V3 = Vector3<f64>;
+
+/// One recorded IMU pose.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Knot {
+    /// Seconds since the scan start (negative before it).
+    pub t: f64,
+    /// World from IMU.
+    pub rot: M3,
+    /// IMU position in the world.
+    pub pos: V3,
+    /// IMU velocity in the world.
+    pub vel: V3,
+    /// Body rate over the segment that ends at this knot (zero for the first knot).
+    pub omega: V3,
+}
+
+/// What [`ImuTrajectory::push`] did.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum KnotPush {
+    /// Stored.
+    Stored,
+    /// The buffer was full: it replaced the last knot (counted).
+    Merged,
+    /// Not later than the last knot (or non-finite): ignored (counted).
+    Ignored,
+}
+
+/// Why undistortion could not run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum UndistortError {
+    /// No knot was recorded.
+    NoPoses,
+    /// The normals slice is not as long as the points slice.
+    LengthMismatch,
+}
+
+impl core::fmt::Display for UndistortError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::NoPoses => f.write_str("no IMU poses recorded for the scan"),
+            Self::LengthMismatch => f.write_str("normals and points differ in length"),
+        }
+    }
+}
+
+impl core::error::Error for UndistortError {}
+
+/// Counters of one [`ImuTrajectory::undistort`] call.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct UndistortStats {
+    /// Points moved.
+    pub moved: u32,
+    /// Points outside the recorded time span (extrapolated at constant velocity and rate).
+    pub extrapolated: u32,
+    /// Points left unchanged: non-finite position or time.
+    pub invalid: u32,
+    /// Distinct point times (transforms computed).
+    pub transforms: u32,
+}
+
+/// The IMU poses of one scan: fixed capacity `N` (at least 2), caller-owned, `const`-constructible.
+#[derive(Debug)]
+pub struct ImuTrajectory<const N: usize> {
+    start_ns: u64,
+    knots: heapless::Vec<Knot, N>,
+    merged: u32,
+    ignored: u32,
+}
+
+impl<const N: usize> Default for ImuTrajectory<N> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl<const N: usize> ImuTrajectory<N> {
+    /// An empty trajectory.
+    pub const fn new() -> Self {
+        Self { start_ns: 0, knots: heapless::Vec::new(), merged: 0, ignored: 0 }
+    }
+
+    /// Empties it for a scan starting at `scan_start_ns`.
+    pub fn clear(&mut self, scan_start_ns: u64) {
+        self.start_ns = scan_start_ns;
+        self.knots.clear();
+        self.merged = 0;
+        self.ignored = 0;
+    }
+
+    /// The recorded knots.
+    pub fn knots(&self) -> &[Knot] {
+        &self.knots
+    }
+
+    /// Knots merged because the buffer was full (since [`Self::clear`]).
+    pub fn merged(&self) -> u32 {
+        self.merged
+    }
+
+    /// Knots ignored (not later than the last, or non-finite) since [`Self::clear`].
+    pub fn ignored(&self) -> u32 {
+        self.ignored
+    }
+
+    /// Records the filter state `x` at absolute time `t_ns`.
+    pub fn push(&mut self, t_ns: u64, x: &State) -> KnotPush {
+        let t = (t_ns as i128 - self.start_ns as i128) as f64 * 1e-9;
+        let mut k = Knot {
+            t,
+            rot: x.rot.to_rotation_matrix().into_inner(),
+            pos: x.pos,
+            vel: x.vel,
+            omega: V3::zeros(),
+        };
+        if !x.is_finite() || self.knots.last().is_some_and(|l| t <= l.t) {
+            self.ignored = self.ignored.saturating_add(1);
+            return KnotPush::Ignored;
+        }
+        let full = self.knots.len() == N;
+        if full {
+            self.knots.pop();
+            self.merged = self.merged.saturating_add(1);
+        }
+        if let Some(prev) = self.knots.last() {
+            k.omega = so3::log(&(prev.rot.transpose() * k.rot)) / (t - prev.t);
+        }
+        match self.knots.push(k) {
+            Ok(()) if !full => KnotPush::Stored,
+            Ok(()) => KnotPush::Merged,
+            // Only with N == 0: nothing can be stored.
+            Err(_) => KnotPush::Ignored,
+        }
+    }
+
+    /// The interpolated IMU pose (world from IMU) at `t` seconds since the scan start, and
+    /// whether it was extrapolated.
+    pub fn pose_at(&self, t: f64) -> Option<(M3, V3, bool)> {
+        let ks = &self.knots[..];
+        let first = ks.first()?;
+        let last = ks[ks.len() - 1];
+        if ks.len() == 1 || t < first.t {
+            // Before the first knot: back along the first segment's rate.
+            let omega = ks.get(1).map_or(V3::zeros(), |k| k.omega);
+            let dt = t - first.t;
+            return Some((first.rot * so3::exp(&(omega * dt)), first.pos + first.vel * dt, dt != 0.0));
+        }
+        if t >= last.t {
+            let dt = t - last.t;
+            return Some((last.rot * so3::exp(&(last.omega * dt)), last.pos + last.vel * dt, dt != 0.0));
+        }
+        // ks[i-1].t <= t < ks[i].t
+        let i = ks.partition_point(|k| k.t <= t);
+        let (a, b) = (&ks[i - 1], &ks[i]);
+        let h = b.t - a.t;
+        let tau = t - a.t;
+        let s = tau / h;
+        let (s2, s3) = (s * s, s * s * s);
+        let pos = a.pos * (2.0 * s3 - 3.0 * s2 + 1.0)
+            + a.vel * (h * (s3 - 2.0 * s2 + s))
+            + b.pos * (3.0 * s2 - 2.0 * s3)
+            + b.vel * (h * (s3 - s2));
+        Some((a.rot * so3::exp(&(b.omega * tau)), pos, false))
+    }
+
+    /// Moves `points` (and `normals`, if given: the same length, rotation only; invalid normals,
+    /// i.e. non-finite or zero, are left as they are) in place to the LiDAR frame at the end
+    /// state `end` (the filter state at the scan end), using each point's `t`.
+    pub fn undistort(
+        &self,
+        end: &State,
+        points: &mut [ScanPoint],
+        mut normals: Option<&mut [[f32; 3]]>,
+    ) -> Result<UndistortStats, UndistortError> {
+        if self.knots.is_empty() {
+            return Err(UndistortError::NoPoses);
+        }
+        if normals.as_ref().is_some_and(|n| n.len() != points.len()) {
+            return Err(UndistortError::LengthMismatch);
+        }
+        let r_e_t = end.rot.to_rotation_matrix().into_inner().transpose();
+        let p_e = end.pos;
+        let r_il = end.ext_rot.to_rotation_matrix().into_inner();
+        let r_il_t = r_il.transpose();
+        let t_il = end.ext_pos;
+        let mut stats = UndistortStats::default();
+        let mut cached: Option<(u32, M3, V3)> = None;
+        for (i, pt) in points.iter_mut().enumerate() {
+            let [x, y, z] = pt.xyz;
+            if !(x.is_finite() && y.is_finite() && z.is_finite() && pt.t.is_finite()) {
+                stats.invalid += 1;
+                continue;
+            }
+            let (a, b) = match cached {
+                Some((bits, a, b)) if bits == pt.t.to_bits() => (a, b),
+                _ => {
+                    // Cannot fail: knots is not empty.
+                    let Some((r_t, p_t, extra)) = self.pose_at(pt.t as f64) else {
+                        return Err(UndistortError::NoPoses);
+                    };
+                    if extra {
+                        stats.extrapolated += 1;
+                    }
+                    stats.transforms += 1;
+                    let a = r_il_t * r_e_t * r_t * r_il;
+                    let b = r_il_t * (r_e_t * (r_t * t_il + p_t - p_e) - t_il);
+                    cached = Some((pt.t.to_bits(), a, b));
+                    (a, b)
+                }
+            };
+            let p = a * V3::new(x as f64, y as f64, z as f64) + b;
+            pt.xyz = [p.x as f32, p.y as f32, p.z as f32];
+            stats.moved += 1;
+            if let Some(ns) = normals.as_deref_mut() {
+                let n = &mut ns[i];
+                if crate::downsample::normal_is_valid(n) {
+                    let m = a * V3::new(n[0] as f64, n[1] as f64, n[2] as f64);
+                    *n = [m.x as f32, m.y as f32, m.z as f32];
+                }
+            }
+        }
+        Ok(stats)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+    use std::vec::Vec;
+
+    use nalgebra::UnitQuaternion;
+
+    use super::*;
+    use crate::eskf::{Eskf, EskfConfig, StateCov};
+    use crate::so3::S2;
+    use crate::testutil::{G, Helix};
+
+    const T0: u64 = 7_000_000_000;
+    const SCAN: f64 = 0.1;
+
+    fn ext() -> (UnitQuaternion<f64>, V3) {
+        (UnitQuaternion::from_euler_angles(0.02, -0.01, core::f64::consts::PI), V3::new(0.1, -0.05, 0.15))
+    }
+
+    fn state_at(h: &Helix, t: f64) -> State {
+        let m = h.at(t);
+        let (er, ep) = ext();
+        State {
+            rot: m.quat(),
+            pos: m.pos,
+            ext_rot: er,
+            ext_pos: ep,
+            vel: m.vel,
+            bg: V3::zeros(),
+            ba: V3::zeros(),
+            grav: S2::new(&V3::new(0.0, 0.0, -G), G),
+        }
+    }
+
+    /// Box room planes (inward normals n, offsets d: n·q + d = 0 inside-facing).
+    fn room() -> [(V3, f64); 6] {
+        [
+            (V3::x(), 12.0),
+            (-V3::x(), 12.0),
+            (V3::y(), 10.0),
+            (-V3::y(), 10.0),
+            (V3::z(), 4.0),
+            (-V3::z(), 6.0),
+        ]
+    }
+
+    /// A 16-beam LiDAR spinning once per scan on the helix: points and normals in the LiDAR frame
+    /// at their own firing times, and the index of the plane each hit.
+    fn scan(h: &Helix, t_start: f64) -> (Vec<ScanPoint>, Vec<[f32; 3]>, Vec<usize>) {
+        let (mut pts, mut ns, mut ids) = (Vec::new(), Vec::new(), Vec::new());
+        let cols = 900;
+        for c in 0..cols {
+            let ts = SCAN * c as f64 / cols as f64;
+            let x = state_at(h, t_start + ts);
+            let (q_wl, t_wl) = x.lidar_pose();
+            let az = 2.0 * core::f64::consts::PI * c as f64 / cols as f64;
+            for r in 0..16 {
+                let el = (-15.0 + 2.0 * r as f64).to_radians();
+                let d_l = V3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
+                let d_w = q_wl * d_l;
+                let (mut best, mut id) = (f64::INFINITY, 0);
+                for (k, (n, d)) in room().iter().enumerate() {
+                    let den = n.dot(&d_w);
+                    if den < -1e-9 {
+                        let s = -(n.dot(&t_wl) + d) / den;
+                        if s > 0.0 && s < best {
+                            best = s;
+                            id = k;
+                        }
+                    }
+                }
+                let p = d_l * best;
+                let n_l = q_wl.inverse() * room()[id].0;
+                pts.push(ScanPoint {
+                    xyz: [p.x as f32, p.y as f32, p.z as f32],
+                    t: ts as f32,
+                    row: r,
+                    col: c as u16,
+                    ..Default::default()
+                });
+                ns.push([n_l.x as f32, n_l.y as f32, n_l.z as f32]);
+                ids.push(id);
+            }
+        }
+        (pts, ns, ids)
+    }
+
+    /// Runs the filter through the scan with noise-free 200 Hz IMU samples, recording the knots.
+    fn propagate(h: &Helix, t_start: f64, traj: &mut ImuTrajectory<64>) -> Eskf {
+        let start_ns = T0;
+        let dt_ns = 5_000_000u64;
+        // The previous scan ended at t_start; the held sample is the one at or before it.
+        let held = h.at(t_start).imu(start_ns);
+        let mut f = Eskf::from_state(
+            EskfConfig::default(),
+            state_at(h, t_start),
+            StateCov::zeros(),
+            start_ns,
+            Some(held),
+            1.0,
+        );
+        traj.clear(start_ns);
+        assert_eq!(traj.push(f.time_ns(), f.state()), KnotPush::Stored);
+        let end_ns = start_ns + (SCAN * 1e9) as u64;
+        let mut k = 1;
+        while start_ns + k * dt_ns <= end_ns {
+            let t_ns = start_ns + k * dt_ns;
+            f.predict(&h.at(t_start + (t_ns - start_ns) as f64 * 1e-9).imu(t_ns));
+            traj.push(f.time_ns(), f.state());
+            k += 1;
+        }
+        f.predict_to(end_ns);
+        traj.push(f.time_ns(), f.state());
+        f
+    }
+
+    /// Residuals of points against the planes expressed in the true scan-end LiDAR frame, and the
+    /// largest angle between the normals and the true plane normals.
+    fn check(h: &Helix, t_end: f64, pts: &[ScanPoint], ns: &[[f32; 3]], ids: &[usize]) -> (f64, f64) {
+        let (q, t) = state_at(h, t_end).lidar_pose();
+        let (mut worst_d, mut worst_a) = (0.0f64, 0.0f64);
+        for ((p, n), &id) in pts.iter().zip(ns).zip(ids) {
+            let (nw, d) = room()[id];
+            let ne = q.inverse() * nw;
+            let de = nw.dot(&t) + d;
+            let pv = V3::new(p.xyz[0] as f64, p.xyz[1] as f64, p.xyz[2] as f64);
+            worst_d = worst_d.max((ne.dot(&pv) + de).abs());
+            let nv = V3::new(n[0] as f64, n[1] as f64, n[2] as f64);
+            worst_a = worst_a.max(nv.angle(&ne));
+        }
+        (worst_d, worst_a)
+    }
+
+    /// Points generated on known planes while the sensor moves along the helix (2 m/s, up to
+    /// ~1 rad/s; a non-trivial extrinsic): after undistortion with the IMU-propagated poses they
+    /// lie on the planes in the true scan-end frame. Measured: 25 µm worst residual over 14,400
+    /// points at up to 16 m, normals within 1.9e-6 rad; without undistortion 0.32 m and
+    /// 0.032 rad. Bounds: 4x and 5x the measured values.
+    #[test]
+    fn undistorted_points_and_normals_lie_on_their_planes_at_scan_end() {
+        let h = Helix::standard();
+        let t_start = 3.0;
+        let (mut pts, mut ns, ids) = scan(&h, t_start);
+        let (raw_d, raw_a) = check(&h, t_start + SCAN, &pts, &ns, &ids);
+        let mut traj = ImuTrajectory::<64>::new();
+        let f = propagate(&h, t_start, &mut traj);
+        assert_eq!(traj.knots().len(), 21);
+        let st = traj.undistort(f.state(), &mut pts, Some(&mut ns)).unwrap();
+        let (d, a) = check(&h, t_start + SCAN, &pts, &ns, &ids);
+        std::println!("undistort: raw {raw_d:.3} m / {raw_a:.4} rad -> {d:.2e} m / {a:.2e} rad; {st:?}");
+        assert!(raw_d > 0.2 && raw_a > 0.02, "the test must have distortion to remove");
+        assert!(d < 1e-4, "{d}");
+        assert!(a < 1e-5, "{a}");
+        assert_eq!(st.moved, 14_400);
+        assert_eq!(st.transforms, 900); // one per firing time
+        assert_eq!(st.invalid, 0);
+    }
+
+    #[test]
+    fn interpolation_is_exact_at_knots_and_extrapolates_outside() {
+        let h = Helix::standard();
+        let mut traj = ImuTrajectory::<64>::new();
+        propagate(&h, 1.0, &mut traj);
+        for k in traj.knots() {
+            let (r, p, extra) = traj.pose_at(k.t).unwrap();
+            assert!(!extra);
+            assert!((r - k.rot).amax() < 1e-14 && (p - k.pos).amax() < 1e-12);
+        }
+        let (_, _, extra) = traj.pose_at(-0.01).unwrap();
+        assert!(extra);
+        let (_, p, extra) = traj.pose_at(SCAN + 0.01).unwrap();
+        assert!(extra);
+        let last = traj.knots().last().unwrap();
+        assert!((p - (last.pos + last.vel * 0.01)).norm() < 1e-12);
+    }
+
+    #[test]
+    fn full_buffer_merges_the_last_segment_and_bad_knots_are_ignored() {
+        let h = Helix::standard();
+        let mut traj = ImuTrajectory::<4>::new();
+        traj.clear(T0);
+        let mut results = Vec::new();
+        for k in 0..6u64 {
+            results.push(traj.push(T0 + k * 5_000_000, &state_at(&h, k as f64 * 0.005)));
+        }
+        assert_eq!(results[..4], [KnotPush::Stored; 4]);
+        assert_eq!(results[4..], [KnotPush::Merged; 2]);
+        assert_eq!(traj.merged(), 2);
+        // The buffer ends at the newest pose, and the merged segment is consistent with it.
+        let last = traj.knots()[3];
+        assert!((last.t - 0.025).abs() < 1e-12);
+        let (r, _, _) = traj.pose_at(0.025 - 1e-12).unwrap();
+        assert!((r - last.rot).amax() < 1e-9);
+        // Older, equal and non-finite knots are ignored.
+        assert_eq!(traj.push(T0 + 25_000_000, &state_at(&h, 0.0)), KnotPush::Ignored);
+        let mut bad = state_at(&h, 0.03);
+        bad.pos.x = f64::NAN;
+        assert_eq!(traj.push(T0 + 30_000_000, &bad), KnotPush::Ignored);
+        assert_eq!(traj.ignored(), 2);
+    }
+
+    #[test]
+    fn bad_points_are_counted_and_left_alone_and_errors_are_reported() {
+        let h = Helix::standard();
+        let x = state_at(&h, 0.0);
+        let mut traj = ImuTrajectory::<8>::new();
+        traj.clear(T0);
+        let mut pts = [ScanPoint { xyz: [1.0, 2.0, 3.0], t: 0.0, ..Default::default() }; 3];
+        pts[1].t = f32::NAN;
+        pts[2].xyz[0] = f32::INFINITY;
+        assert_eq!(traj.undistort(&x, &mut pts, None), Err(UndistortError::NoPoses));
+        traj.push(T0, &x);
+        let mut ns = [[0.0f32; 3]; 2];
+        assert_eq!(traj.undistort(&x, &mut pts, Some(&mut ns)), Err(UndistortError::LengthMismatch));
+        let mut ns = [[0.0, 0.0, 1.0], [0.0; 3], [f32::NAN; 3]];
+        let before = pts;
+        let st = traj.undistort(&x, &mut pts, Some(&mut ns)).unwrap();
+        assert_eq!((st.moved, st.invalid), (1, 2));
+        assert_eq!(pts[1].xyz, before[1].xyz);
+        assert_eq!(pts[2].xyz, before[2].xyz);
+        // A single knot at the end state: the identity.
+        assert!((pts[0].xyz[0] - 1.0).abs() < 1e-6 && (pts[0].xyz[2] - 3.0).abs() < 1e-6);
+        assert!((ns[0][2] - 1.0).abs() < 1e-6);
+        assert_eq!(ns[1], [0.0; 3]);
+        assert!(ns[2][0].is_nan());
+    }
+}
