@@ -258,17 +258,19 @@ struct RowCoeffs {
     /// `u[1][k]` along the azimuth tangent divided by the column step, `u[2][k]` along the
     /// elevation tangent divided by the row step. Zero for neighbours outside the image.
     u: [[f32; 9]; 3],
+    /// Products `u_k u_k^T` (00, 01, 02, 11, 12, 22) of every window ray, to build `M'` of an
+    /// incomplete window as a masked sum.
+    uu: [[f32; 9]; 6],
     /// Relative range-jump gate per neighbour (see [`RingFalsConfig::max_incidence_deg`]);
     /// +inf for neighbours outside the image.
     gate: [f32; 9],
     /// Bit k set when neighbour k is inside the image (rows do not wrap).
     exists: u16,
-    /// The same gate for the 5x5 median window (index 5 (dr + 2) + (dc + 2)): a pixel of the
+    /// The same gate for the 5x5 median window (index 5 (dr + 2) + (dc + 2)), as a bound on
+    /// the difference of the pixels' range keys (`KEY_SCALE log2(1 + gate)`): a pixel of the
     /// window takes part in the median only if it is on the centre's surface. 0 for rows
     /// outside the image.
-    gate5: [f32; 25],
-    /// Smallest gate of `gate5` over the window's pixels inside the image.
-    gate5_min: f32,
+    gate5: [i16; 25],
     /// Inverse of `M'` for the nominal window (every neighbour inside the image present),
     /// symmetric: 00, 01, 02, 11, 12, 22.
     minv: [f32; 6],
@@ -288,10 +290,10 @@ struct RowCoeffs {
 impl RowCoeffs {
     const ZERO: Self = Self {
         u: [[0.0; 9]; 3],
+        uu: [[0.0; 9]; 6],
         gate: [0.0; 9],
         exists: 0,
-        gate5: [0.0; 25],
-        gate5_min: 0.0,
+        gate5: [0; 25],
         minv: [0.0; 6],
         nominal_ok: false,
         ce: 0.0,
@@ -320,7 +322,8 @@ pub struct RingTable {
     shift: [u16; MAX_ROWS],
     row: [RowCoeffs; MAX_ROWS],
     /// cos and sin of `step * c`, the azimuth of internal column c relative to column 0.
-    col_cs: [[f32; 2]; MAX_COLS],
+    col_cos: [f32; MAX_COLS],
+    col_sin: [f32; MAX_COLS],
 }
 
 impl Default for RingTable {
@@ -339,7 +342,8 @@ impl RingTable {
             config: RingFalsConfig::DEFAULT,
             shift: [0; MAX_ROWS],
             row: [RowCoeffs::ZERO; MAX_ROWS],
-            col_cs: [[0.0; 2]; MAX_COLS],
+            col_cos: [0.0; MAX_COLS],
+            col_sin: [0.0; MAX_COLS],
         }
     }
 
@@ -372,7 +376,8 @@ impl RingTable {
 
         for c in 0..cols {
             let a = step * c as f64;
-            self.col_cs[c] = [libm::cos(a) as f32, libm::sin(a) as f32];
+            self.col_cos[c] = libm::cos(a) as f32;
+            self.col_sin[c] = libm::sin(a) as f32;
         }
 
         for r in 0..rows {
@@ -415,13 +420,11 @@ impl RingTable {
                 rc.u[0][k] = a as f32;
                 rc.u[1][k] = x as f32;
                 rc.u[2][k] = y as f32;
-                let uu = [a, x, y];
-                m[0] += uu[0] * uu[0];
-                m[1] += uu[0] * uu[1];
-                m[2] += uu[0] * uu[2];
-                m[3] += uu[1] * uu[1];
-                m[4] += uu[1] * uu[2];
-                m[5] += uu[2] * uu[2];
+                let p = [a * a, a * x, a * y, x * x, x * y, y * y];
+                for i in 0..6 {
+                    m[i] += p[i];
+                    rc.uu[i][k] = p[i] as f32;
+                }
                 rc.gate[k] =
                     if k == CENTRE { 0.0 } else { incidence_gate(alpha, libm::acos(a.clamp(-1.0, 1.0))) };
             }
@@ -432,7 +435,6 @@ impl RingTable {
                 [libm::cos(e) * libm::cos(a), libm::cos(e) * libm::sin(a), libm::sin(e)]
             };
             let vc = ray(r, 0.0);
-            rc.gate5_min = f32::INFINITY;
             for j in 0..25 {
                 let (dr, dc) = (j as isize / 5 - 2, j as isize % 5 - 2);
                 let rn = r as isize + dr;
@@ -441,11 +443,9 @@ impl RingTable {
                 }
                 let vn = ray(rn as usize, dc as f64);
                 let ca = vc[0] * vn[0] + vc[1] * vn[1] + vc[2] * vn[2];
-                rc.gate5[j] =
-                    if j == 12 { 0.0 } else { incidence_gate(alpha, libm::acos(ca.clamp(-1.0, 1.0))) };
-                if j != 12 {
-                    rc.gate5_min = rc.gate5_min.min(rc.gate5[j]);
-                }
+                let g =
+                    if j == 12 { 0.0 } else { incidence_gate(alpha, libm::acos(ca.clamp(-1.0, 1.0))) as f64 };
+                rc.gate5[j] = (KEY_SCALE as f64 * libm::log2(1.0 + g)).min(30000.0) as i16;
             }
             let (adj, det) = adjugate_f64(&m);
             let tr = m[0] + m[3] + m[5];
@@ -495,7 +495,7 @@ impl RingTable {
     #[inline]
     fn azimuth_cs(&self, row: usize, icol: usize) -> (f32, f32) {
         let rc = &self.row[row];
-        let [cc, sc] = self.col_cs[icol];
+        let (cc, sc) = (self.col_cos[icol], self.col_sin[icol]);
         (rc.ca0 * cc - rc.sa0 * sc, rc.sa0 * cc + rc.ca0 * sc)
     }
 }
@@ -727,6 +727,10 @@ const SCRATCH_COLS: usize = MAX_COLS + 2 * PAD;
 const QSCALE: f32 = 32000.0;
 /// Median value of an invalid pixel (above every quantised component).
 const QINVALID: i16 = i16::MAX;
+/// Range keys: 2048 per octave of range (0.034 % resolution); 1/range from 1e-5 to 8 fits.
+const KEY_SCALE: f32 = 2048.0;
+/// Key of a pixel without a return: far from every real key.
+const KEY_EMPTY: i16 = i16::MIN;
 
 /// Pixel states.
 const EMPTY: u8 = 0;
@@ -830,6 +834,9 @@ pub struct RingFalsStats {
     pub invalid_pixels: u32,
     /// Valid pixels solved from an incomplete window (gap-aware path).
     pub gap_solves: u32,
+    /// Pixels whose window had a point off the fitted plane (a crease, an occluding edge) and
+    /// went through the trimmed solve (valid or not).
+    pub trimmed_solves: u32,
     /// Valid pixels that kept their own normal because their median window was too sparse or
     /// the median was degenerate.
     pub median_kept_own: u32,
@@ -869,14 +876,14 @@ pub struct RingFals<const P: usize> {
     qz: [i16; P],
     /// -1 where the pixel is not valid, 0 where valid.
     qinv: [i16; P],
+    /// Range key per pixel for the median's same-surface test: `KEY_SCALE log2(1/range)`;
+    /// [`KEY_EMPTY`] where there is no return.
+    key: [i16; P],
     state: [u8; P],
     /// Per row: the five values of each column's 5-row strip, sorted; [channel * 5 + rank].
     strips: [[i16; SCRATCH_COLS]; 15],
     /// Per row: minus the number of invalid pixels in each column's 5-row strip.
     strip_inv: [i16; SCRATCH_COLS],
-    /// Per row: smallest and largest inverse range in each column's 5-row strip.
-    strip_wmin: [f32; SCRATCH_COLS],
-    strip_wmax: [f32; SCRATCH_COLS],
 }
 
 impl<const P: usize> Default for RingFals<P> {
@@ -901,6 +908,7 @@ impl<const P: usize> RingFals<P> {
                 valid_pixels: 0,
                 invalid_pixels: 0,
                 gap_solves: 0,
+                trimmed_solves: 0,
                 median_kept_own: 0,
                 valid_points: 0,
             },
@@ -915,11 +923,10 @@ impl<const P: usize> RingFals<P> {
             qy: [0; P],
             qz: [0; P],
             qinv: [0; P],
+            key: [0; P],
             state: [EMPTY; P],
             strips: [[0; SCRATCH_COLS]; 15],
             strip_inv: [0; SCRATCH_COLS],
-            strip_wmin: [0.0; SCRATCH_COLS],
-            strip_wmax: [0.0; SCRATCH_COLS],
         }
     }
 
@@ -1023,11 +1030,17 @@ impl<const P: usize> RingFals<P> {
                 *d = if s > 0.0 { rsqrt(s) } else { 0.0 };
             }
             wrap_row(&mut self.inv[r * stride..(r + 1) * stride], cols);
+            let (w, key) =
+                (&self.inv[r * stride..(r + 1) * stride], &mut self.key[r * stride..(r + 1) * stride]);
+            for (k, &w) in key.iter_mut().zip(w) {
+                *k = if w > 0.0 { (log2_approx(w) * KEY_SCALE) as i16 } else { KEY_EMPTY };
+            }
         }
 
         let abs = table.config.range_jump_abs;
         let rel = table.config.fit_tolerance_rel;
         let mut gap_solves = 0u32;
+        let mut trimmed = 0u32;
         let mut valid = 0u32;
         let mut invalid = 0u32;
         for r in 0..rows {
@@ -1037,44 +1050,66 @@ impl<const P: usize> RingFals<P> {
                 let up = &self.inv[base - stride - 1..][..cols + 2];
                 let mid = &self.inv[base - 1..][..cols + 2];
                 let dn = &self.inv[base + stride - 1..][..cols + 2];
-                let cs = &table.col_cs[..cols];
+                let cs = (&table.col_cos[..cols], &table.col_sin[..cols]);
                 let nx = &mut self.nx[base..][..cols];
                 let ny = &mut self.ny[base..][..cols];
                 let nz = &mut self.nz[base..][..cols];
                 let state = &mut self.state[base..][..cols];
                 solve_row_full(rc, abs, rel, up, mid, dn, cs, nx, ny, nz, state);
             }
-            // Incomplete windows: the gap-aware solve, pixel by pixel.
-            for c in 0..cols {
-                let px = base + c;
-                match self.state[px] {
-                    PARTIAL => {
-                        let w = window(&self.inv, px, stride);
-                        let (ca, sa) = table.azimuth_cs(r, c);
-                        match solve_partial(rc, &table.config, w, ca, sa) {
-                            Some(n) => {
-                                self.nx[px] = n[0];
-                                self.ny[px] = n[1];
-                                self.nz[px] = n[2];
-                                self.state[px] = GAP;
-                                gap_solves += 1;
-                                valid += 1;
-                            }
-                            None => {
-                                self.nx[px] = 0.0;
-                                self.ny[px] = 0.0;
-                                self.nz[px] = 0.0;
-                                self.state[px] = INVALID;
-                                invalid += 1;
-                            }
-                        }
+            // Incomplete windows, 8 columns at a time: the masked least squares over the
+            // neighbours present; windows that still fail the plane-fit check go to the
+            // trimmed solve one by one.
+            let mut c0 = 0;
+            while c0 < cols {
+                let c = c0.min(cols - LANES);
+                c0 += LANES;
+                let px0 = base + c;
+                if !self.state[px0..px0 + LANES].contains(&PARTIAL) {
+                    continue;
+                }
+                let w9: [[f32; LANES]; 9] = core::array::from_fn(|k| {
+                    let o = px0 + (k / 3) * stride + (k % 3) - stride - 1;
+                    core::array::from_fn(|l| self.inv[o + l])
+                });
+                let cs: [(f32, f32); LANES] = core::array::from_fn(|l| table.azimuth_cs(r, c + l));
+                let (ca, sa) = (cs.map(|v| v.0), cs.map(|v| v.1));
+                let (n, verdict) = solve_group_masked(rc, &table.config, &w9, &ca, &sa);
+                for l in 0..LANES {
+                    let px = px0 + l;
+                    if self.state[px] != PARTIAL {
+                        continue;
                     }
+                    let solved = match verdict[l] {
+                        GAP => Some([n[0][l], n[1][l], n[2][l]]),
+                        TRIM => {
+                            trimmed += 1;
+                            let w: [f32; 9] = core::array::from_fn(|k| w9[k][l]);
+                            solve_trimmed(rc, &table.config, w, cs[l].0, cs[l].1)
+                        }
+                        _ => None,
+                    };
+                    let v = solved.unwrap_or([0.0; 3]);
+                    self.nx[px] = v[0];
+                    self.ny[px] = v[1];
+                    self.nz[px] = v[2];
+                    self.state[px] = if solved.is_some() { GAP } else { INVALID };
+                }
+            }
+            for &st in &self.state[base..base + cols] {
+                match st {
                     FULL => valid += 1,
+                    GAP => {
+                        valid += 1;
+                        gap_solves += 1;
+                    }
+                    INVALID => invalid += 1,
                     _ => {}
                 }
             }
         }
         self.stats.gap_solves = gap_solves;
+        self.stats.trimmed_solves = trimmed;
         self.stats.valid_pixels = valid;
         self.stats.invalid_pixels = invalid;
     }
@@ -1134,13 +1169,6 @@ impl<const P: usize> RingFals<P> {
                 for (j, d) in dst.iter_mut().enumerate() {
                     *d = s[0][j] + s[1][j] + s[2][j] + s[3][j] + s[4][j];
                 }
-                let w: [&[f32]; 5] = core::array::from_fn(|i| &self.inv[top + i * stride..][..stride]);
-                let (lo, hi) = (&mut self.strip_wmin[..stride], &mut self.strip_wmax[..stride]);
-                for j in 0..stride {
-                    let v = [w[0][j], w[1][j], w[2][j], w[3][j], w[4][j]];
-                    lo[j] = fmin(fmin(fmin(v[0], v[1]), fmin(v[2], v[3])), v[4]);
-                    hi[j] = fmax(fmax(fmax(v[0], v[1]), fmax(v[2], v[3])), v[4]);
-                }
             }
 
             let rc = &table.row[r];
@@ -1150,7 +1178,7 @@ impl<const P: usize> RingFals<P> {
             let mut c0 = 0;
             while c0 < cols {
                 let c0_eff = c0.min(cols - LANES);
-                kept_own += self.median_group(table, rc, r, base, c0_eff, c0 - c0_eff, min_valid);
+                kept_own += self.median_group(table, rc, base, c0_eff, c0 - c0_eff, min_valid);
                 c0 += LANES;
             }
         }
@@ -1164,7 +1192,6 @@ impl<const P: usize> RingFals<P> {
         &mut self,
         table: &RingTable,
         rc: &RowCoeffs,
-        r: usize,
         base: usize,
         c0: usize,
         first_lane: usize,
@@ -1177,95 +1204,108 @@ impl<const P: usize> RingFals<P> {
         if st.iter().all(|&s| s != FULL && s != GAP) {
             return 0;
         }
-        // A group whose windows are all complete and lie within the smallest same-surface gate
-        // of each other (a smooth surface) takes the fast path: the sorted column strips are
-        // shared between windows.
+        // Which window pixels take part, per lane: a valid normal on the centre's surface (the
+        // range gate of the solve for the pixel's angular distance, on range keys). Leaving out
+        // the wall behind a pole keeps the pole's edge normals from being pulled toward the
+        // wall's.
         let sc = c0 + PAD; // strip column of the lane's own column
-        let all_valid = (sc - 2..sc + LANES + 2).all(|j| self.strip_inv[j] == 0);
-        let coherent = all_valid && {
-            let (mut lo, mut hi) = (f32::INFINITY, 0.0f32);
-            for j in sc - 2..sc + LANES + 2 {
-                lo = fmin(lo, self.strip_wmin[j]);
-                hi = fmax(hi, self.strip_wmax[j]);
+        let kc = lane_load(&self.key[centre..]);
+        // Absolute part of the gate: log2(1 + abs / r) <= abs / (r ln 2).
+        let tc: Lane = core::array::from_fn(|l| {
+            (self.inv[centre + l] * (table.config.range_jump_abs * KEY_SCALE * core::f32::consts::LOG2_E))
+                .min(30000.0) as i16
+        });
+        let mut masks = [[0i16; LANES]; 25];
+        let mut any: Lane = [0; LANES];
+        for dr in 0..5 {
+            let row0 = centre + dr * stride - 2 * stride - 2;
+            for dc in 0..5 {
+                let j = 5 * dr + dc;
+                let inv = lane_load(&self.qinv[row0 + dc..]);
+                let kq = lane_load(&self.key[row0 + dc..]);
+                let g = rc.gate5[j];
+                masks[j] = core::array::from_fn(|l| {
+                    let d = kc[l].saturating_sub(kq[l]);
+                    let d = d.max(0i16.saturating_sub(d));
+                    inv[l] | -((d.saturating_sub(tc[l]) > g) as i16)
+                });
+                for l in 0..LANES {
+                    any[l] |= masks[j][l];
+                }
             }
-            hi - lo <= lo * (rc.gate5_min + table.config.range_jump_abs * lo)
-        };
+        }
         let mut med = [[0i16; LANES]; 3];
         let mut neg_count: Lane = [0; LANES];
-        if coherent {
+        if any == [0; LANES] {
+            // Every window complete and on one surface: the sorted column strips are shared
+            // between windows.
             for (ch, m) in med.iter_mut().enumerate() {
                 let mut v = [[0i16; LANES]; 25];
                 for dc in 0..5 {
                     for k in 0..5 {
-                        let s = &self.strips[ch * 5 + k][sc + dc - 2..][..LANES];
-                        v[5 * dc + k] = lane_load(s);
+                        v[5 * dc + k] = lane_load(&self.strips[ch * 5 + k][sc + dc - 2..]);
                     }
                 }
                 *m = median25_presorted(&mut v);
             }
         } else {
-            // General path. A window pixel is left out when it has no valid normal or is not on
-            // the centre's surface (the range gate of the solve, for the pixel's angular
-            // distance): leaving out the wall behind a pole keeps the pole's edge normals from
-            // being pulled toward the wall's. Left-out pixels enter the network as alternately
-            // -inf and +inf sentinels (per window, in scan order), so the network's middle
-            // output is the median of the pixels kept (the lower median for an even count).
-            let wc: [f32; LANES] = core::array::from_fn(|l| self.inv[centre + l]);
-            let t: [f32; LANES] = core::array::from_fn(|l| table.config.range_jump_abs * wc[l]);
-            let planes = [&self.qx, &self.qy, &self.qz];
-            let mut vals = [[[0i16; LANES]; 25]; 3];
+            // Left-out pixels enter the network as alternately -inf and +inf sentinels (per
+            // window, in scan order), so that the network's middle output is the median of the
+            // pixels kept (the lower median for an even count).
+            let mut flips = [[0i16; LANES]; 25];
             let mut tog: Lane = [0; LANES];
-            for dr in 0..5 {
-                let row0 = centre + dr * stride - 2 * stride - 2;
-                for dc in 0..5 {
-                    let j = 5 * dr + dc;
-                    let inv = lane_load(&self.qinv[row0 + dc..][..LANES]);
-                    let w = &self.inv[row0 + dc..][..LANES];
-                    let g = rc.gate5[j];
-                    let m: Lane = core::array::from_fn(|l| {
-                        let off = (wc[l] - w[l]).abs() > w[l] * (g + t[l]);
-                        inv[l] | if off { -1 } else { 0 }
-                    });
-                    for l in 0..LANES {
-                        neg_count[l] += m[l];
-                        tog[l] ^= m[l];
-                    }
-                    let flip: Lane = core::array::from_fn(|l| tog[l] & m[l]);
-                    for (ch, q) in planes.iter().enumerate() {
-                        let x = lane_load(&q[row0 + dc..][..LANES]);
-                        vals[ch][j] = core::array::from_fn(|l| x[l] ^ flip[l]);
-                    }
+            for j in 0..25 {
+                let m = masks[j];
+                for l in 0..LANES {
+                    neg_count[l] += m[l];
+                    tog[l] ^= m[l];
+                    flips[j][l] = tog[l] & m[l];
                 }
             }
-            for ch in 0..3 {
-                med[ch] = median25(&mut vals[ch]);
+            let planes = [&self.qx, &self.qy, &self.qz];
+            for (ch, q) in planes.iter().enumerate() {
+                // A fresh local array per channel, indexed by constants only in the network, so
+                // that it lives in registers.
+                let mut v = [[0i16; LANES]; 25];
+                for dr in 0..5 {
+                    let row0 = centre + dr * stride - 2 * stride - 2;
+                    for dc in 0..5 {
+                        let j = 5 * dr + dc;
+                        let x = lane_load(&q[row0 + dc..]);
+                        v[j] = core::array::from_fn(|l| x[l] ^ flips[j][l]);
+                    }
+                }
+                med[ch] = median25(&mut v);
             }
         }
 
         // Back to unit vectors; fall back to the pixel's own normal when the window is too
-        // sparse, the median is degenerate or it faces away from the sensor.
-        let mut kept = 0;
+        // sparse, the median is degenerate (|m| < 0.5) or it faces away from the sensor.
+        let mut use_med = [false; LANES];
+        let mut n = [[0.0f32; LANES]; 3];
         for l in 0..LANES {
-            let px = centre + l;
-            if st[l] != FULL && st[l] != GAP {
-                continue;
-            }
-            let nvalid = 25 + neg_count[l];
+            let valid = (st[l] == FULL) | (st[l] == GAP);
             let m = [med[0][l] as f32, med[1][l] as f32, med[2][l] as f32];
             let n2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2];
-            let (ca, sa) = table.azimuth_cs(r, c0 + l);
+            let [cc, sc] = [table.col_cos[c0 + l], table.col_sin[c0 + l]];
+            let (ca, sa) = (rc.ca0 * cc - rc.sa0 * sc, rc.sa0 * cc + rc.ca0 * sc);
             let facing = rc.ce * (ca * m[0] + sa * m[1]) + rc.se * m[2];
-            // |m| >= 0.5 (in units of QSCALE) and facing the sensor.
-            if nvalid >= min_valid && n2 >= 0.25 * QSCALE * QSCALE && facing < 0.0 {
-                let s = rsqrt(n2);
-                self.nx[px] = m[0] * s;
-                self.ny[px] = m[1] * s;
-                self.nz[px] = m[2] * s;
-            } else {
-                kept += 1;
+            use_med[l] =
+                valid & (25 + neg_count[l] >= min_valid) & (n2 >= 0.25 * QSCALE * QSCALE) & (facing < 0.0);
+            let s = rsqrt(n2);
+            for ch in 0..3 {
+                n[ch][l] = m[ch] * s;
             }
         }
-        kept
+        let planes = [&mut self.nx, &mut self.ny, &mut self.nz];
+        for (ch, plane) in planes.into_iter().enumerate() {
+            let dst = &mut plane[centre..centre + LANES];
+            for l in 0..LANES {
+                dst[l] = if use_med[l] { n[ch][l] } else { dst[l] };
+            }
+        }
+        let valid = st.iter().filter(|&&s| s == FULL || s == GAP).count();
+        (valid - use_med.iter().filter(|&&u| u).count()) as u32
     }
 
     /// Stage 4: the normal of every point, from its pixel.
@@ -1347,14 +1387,9 @@ impl<const P: usize> RingFals<P> {
         self.qy[..n].fill(QINVALID);
         self.qz[..n].fill(QINVALID);
         self.qinv[..n].fill(-1);
+        self.key[..n].fill(KEY_EMPTY);
         self.state[..n].fill(EMPTY);
     }
-}
-
-/// The nine inverse ranges of the window around padded pixel `px`, in window order.
-#[inline]
-fn window(inv: &[f32], px: usize, stride: usize) -> [f32; 9] {
-    core::array::from_fn(|k| inv[px + (k / 3) * stride + (k % 3) - stride - 1])
 }
 
 /// Copies the two image columns at each end of a padded row into the opposite pad columns.
@@ -1365,6 +1400,17 @@ fn wrap_row<T: Copy>(row: &mut [T], cols: usize) {
     row[1] = row[cols + 1];
     row[cols + PAD] = row[PAD];
     row[cols + PAD + 1] = row[PAD + 1];
+}
+
+/// log2(x) for finite x > 0 from the float's exponent and a quartic in its mantissa (error
+/// below 2.1e-4), in f32 arithmetic only so that it vectorises.
+#[inline(always)]
+fn log2_approx(x: f32) -> f32 {
+    let bits = x.to_bits();
+    let e = ((bits >> 23) & 0xff) as i32 - 127;
+    let f = f32::from_bits((bits & 0x007f_ffff) | 0x3f80_0000);
+    let p = -2.496_773_8 + f * (4.028_373 + f * (-2.081_060_2 + f * (0.628_815_7 + f * -0.079_150_37)));
+    e as f32 + p
 }
 
 /// 1/sqrt(x) for x > 0 in f32 arithmetic only (so that it vectorises and gives the same bits on
@@ -1391,14 +1437,15 @@ fn solve_row_full(
     up: &[f32],
     mid: &[f32],
     dn: &[f32],
-    cs: &[[f32; 2]],
+    cs: (&[f32], &[f32]),
     nx: &mut [f32],
     ny: &mut [f32],
     nz: &mut [f32],
     state: &mut [u8],
 ) {
     let n = nx.len();
-    let (up, mid, dn, cs) = (&up[..n + 2], &mid[..n + 2], &dn[..n + 2], &cs[..n]);
+    let (up, mid, dn) = (&up[..n + 2], &mid[..n + 2], &dn[..n + 2]);
+    let (col_cos, col_sin) = (&cs.0[..n], &cs.1[..n]);
     let (ny, nz, state) = (&mut ny[..n], &mut nz[..n], &mut state[..n]);
     let [u0, u1, u2] = rc.u;
     let mi = rc.minv;
@@ -1425,10 +1472,8 @@ fn solve_row_full(
         let tol = wc * (rel + abs * wc);
         let ssr = ww - (m0 * b[0] + m1 * b[1] + m2 * b[2]);
         let mut ok = wc > 0.0 && ssr <= tol * tol;
-        let (ca, sa) = {
-            let [cc, sc] = cs[j];
-            (rc.ca0 * cc - rc.sa0 * sc, rc.sa0 * cc + rc.ca0 * sc)
-        };
+        let (cc, sc) = (col_cos[j], col_sin[j]);
+        let (ca, sa) = (rc.ca0 * cc - rc.sa0 * sc, rc.sa0 * cc + rc.ca0 * sc);
         let (v, o) = to_global(rc, m0, m1, m2, ca, sa);
         ok &= nominal & o;
         nx[j] = if ok { v[0] } else { 0.0 };
@@ -1459,7 +1504,7 @@ fn to_global(rc: &RowCoeffs, m0: f32, m1: f32, m2: f32, ca: f32, sa: f32) -> ([f
     let n2 = x * x + y * y + z * z;
     // FALS normals point away from the sensor (m0 > 0): flip them toward it.
     let s = -rsqrt(n2);
-    let ok = m0 > 0.0 && n2 > 1e-30 && n2 < 1e30;
+    let ok = (m0 > 0.0) & (n2 > 1e-30) & (n2 < 1e30);
     ([x * s, y * s, z * s], ok)
 }
 
@@ -1486,17 +1531,94 @@ const SPANS_PLANE: [bool; 512] = {
     t
 };
 
-/// The gap-aware solve of one pixel: least squares over the window points actually present
-/// (a return, within the range gate), trimmed: while a point is off the fitted plane, the
-/// neighbour whose removal fits the rest best is dropped and the rest solved again. `None` when
-/// too few points remain, they lie on one image line, the system is ill-conditioned, or the
-/// centre itself is off the plane of its neighbours.
-fn solve_partial(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa: f32) -> Option<[f32; 3]> {
+/// Verdict of the masked solve: the window fits but should be trimmed point by point.
+const TRIM: u8 = 5;
+
+/// The gap-aware solve of 8 neighbouring pixels at once (branch-free, so it vectorises): the
+/// least squares over each window's present neighbours (a return, within the range gate), `M'`
+/// and `b'` as masked sums. Per lane: GAP with the normal when the plane fits every point,
+/// TRIM when the system is sound but some point is off the plane, INVALID when too few points
+/// are present or the system is ill-conditioned (which includes all points on one image line).
+fn solve_group_masked(
+    rc: &RowCoeffs,
+    cfg: &RingFalsConfig,
+    w9: &[[f32; LANES]; 9],
+    ca: &[f32; LANES],
+    sa: &[f32; LANES],
+) -> ([[f32; LANES]; 3], [u8; LANES]) {
+    let wc = w9[CENTRE];
+    let t: [f32; LANES] = core::array::from_fn(|l| cfg.range_jump_abs * wc[l]);
+    let mut m = [[0.0f32; LANES]; 6];
+    let mut b = [[0.0f32; LANES]; 3];
+    let mut ww = [0.0f32; LANES];
+    let mut count = [0.0f32; LANES];
+    for k in 0..9 {
+        if (rc.exists >> k) & 1 == 0 {
+            continue;
+        }
+        let g = rc.gate[k];
+        let uu: [f32; 6] = core::array::from_fn(|i| rc.uu[i][k]);
+        let u = [rc.u[0][k], rc.u[1][k], rc.u[2][k]];
+        let w = &w9[k];
+        for l in 0..LANES {
+            let present = (w[l] > 0.0) & ((wc[l] - w[l]).abs() <= w[l] * (g + t[l]));
+            let p = if present { 1.0f32 } else { 0.0 };
+            let pw = p * w[l];
+            for i in 0..6 {
+                m[i][l] += p * uu[i];
+            }
+            b[0][l] += pw * u[0];
+            b[1][l] += pw * u[1];
+            b[2][l] += pw * u[2];
+            ww[l] += pw * w[l];
+            count[l] += p;
+        }
+    }
+    let mut out = [[0.0f32; LANES]; 3];
+    let mut verdict = [INVALID; LANES];
+    for l in 0..LANES {
+        let mm = [m[0][l], m[1][l], m[2][l], m[3][l], m[4][l], m[5][l]];
+        let bb = [b[0][l], b[1][l], b[2][l]];
+        let (adj, det) = adjugate_f32(&mm);
+        let tr = mm[0] + mm[3] + mm[5];
+        let sound = (wc[l] > 0.0)
+            & (count[l] >= cfg.min_points as f32)
+            & (det > 0.0)
+            & (27.0 * det >= cfg.min_conditioning * tr * tr * tr);
+        let s = 1.0 / det;
+        let m0 = (adj[0] * bb[0] + adj[1] * bb[1] + adj[2] * bb[2]) * s;
+        let m1 = (adj[1] * bb[0] + adj[3] * bb[1] + adj[4] * bb[2]) * s;
+        let m2 = (adj[2] * bb[0] + adj[4] * bb[1] + adj[5] * bb[2]) * s;
+        let tol = wc[l] * (cfg.fit_tolerance_rel + t[l]);
+        let fits = ww[l] - (m0 * bb[0] + m1 * bb[1] + m2 * bb[2]) <= tol * tol;
+        let (v, ok) = to_global(rc, m0, m1, m2, ca[l], sa[l]);
+        verdict[l] = if sound & fits & ok {
+            GAP
+        } else if sound {
+            TRIM
+        } else {
+            INVALID
+        };
+        out[0][l] = v[0];
+        out[1][l] = v[1];
+        out[2][l] = v[2];
+    }
+    (out, verdict)
+}
+
+/// The trimmed solve of one pixel whose masked solve did not fit: while a point is off the
+/// fitted plane, drop the neighbour with the largest deleted residual (its residual divided by
+/// 1 - its leverage, the residual it would have in a fit without it, which an outlier cannot
+/// hide by pulling the plane toward itself) and solve again. `None` when too few points remain,
+/// they lie on one image line, the system is ill-conditioned, or only the centre is off the
+/// plane of its neighbours.
+fn solve_trimmed(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa: f32) -> Option<[f32; 3]> {
     let wc = w[CENTRE];
     if !(wc > 0.0) {
         return None;
     }
     let t = cfg.range_jump_abs * wc;
+    let tol = wc * (cfg.fit_tolerance_rel + t);
     let mut mask = 0usize;
     for k in 0..9 {
         let present = rc.exists & (1 << k) != 0 && w[k] > 0.0 && (wc - w[k]).abs() <= w[k] * (rc.gate[k] + t);
@@ -1504,89 +1626,66 @@ fn solve_partial(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa:
             mask |= 1 << k;
         }
     }
-    let mut fit = fit_window(rc, cfg, &w, t, mask)?;
     // Each pass removes one neighbour; a window has at most 8.
-    for _ in 0..8 {
-        if fit.worst <= 1.0 {
-            let (n, ok) = to_global(rc, fit.m[0], fit.m[1], fit.m[2], ca, sa);
-            return if ok { Some(n) } else { None };
+    for _ in 0..9 {
+        if (mask.count_ones() as u8) < cfg.min_points || !SPANS_PLANE[mask] {
+            return None;
         }
-        let mut best: Option<(usize, Fit)> = None;
+        let mut m = [0.0f32; 6];
+        let mut b = [0.0f32; 3];
         for k in 0..9 {
-            if k == CENTRE || mask & (1 << k) == 0 {
+            if mask & (1 << k) != 0 {
+                for i in 0..6 {
+                    m[i] += rc.uu[i][k];
+                }
+                b[0] += rc.u[0][k] * w[k];
+                b[1] += rc.u[1][k] * w[k];
+                b[2] += rc.u[2][k] * w[k];
+            }
+        }
+        let (adj, det) = adjugate_f32(&m);
+        let tr = m[0] + m[3] + m[5];
+        if !(det > 0.0 && 27.0 * det >= cfg.min_conditioning * tr * tr * tr) {
+            return None;
+        }
+        let s = 1.0 / det;
+        let sol = [
+            (adj[0] * b[0] + adj[1] * b[1] + adj[2] * b[2]) * s,
+            (adj[1] * b[0] + adj[3] * b[1] + adj[4] * b[2]) * s,
+            (adj[2] * b[0] + adj[4] * b[1] + adj[5] * b[2]) * s,
+        ];
+        let mut fits = true;
+        let mut worst = (0.0f32, usize::MAX);
+        for k in 0..9 {
+            if mask & (1 << k) == 0 {
                 continue;
             }
-            if let Some(f) = fit_window(rc, cfg, &w, t, mask & !(1 << k))
-                && best.as_ref().is_none_or(|(_, b)| f.worst < b.worst)
-            {
-                best = Some((mask & !(1 << k), f));
+            let u = [rc.u[0][k], rc.u[1][k], rc.u[2][k]];
+            let e = (u[0] * sol[0] + u[1] * sol[1] + u[2] * sol[2] - w[k]).abs();
+            fits &= e <= tol;
+            if k != CENTRE {
+                // Leverage h = u^T M'^-1 u.
+                let h = (adj[0] * u[0] * u[0]
+                    + adj[3] * u[1] * u[1]
+                    + adj[5] * u[2] * u[2]
+                    + 2.0 * (adj[1] * u[0] * u[1] + adj[2] * u[0] * u[2] + adj[4] * u[1] * u[2]))
+                    * s;
+                let d = e / (1.0 - h).max(1e-3);
+                if !(d <= worst.0) {
+                    worst = (d, k);
+                }
             }
         }
-        (mask, fit) = best?;
+        if fits {
+            let (n, ok) = to_global(rc, sol[0], sol[1], sol[2], ca, sa);
+            return if ok { Some(n) } else { None };
+        }
+        if worst.1 == usize::MAX {
+            return None;
+        }
+        mask &= !(1 << worst.1);
     }
     None
-}
-
-/// A least-squares plane over a window subset.
-#[derive(Clone, Copy)]
-struct Fit {
-    /// The solution in the scaled local frame.
-    m: [f32; 3],
-    /// Largest distance of a point from the plane, relative to its tolerance (fits when <= 1).
-    worst: f32,
-}
-
-/// Solves the plane over the window points in `mask`; `None` when they are too few, on one image
-/// line or ill-conditioned.
-fn fit_window(rc: &RowCoeffs, cfg: &RingFalsConfig, w: &[f32; 9], t: f32, mask: usize) -> Option<Fit> {
-    if (mask.count_ones() as u8) < cfg.min_points || !SPANS_PLANE[mask] {
-        return None;
-    }
-    let mut m = [0.0f32; 6];
-    let mut b = [0.0f32; 3];
-    for k in 0..9 {
-        if mask & (1 << k) == 0 {
-            continue;
-        }
-        let u = [rc.u[0][k], rc.u[1][k], rc.u[2][k]];
-        m[0] += u[0] * u[0];
-        m[1] += u[0] * u[1];
-        m[2] += u[0] * u[2];
-        m[3] += u[1] * u[1];
-        m[4] += u[1] * u[2];
-        m[5] += u[2] * u[2];
-        b[0] += u[0] * w[k];
-        b[1] += u[1] * w[k];
-        b[2] += u[2] * w[k];
-    }
-    let (adj, det) = adjugate_f32(&m);
-    let tr = m[0] + m[3] + m[5];
-    if !(det > 0.0 && 27.0 * det >= cfg.min_conditioning * tr * tr * tr) {
-        return None;
-    }
-    // m = M'^-1 b' = adj(M') b' / det.
-    let s = 1.0 / det;
-    let sol = [
-        (adj[0] * b[0] + adj[1] * b[1] + adj[2] * b[2]) * s,
-        (adj[1] * b[0] + adj[3] * b[1] + adj[4] * b[2]) * s,
-        (adj[2] * b[0] + adj[4] * b[1] + adj[5] * b[2]) * s,
-    ];
-    let mut worst = 0.0f32;
-    for k in 0..9 {
-        if mask & (1 << k) != 0 {
-            let pred = rc.u[0][k] * sol[0] + rc.u[1][k] * sol[1] + rc.u[2][k] * sol[2];
-            let r = (pred - w[k]).abs() / (w[CENTRE] * (cfg.fit_tolerance_rel + t));
-            // NaN counts as off the plane.
-            worst = if r <= worst {
-                worst
-            } else if r.is_nan() {
-                f32::INFINITY
-            } else {
-                r
-            };
-        }
-    }
-    Some(Fit { m: sol, worst })
 }
 
 /// Quantises one padded row of normals for the median: valid pixels to 1/QSCALE, the rest to
@@ -1632,17 +1731,6 @@ fn sort_strips(s: [&[i16]; 5], d: [&mut [i16]; 5]) {
         d3[j] = v[3];
         d4[j] = v[4];
     }
-}
-
-/// Minimum and maximum written as compare-and-select, which x86 does in one instruction.
-#[inline(always)]
-fn fmin(a: f32, b: f32) -> f32 {
-    if a < b { a } else { b }
-}
-
-#[inline(always)]
-fn fmax(a: f32, b: f32) -> f32 {
-    if a > b { a } else { b }
 }
 
 #[inline(always)]
@@ -1875,6 +1963,16 @@ mod tests {
             let got = rsqrt(x) as f64;
             assert!(((got - want) / want).abs() < 2e-7, "x {x}: {got} vs {want}");
             x *= 1.013;
+        }
+    }
+
+    #[test]
+    fn log2_approx_is_accurate() {
+        let mut x = 1e-5f32;
+        while x < 1e3 {
+            let e = (log2_approx(x) as f64 - libm::log2(x as f64)).abs();
+            assert!(e < 2.2e-4, "x {x}: error {e}");
+            x *= 1.0071;
         }
     }
 
