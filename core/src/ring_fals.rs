@@ -108,11 +108,12 @@ pub struct RingFalsConfig {
     /// Absolute part of the range-jump gate (metres), for range noise. Default 0.05 m, five
     /// standard deviations of a typical 1 cm range noise.
     pub range_jump_abs: f32,
-    /// Relative part of the plane-fit check: after the solve, every window point must lie on
-    /// the fitted plane, its range within `range_jump_abs + fit_tolerance_rel * r` of the
-    /// plane's range along its ray. A full window that fails goes to the gap-aware path, which
-    /// drops the worst point and solves again (a trimmed least squares); if the centre itself
-    /// is off the plane of its neighbours, or too few points remain, the pixel is invalid.
+    /// Relative part of the plane-fit check: after the solve, the window's points must lie on
+    /// the fitted plane: the squares of their range residuals (along their rays) may sum to at
+    /// most `4 (range_jump_abs + fit_tolerance_rel r)^2` (noise up to 0.8 of that tolerance per
+    /// point passes, one point off by more than 2.2 times it fails). A window that fails is
+    /// solved again without its worst point (the one with the largest deleted residual: a
+    /// trimmed least squares) until it fits; if too few points remain, the pixel is invalid.
     /// This is what separates a pole from the wall behind it where the rows are degrees apart
     /// (the top and bottom beams of a VLP-32C) and the range gate alone must admit large
     /// jumps. In [0.002, 1] (the full-window test sums squared inverse ranges in f32, whose
@@ -1464,14 +1465,13 @@ fn solve_row_full(
         let m0 = mi[0] * b[0] + mi[1] * b[1] + mi[2] * b[2];
         let m1 = mi[1] * b[0] + mi[3] * b[1] + mi[4] * b[2];
         let m2 = mi[2] * b[0] + mi[4] * b[1] + mi[5] * b[2];
-        // Plane-fit check in one number: the sum of squared residuals of the nine equations,
-        // sum w^2 - m . b', must stay below tol^2 with tol = wc (rel + abs wc), the inverse-range
-        // form of |r' - r| <= rel r + abs. It implies every single residual is within tol. A
-        // neighbour without a return (w = 0, a point at infinity) fails it, so does one on
-        // another surface; neighbours outside the image (u = 0, w = 0) do not count.
+        // Plane-fit check (see FIT_K): the sum of squared residuals of the nine equations,
+        // sum w^2 - m . b'. A neighbour without a return (w = 0, a point at infinity) fails it,
+        // so does one on another surface; neighbours outside the image (u = 0, w = 0) do not
+        // count.
         let tol = wc * (rel + abs * wc);
         let ssr = ww - (m0 * b[0] + m1 * b[1] + m2 * b[2]);
-        let mut ok = wc > 0.0 && ssr <= tol * tol;
+        let mut ok = wc > 0.0 && ssr <= FIT_K * tol * tol;
         let (cc, sc) = (col_cos[j], col_sin[j]);
         let (ca, sa) = (rc.ca0 * cc - rc.sa0 * sc, rc.sa0 * cc + rc.ca0 * sc);
         let (v, o) = to_global(rc, m0, m1, m2, ca, sa);
@@ -1530,6 +1530,13 @@ const SPANS_PLANE: [bool; 512] = {
     }
     t
 };
+
+/// The plane-fit check: a window's squared residuals (in inverse range) may sum to at most
+/// `FIT_K tol^2`, `tol = wc (fit_tolerance_rel + range_jump_abs wc)` being the inverse-range form
+/// of `fit_tolerance_rel r + range_jump_abs`. Range noise of `s` per point passes while its
+/// expected sum `6 s^2` stays below that (`s` up to 0.8 `tol`); a single point off the plane by
+/// more than about 2.2 `tol` fails it, wherever the noise.
+const FIT_K: f32 = 4.0;
 
 /// Verdict of the masked solve: the window fits but should be trimmed point by point.
 const TRIM: u8 = 5;
@@ -1590,7 +1597,7 @@ fn solve_group_masked(
         let m1 = (adj[1] * bb[0] + adj[3] * bb[1] + adj[4] * bb[2]) * s;
         let m2 = (adj[2] * bb[0] + adj[4] * bb[1] + adj[5] * bb[2]) * s;
         let tol = wc[l] * (cfg.fit_tolerance_rel + t[l]);
-        let fits = ww[l] - (m0 * bb[0] + m1 * bb[1] + m2 * bb[2]) <= tol * tol;
+        let fits = ww[l] - (m0 * bb[0] + m1 * bb[1] + m2 * bb[2]) <= FIT_K * tol * tol;
         let (v, ok) = to_global(rc, m0, m1, m2, ca[l], sa[l]);
         verdict[l] = if sound & fits & ok {
             GAP
@@ -1611,7 +1618,7 @@ fn solve_group_masked(
 /// 1 - its leverage, the residual it would have in a fit without it, which an outlier cannot
 /// hide by pulling the plane toward itself) and solve again. `None` when too few points remain,
 /// they lie on one image line, the system is ill-conditioned, or only the centre is off the
-/// plane of its neighbours.
+/// plane of its neighbours, or more than [`MAX_TRIM`] points would have to go.
 fn solve_trimmed(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa: f32) -> Option<[f32; 3]> {
     let wc = w[CENTRE];
     if !(wc > 0.0) {
@@ -1626,8 +1633,9 @@ fn solve_trimmed(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa:
             mask |= 1 << k;
         }
     }
-    // Each pass removes one neighbour; a window has at most 8.
-    for _ in 0..9 {
+    // Each pass removes one neighbour, at most MAX_TRIM: a window that needs more is not a
+    // surface with a few points off it (an edge, a crease) but clutter without a plane.
+    for pass in 0..=MAX_TRIM {
         if (mask.count_ones() as u8) < cfg.min_points || !SPANS_PLANE[mask] {
             return None;
         }
@@ -1654,7 +1662,7 @@ fn solve_trimmed(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa:
             (adj[1] * b[0] + adj[3] * b[1] + adj[4] * b[2]) * s,
             (adj[2] * b[0] + adj[4] * b[1] + adj[5] * b[2]) * s,
         ];
-        let mut fits = true;
+        let mut ssr = 0.0f32;
         let mut worst = (0.0f32, usize::MAX);
         for k in 0..9 {
             if mask & (1 << k) == 0 {
@@ -1662,7 +1670,7 @@ fn solve_trimmed(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa:
             }
             let u = [rc.u[0][k], rc.u[1][k], rc.u[2][k]];
             let e = (u[0] * sol[0] + u[1] * sol[1] + u[2] * sol[2] - w[k]).abs();
-            fits &= e <= tol;
+            ssr += e * e;
             if k != CENTRE {
                 // Leverage h = u^T M'^-1 u.
                 let h = (adj[0] * u[0] * u[0]
@@ -1676,17 +1684,21 @@ fn solve_trimmed(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa:
                 }
             }
         }
-        if fits {
+        if ssr <= FIT_K * tol * tol {
             let (n, ok) = to_global(rc, sol[0], sol[1], sol[2], ca, sa);
             return if ok { Some(n) } else { None };
         }
-        if worst.1 == usize::MAX {
+        if worst.1 == usize::MAX || pass == MAX_TRIM {
             return None;
         }
         mask &= !(1 << worst.1);
     }
     None
 }
+
+/// Most points the trimmed solve may drop from a window (an occluding edge takes two or three,
+/// a crease between two planes three).
+const MAX_TRIM: usize = 3;
 
 /// Quantises one padded row of normals for the median: valid pixels to 1/QSCALE, the rest to
 /// the invalid sentinel with `qinv = -1`.

@@ -19,11 +19,13 @@ pub struct PcaNormal {
 }
 
 impl PcaNormal {
-    /// Planarity test: the smallest eigenvalue is below `ratio` times the middle one (a flat,
-    /// not line-like neighbourhood).
-    pub fn is_planar(&self, ratio: f64) -> bool {
+    /// Planarity test: the smallest eigenvalue is at most `ratio` times the middle one (flat)
+    /// and the middle one at least `spread` times the largest (spread in two directions: ten
+    /// points along one scan line look flat to PCA, but their smallest-eigenvalue direction is
+    /// only the direction across the line).
+    pub fn is_planar(&self, ratio: f64, spread: f64) -> bool {
         let [l0, l1, l2] = self.eigenvalues;
-        l1 > 0.0 && l2 > 0.0 && l0 <= ratio * l1
+        l1 > 0.0 && l2 > 0.0 && l0 <= ratio * l1 && l1 >= spread * l2
     }
 }
 

@@ -2,3 +2,4 @@
 //! files and ROS bags, and writes trajectories, maps and plots.
 
 pub mod knn_pca;
+pub mod normals;
