@@ -74,8 +74,9 @@
 //! allocates, nothing reads a clock; the same input gives bit-identical output on every target
 //! (only `+ - * /`, comparisons and integer operations are used per scan: no `sqrt`, no FMA
 //! contraction). The inner loops are written over planar buffers without branches so that they
-//! auto-vectorise (SSE2 on x86-64, NEON on aarch64); the median runs on normals quantised to
-//! 1/32000 (0.002 degrees) in 16-bit lanes with sorting networks.
+//! auto-vectorise (SSE2 on x86-64, NEON on aarch64, AVX2 where the build enables it); the median
+//! runs on normals quantised to 1/32000 (0.002 degrees), 16 columns at a time in 16-bit lanes,
+//! with sorting networks.
 
 // Index loops over planar buffers are what auto-vectorises; `!(a <= b)` is deliberate
 // wherever a NaN must count as failing the test.
@@ -222,6 +223,8 @@ pub enum TableError {
     Config(ConfigError),
     /// The layout has fewer than 2 rows: one row of returns cannot define a plane.
     TooFewRows,
+    /// The layout has fewer than 16 columns (the median works on 16 columns at a time).
+    TooFewCols,
     /// A row's neighbouring rows lie at (almost) its own elevation, so its window has no
     /// vertical extent.
     FlatRow {
@@ -235,6 +238,7 @@ impl core::fmt::Display for TableError {
         match self {
             Self::Config(e) => write!(f, "{e}"),
             Self::TooFewRows => f.write_str("ring_fals: the layout needs at least 2 rows"),
+            Self::TooFewCols => f.write_str("ring_fals: the layout needs at least 16 columns"),
             Self::FlatRow { row } => write!(f, "ring_fals: row {row} has no vertical extent"),
         }
     }
@@ -358,6 +362,9 @@ impl RingTable {
         let (rows, cols) = (layout.rows(), layout.cols());
         if rows < 2 {
             return Err(TableError::TooFewRows);
+        }
+        if cols < QLANES {
+            return Err(TableError::TooFewCols);
         }
         let step = layout.column_step();
         let dh = libm::fabs(step);
@@ -845,9 +852,13 @@ pub struct RingFalsStats {
     pub valid_points: u32,
 }
 
-/// One 8-lane vector of quantised normal components.
-type Lane = [i16; 8];
+/// Lanes of the gap-aware solve (f32): 8 neighbouring columns.
 const LANES: usize = 8;
+/// Lanes of the median (i16): 16 neighbouring columns, two SSE2 registers or one AVX2 register
+/// per operation.
+const QLANES: usize = 16;
+/// One vector of quantised normal components.
+type Lane = [i16; QLANES];
 
 /// Caller-owned working memory of Ring FALS for layouts of up to `P` padded pixels (see
 /// [`storage_pixels`] and the aliases such as [`RingFals32x1800`]).
@@ -1174,20 +1185,20 @@ impl<const P: usize> RingFals<P> {
 
             let rc = &table.row[r];
             let base = (r + PAD) * stride + PAD;
-            // Groups of 8 columns; the last group is moved left to end at the last column and
+            // Groups of 16 columns; the last group is moved left to end at the last column and
             // skips the lanes the previous group already did.
             let mut c0 = 0;
             while c0 < cols {
-                let c0_eff = c0.min(cols - LANES);
+                let c0_eff = c0.min(cols - QLANES);
                 kept_own += self.median_group(table, rc, base, c0_eff, c0 - c0_eff, min_valid);
-                c0 += LANES;
+                c0 += QLANES;
             }
         }
         self.stats.median_kept_own = kept_own;
     }
 
-    /// Median of the 8 pixels at image columns c0..c0+8 of image row `r`. Returns how many kept
-    /// their own normal.
+    /// Median of the 16 pixels at image columns c0..c0+16 of one image row. Returns how many
+    /// kept their own normal.
     #[allow(clippy::too_many_arguments)]
     fn median_group(
         &mut self,
@@ -1200,7 +1211,7 @@ impl<const P: usize> RingFals<P> {
     ) -> u32 {
         let stride = self.stride;
         let centre = base + c0;
-        let st: [u8; LANES] =
+        let st: [u8; QLANES] =
             core::array::from_fn(|l| if l < first_lane { EMPTY } else { self.state[centre + l] });
         if st.iter().all(|&s| s != FULL && s != GAP) {
             return 0;
@@ -1216,8 +1227,8 @@ impl<const P: usize> RingFals<P> {
             (self.inv[centre + l] * (table.config.range_jump_abs * KEY_SCALE * core::f32::consts::LOG2_E))
                 .min(30000.0) as i16
         });
-        let mut masks = [[0i16; LANES]; 25];
-        let mut any: Lane = [0; LANES];
+        let mut masks = [[0i16; QLANES]; 25];
+        let mut any: Lane = [0; QLANES];
         for dr in 0..5 {
             let row0 = centre + dr * stride - 2 * stride - 2;
             for dc in 0..5 {
@@ -1230,18 +1241,18 @@ impl<const P: usize> RingFals<P> {
                     let d = d.max(0i16.saturating_sub(d));
                     inv[l] | -((d.saturating_sub(tc[l]) > g) as i16)
                 });
-                for l in 0..LANES {
+                for l in 0..QLANES {
                     any[l] |= masks[j][l];
                 }
             }
         }
-        let mut med = [[0i16; LANES]; 3];
-        let mut neg_count: Lane = [0; LANES];
-        if any == [0; LANES] {
+        let mut med = [[0i16; QLANES]; 3];
+        let mut neg_count: Lane = [0; QLANES];
+        if any == [0; QLANES] {
             // Every window complete and on one surface: the sorted column strips are shared
             // between windows.
             for (ch, m) in med.iter_mut().enumerate() {
-                let mut v = [[0i16; LANES]; 25];
+                let mut v = [[0i16; QLANES]; 25];
                 for dc in 0..5 {
                     for k in 0..5 {
                         v[5 * dc + k] = lane_load(&self.strips[ch * 5 + k][sc + dc - 2..]);
@@ -1253,11 +1264,11 @@ impl<const P: usize> RingFals<P> {
             // Left-out pixels enter the network as alternately -inf and +inf sentinels (per
             // window, in scan order), so that the network's middle output is the median of the
             // pixels kept (the lower median for an even count).
-            let mut flips = [[0i16; LANES]; 25];
-            let mut tog: Lane = [0; LANES];
+            let mut flips = [[0i16; QLANES]; 25];
+            let mut tog: Lane = [0; QLANES];
             for j in 0..25 {
                 let m = masks[j];
-                for l in 0..LANES {
+                for l in 0..QLANES {
                     neg_count[l] += m[l];
                     tog[l] ^= m[l];
                     flips[j][l] = tog[l] & m[l];
@@ -1267,7 +1278,7 @@ impl<const P: usize> RingFals<P> {
             for (ch, q) in planes.iter().enumerate() {
                 // A fresh local array per channel, indexed by constants only in the network, so
                 // that it lives in registers.
-                let mut v = [[0i16; LANES]; 25];
+                let mut v = [[0i16; QLANES]; 25];
                 for dr in 0..5 {
                     let row0 = centre + dr * stride - 2 * stride - 2;
                     for dc in 0..5 {
@@ -1282,9 +1293,9 @@ impl<const P: usize> RingFals<P> {
 
         // Back to unit vectors; fall back to the pixel's own normal when the window is too
         // sparse, the median is degenerate (|m| < 0.5) or it faces away from the sensor.
-        let mut use_med = [false; LANES];
-        let mut n = [[0.0f32; LANES]; 3];
-        for l in 0..LANES {
+        let mut use_med = [false; QLANES];
+        let mut n = [[0.0f32; QLANES]; 3];
+        for l in 0..QLANES {
             let valid = (st[l] == FULL) | (st[l] == GAP);
             let m = [med[0][l] as f32, med[1][l] as f32, med[2][l] as f32];
             let n2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2];
@@ -1300,8 +1311,8 @@ impl<const P: usize> RingFals<P> {
         }
         let planes = [&mut self.nx, &mut self.ny, &mut self.nz];
         for (ch, plane) in planes.into_iter().enumerate() {
-            let dst = &mut plane[centre..centre + LANES];
-            for l in 0..LANES {
+            let dst = &mut plane[centre..centre + QLANES];
+            for l in 0..QLANES {
                 dst[l] = if use_med[l] { n[ch][l] } else { dst[l] };
             }
         }
@@ -1747,7 +1758,7 @@ fn sort_strips(s: [&[i16]; 5], d: [&mut [i16]; 5]) {
 
 #[inline(always)]
 fn lane_load(s: &[i16]) -> Lane {
-    let s = &s[..LANES];
+    let s = &s[..QLANES];
     core::array::from_fn(|l| s[l])
 }
 
@@ -1939,7 +1950,7 @@ mod tests {
         // Pseudo-random lanes; the straight-line code must give the true median.
         let mut s = 0x1234_5678_9abc_def0u64;
         for _ in 0..200 {
-            let mut v = [[0i16; LANES]; 25];
+            let mut v = [[0i16; QLANES]; 25];
             for x in v.iter_mut().flatten() {
                 s ^= s << 13;
                 s ^= s >> 7;
@@ -1954,7 +1965,7 @@ mod tests {
             assert_eq!(median25(&mut v.clone()), want);
             // Presorted: sort each column of five first.
             let mut p = v;
-            for l in 0..LANES {
+            for l in 0..QLANES {
                 for col in 0..5 {
                     let mut c: [i16; 5] = core::array::from_fn(|k| p[5 * col + k][l]);
                     c.sort();
@@ -2020,6 +2031,8 @@ mod tests {
         let mut t = RingTable::new();
         let one = RangeImageLayout::from_elevations(&[0.0], 64, true).unwrap();
         assert_eq!(t.build(&one, &RingFalsConfig::DEFAULT), Err(TableError::TooFewRows));
+        let narrow = RangeImageLayout::from_elevations(&[0.1, 0.0], 15, true).unwrap();
+        assert_eq!(t.build(&narrow, &RingFalsConfig::DEFAULT), Err(TableError::TooFewCols));
         let flat = RangeImageLayout::from_elevations(&[0.1, 0.1, 0.1], 64, true).unwrap();
         assert_eq!(t.build(&flat, &RingFalsConfig::DEFAULT), Err(TableError::FlatRow { row: 0 }));
         let mut cfg = RingFalsConfig::DEFAULT;
