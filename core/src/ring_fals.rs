@@ -39,10 +39,18 @@
 //!   provided there are at least [`RingFalsConfig::min_points`] points, they are not all on one
 //!   line of the image, and the system is well conditioned. The reference instead treats a
 //!   missing neighbour as a point at infinity, which biases the normal (notes A.7).
+//! - **Every window must fit its plane.** After the solve, the squared range residuals of the
+//!   window's points must stay within a tolerance ([`RingFalsConfig::fit_tolerance_rel`]); a
+//!   window with a few points off the plane (an occluding edge, a crease, a pole in front of a
+//!   wall where rows are degrees apart) is solved again without them, dropped one at a time by
+//!   largest deleted residual, at most three; clutter that needs more is invalid.
 //! - **Invalid is explicit.** A pixel that cannot give a reliable normal has a zero normal and
 //!   a cleared validity flag, never NaN; its point is kept.
 //! - **The median uses valid pixels only** (per channel, 5x5, columns wrapped, rows cut at the
-//!   image border); the reference lets its `FLT_MAX` sentinels in (notes A.6).
+//!   image border); the reference lets its `FLT_MAX` sentinels in (notes A.6). It also leaves
+//!   out pixels of another surface (the range gate again), so a pole's edge normals are not bent
+//!   toward the wall behind it. A valid pixel with fewer than
+//!   [`RingFalsConfig::median_min_valid`] such pixels in its window keeps its own normal.
 //! - **The 0/360 degree seam is no edge**: columns wrap (notes A.3).
 //! - Zero, too short, too long and non-finite ranges are filtered. When several points hit a
 //!   pixel the nearest wins (deterministic for any point order) and the others are counted.
@@ -69,11 +77,13 @@
 //!
 //! ## Memory and time
 //!
-//! [`RingFals`] holds the per-scan images (about 33 bytes per pixel, plus a 115 kB row scratch)
-//! and [`RingTable`] the per-row coefficients (about 57 kB); both have `const fn new()`. Nothing
+//! [`RingFals`] holds the per-scan images (35 bytes per padded pixel, plus a 115 kB row scratch:
+//! 2.4 MB for 32 x 1800, 9.7 MB for 128 x 2048) and [`RingTable`] the per-row coefficients
+//! (88 kB); both have `const fn new()`, and the storage's is all zero, so a `static` of it
+//! costs no flash. Nothing
 //! allocates, nothing reads a clock; the same input gives bit-identical output on every target
-//! (only `+ - * /`, comparisons and integer operations are used per scan: no `sqrt`, no FMA
-//! contraction). The inner loops are written over planar buffers without branches so that they
+//! (per scan only `+ - * /`, comparisons, integer operations and, for a point that shares its
+//! pixel, the correctly rounded `libm::sqrtf`; no FMA contraction, no reassociation). The inner loops are written over planar buffers without branches so that they
 //! auto-vectorise (SSE2 on x86-64, NEON on aarch64, AVX2 where the build enables it); the median
 //! runs on normals quantised to 1/32000 (0.002 degrees), 16 columns at a time in 16-bit lanes,
 //! with sorting networks.
