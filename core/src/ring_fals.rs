@@ -104,9 +104,9 @@ use crate::scan::ScanPoint;
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct RingFalsConfig {
     /// Returns closer than this (metres) are dropped: zero ranges, Ouster's few-centimetre
-    /// "no return" points, the sensor's own housing. Default 0.3 m.
+    /// "no return" points, the sensor's own housing. At least 0.01 m. Default 0.3 m.
     pub min_range: f32,
-    /// Returns farther than this (metres) are dropped. Default 1000 m.
+    /// Returns farther than this (metres) are dropped. At most 10 km. Default 1000 m.
     pub max_range: f32,
     /// Largest incidence angle (between ray and surface normal, degrees) of a surface whose
     /// neighbouring returns still count as one surface. A neighbour at angle `theta` from the
@@ -165,8 +165,8 @@ impl RingFalsConfig {
     /// Checks every field against its documented range.
     pub fn validate(&self) -> Result<(), ConfigError> {
         let ok = |c: bool, e: ConfigError| if c { Ok(()) } else { Err(e) };
-        ok(self.min_range.is_finite() && self.min_range >= 0.0, ConfigError::MinRange)?;
-        ok(self.max_range > self.min_range && !self.max_range.is_nan(), ConfigError::MaxRange)?;
+        ok(self.min_range >= 0.01 && self.min_range < 1.0e4, ConfigError::MinRange)?;
+        ok(self.max_range > self.min_range && self.max_range <= 1.0e4, ConfigError::MaxRange)?;
         ok(self.max_incidence_deg > 0.0 && self.max_incidence_deg <= 89.0, ConfigError::MaxIncidence)?;
         ok(self.range_jump_abs.is_finite() && self.range_jump_abs >= 0.0, ConfigError::RangeJumpAbs)?;
         ok((0.002..=1.0).contains(&self.fit_tolerance_rel), ConfigError::FitToleranceRel)?;
@@ -186,9 +186,9 @@ impl Default for RingFalsConfig {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum ConfigError {
-    /// `min_range` must be finite and at least 0.
+    /// `min_range` must be at least 0.01 m (a zero range marks an empty pixel).
     MinRange,
-    /// `max_range` must be greater than `min_range`.
+    /// `max_range` must be greater than `min_range` and at most 10 km.
     MaxRange,
     /// `max_incidence_deg` must be in (0, 89].
     MaxIncidence,
@@ -207,8 +207,8 @@ pub enum ConfigError {
 impl core::fmt::Display for ConfigError {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         f.write_str(match self {
-            Self::MinRange => "ring_fals: min_range must be finite and >= 0",
-            Self::MaxRange => "ring_fals: max_range must be greater than min_range",
+            Self::MinRange => "ring_fals: min_range must be in [0.01, 1e4) m",
+            Self::MaxRange => "ring_fals: max_range must be in (min_range, 1e4] m",
             Self::MaxIncidence => "ring_fals: max_incidence_deg must be in (0, 89]",
             Self::RangeJumpAbs => "ring_fals: range_jump_abs must be finite and >= 0",
             Self::FitToleranceRel => "ring_fals: fit_tolerance_rel must be in [0.002, 1]",
@@ -2028,7 +2028,10 @@ mod tests {
             c.validate()
         };
         assert_eq!(bad(|c| c.min_range = f32::NAN), Err(ConfigError::MinRange));
+        assert_eq!(bad(|c| c.min_range = 0.0), Err(ConfigError::MinRange));
         assert_eq!(bad(|c| c.max_range = 0.1), Err(ConfigError::MaxRange));
+        assert_eq!(bad(|c| c.max_range = f32::INFINITY), Err(ConfigError::MaxRange));
+        assert_eq!(bad(|c| c.fit_tolerance_rel = 0.0), Err(ConfigError::FitToleranceRel));
         assert_eq!(bad(|c| c.max_incidence_deg = 90.0), Err(ConfigError::MaxIncidence));
         assert_eq!(bad(|c| c.range_jump_abs = -1.0), Err(ConfigError::RangeJumpAbs));
         assert_eq!(bad(|c| c.min_points = 2), Err(ConfigError::MinPoints));
