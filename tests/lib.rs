@@ -1,2 +1,4 @@
 //! Shared helpers for loglio's cross-crate tests (the tests themselves are the `[[test]]`
 //! targets beside this file).
+
+pub mod synth;

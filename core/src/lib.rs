@@ -12,7 +12,7 @@
 //! |---|---|
 //! | points of a scan, their time and pixel | [`scan`] |
 //! | range-image geometry of a spinning LiDAR | [`range_image`] |
-//! | Ring FALS normals | `ring_fals` |
+//! | Ring FALS normals | [`ring_fals`] |
 //! | wire formats (Velodyne, Ouster, IMU frames) | `sensor` |
 //! | IMU samples, initialisation and propagation | [`imu`] |
 //! | voxel map with incremental distributions | `voxel_map`, `surfel` |
@@ -30,6 +30,7 @@ pub mod eskf;
 pub mod imu;
 pub mod output;
 pub mod range_image;
+pub mod ring_fals;
 pub mod scan;
 pub mod sensor;
 pub mod so3;

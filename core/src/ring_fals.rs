@@ -1,0 +1,2079 @@
+//! # Ring FALS: a surface normal for every LiDAR return, from the range image
+//!
+//! LOG-LIO's first contribution (Huang et al., RA-L 2023, section "Ring FALS Normal Estimator"),
+//! after FALS (Badino et al., ICRA 2011).
+//!
+//! ## The idea
+//!
+//! A point is `p = r v`: its range `r` along the unit ray `v` of its pixel. A plane that misses
+//! the sensor is `n . p = 1` (with `n` the unit normal divided by the plane's distance), so every
+//! point of a pixel window `W` gives one linear equation `v . n = 1/r`. Least squares gives
+//!
+//! ```text
+//!     n = M^-1 b,    M = sum_W v v^T,    b = sum_W v / r
+//! ```
+//!
+//! `M` depends only on the rays, so it is computed once per sensor ([`RingTable`]); each scan
+//! only needs `b`, a weighted sum of the nine ranges of a 3x3 window. The result points away
+//! from the sensor; it is flipped to point toward it, smoothed by a 5x5 median and normalised.
+//!
+//! ## What loglio does differently from the reference (docs notes A.3-A.7)
+//!
+//! - **No recording is needed.** [`RingTable::build`] takes the sensor's beam intrinsics, a
+//!   [`RangeImageLayout`]. For sensors without known intrinsics, [`RingLearner`] learns the
+//!   layout from observed points.
+//! - **Well-conditioned f32.** The nine rays are nearly parallel (`det M ~ 1e-7`): solved in
+//!   the global frame, f32 loses most of the normal's tangential part. loglio solves in the
+//!   centre pixel's local frame, `x` along the ray, `y` along the azimuth tangent, `z` along the
+//!   elevation tangent, with the tangent coordinates divided by the angular step. The 3x3
+//!   system then has entries of order 1 (`M' ~ diag(9, 6, 6)` for a full window) and both `M'`
+//!   and `b'` are formed without cancellation. A spinning LiDAR is symmetric under rotation
+//!   about its axis, so these coefficients depend on the row only: the table is a few kB per
+//!   row instead of a 3x3 matrix per pixel. The test `precision_of_candidate_formulations`
+//!   (tests/ring_fals_synthetic.rs) shows the choice: the naive f32 solve is off by degrees at
+//!   60 m while this one matches the f64 solve.
+//! - **Gap-aware.** A neighbour is *absent* when it has no return or its range jumps from the
+//!   centre's by more than a plane at [`RingFalsConfig::max_incidence_deg`] could explain, plus
+//!   [`RingFalsConfig::range_jump_abs`] for noise. A full window uses the table's `M'^-1`; an
+//!   incomplete one is solved from the neighbours actually present (its own `M'` and `b'`),
+//!   provided there are at least [`RingFalsConfig::min_points`] points, they are not all on one
+//!   line of the image, and the system is well conditioned. The reference instead treats a
+//!   missing neighbour as a point at infinity, which biases the normal (notes A.7).
+//! - **Every window must fit its plane.** After the solve, the squared range residuals of the
+//!   window's points must stay within a tolerance ([`RingFalsConfig::fit_tolerance_rel`]); a
+//!   window with a few points off the plane (an occluding edge, a crease, a pole in front of a
+//!   wall where rows are degrees apart) is solved again without them, dropped one at a time by
+//!   largest deleted residual, at most three; clutter that needs more is invalid.
+//! - **Invalid is explicit.** A pixel that cannot give a reliable normal has a zero normal and
+//!   a cleared validity flag, never NaN; its point is kept.
+//! - **The median uses valid pixels only** (per channel, 5x5, columns wrapped, rows cut at the
+//!   image border); the reference lets its `FLT_MAX` sentinels in (notes A.6). It also leaves
+//!   out pixels of another surface (the range gate again), so a pole's edge normals are not bent
+//!   toward the wall behind it. A valid pixel with fewer than
+//!   [`RingFalsConfig::median_min_valid`] such pixels in its window keeps its own normal.
+//! - **The 0/360 degree seam is no edge**: columns wrap (notes A.3).
+//! - Zero, too short, too long and non-finite ranges are filtered. When several points hit a
+//!   pixel the nearest wins (deterministic for any point order) and the others are counted.
+//!
+//! ## Using it
+//!
+//! ```
+//! use loglio_core::range_image::RangeImageLayout;
+//! use loglio_core::ring_fals::{PointNormal, RingFals, RingFalsConfig, RingTable, storage_pixels};
+//! use loglio_core::scan::ScanPoint;
+//!
+//! // A 16-beam sensor, 1024 columns (in firmware both would be `static`s).
+//! let elevations: [f32; 16] = core::array::from_fn(|i| (15.0 - 2.0 * i as f32).to_radians());
+//! let layout = RangeImageLayout::from_elevations(&elevations, 1024, true).unwrap();
+//! let mut table = RingTable::new();
+//! table.build(&layout, &RingFalsConfig::DEFAULT).unwrap();
+//! let mut fals = Box::new(RingFals::<{ storage_pixels(16, 1024) }>::new());
+//!
+//! let points: [ScanPoint; 0] = [];
+//! let mut normals = [PointNormal::INVALID; 0];
+//! let stats = fals.estimate(&table, &points, &mut normals).unwrap();
+//! assert_eq!(stats.valid_points, 0);
+//! ```
+//!
+//! ## Memory and time
+//!
+//! [`RingFals`] holds the per-scan images (35 bytes per padded pixel, plus a 115 kB row scratch:
+//! 2.4 MB for 32 x 1800, 9.7 MB for 128 x 2048) and [`RingTable`] the per-row coefficients
+//! (88 kB); both have `const fn new()`, and the storage's is all zero, so a `static` of it
+//! costs no flash. Nothing
+//! allocates, nothing reads a clock; the same input gives bit-identical output on every target
+//! (per scan only `+ - * /`, comparisons, integer operations and, for a point that shares its
+//! pixel, the correctly rounded `libm::sqrtf`; no FMA contraction, no reassociation). The inner loops are written over planar buffers without branches so that they
+//! auto-vectorise (SSE2 on x86-64, NEON on aarch64, AVX2 where the build enables it); the median
+//! runs on normals quantised to 1/32000 (0.002 degrees), 16 columns at a time in 16-bit lanes,
+//! with sorting networks.
+
+// Index loops over planar buffers are what auto-vectorises; `!(a <= b)` is deliberate
+// wherever a NaN must count as failing the test.
+#![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
+
+use crate::range_image::{LayoutError, MAX_COLS, MAX_ROWS, RangeImageLayout};
+use crate::scan::ScanPoint;
+
+// ---------------------------------------------------------------------------------------------
+// Configuration
+// ---------------------------------------------------------------------------------------------
+
+/// Settings of the estimator. [`RingFalsConfig::DEFAULT`] suits Velodyne and Ouster sensors.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct RingFalsConfig {
+    /// Returns closer than this (metres) are dropped: zero ranges, Ouster's few-centimetre
+    /// "no return" points, the sensor's own housing. At least 0.01 m. Default 0.3 m.
+    pub min_range: f32,
+    /// Returns farther than this (metres) are dropped. At most 10 km. Default 1000 m.
+    pub max_range: f32,
+    /// Largest incidence angle (between ray and surface normal, degrees) of a surface whose
+    /// neighbouring returns still count as one surface. A neighbour at angle `theta` from the
+    /// centre ray is absent when `|r_n - r_c| > r_c * (cos(a)/cos(a + theta) - 1) + range_jump_abs`,
+    /// the largest range change a plane at incidence `a` can produce. With the default 80
+    /// degrees that is 2-4 % between columns of 1024-1800 column sensors and 28 % between the
+    /// 2.2 degree rows of an OS1-16: a fixed relative threshold would either cut the ground
+    /// seen at grazing angles or merge a person standing 30 cm in front of a wall.
+    pub max_incidence_deg: f32,
+    /// Absolute part of the range-jump gate (metres), for range noise. Default 0.05 m, five
+    /// standard deviations of a typical 1 cm range noise.
+    pub range_jump_abs: f32,
+    /// Relative part of the plane-fit check: after the solve, the window's points must lie on
+    /// the fitted plane: the squares of their range residuals (along their rays) may sum to at
+    /// most `4 (range_jump_abs + fit_tolerance_rel r)^2` (noise up to 0.8 of that tolerance per
+    /// point passes, one point off by more than 2.2 times it fails). A window that fails is
+    /// solved again without its worst point (the one with the largest deleted residual: a
+    /// trimmed least squares) until it fits; if too few points remain, the pixel is invalid.
+    /// This is what separates a pole from the wall behind it where the rows are degrees apart
+    /// (the top and bottom beams of a VLP-32C) and the range gate alone must admit large
+    /// jumps. In [0.002, 1] (the full-window test sums squared inverse ranges in f32, whose
+    /// rounding is 1e-6 of the sum: a smaller tolerance would send every far window to the
+    /// slower gap-aware path). Default 0.01.
+    pub fit_tolerance_rel: f32,
+    /// Fewest window points (the centre included) an incomplete window may be solved from,
+    /// 3..=9. Default 4: one more than a plane needs, so one bad range cannot fully decide it.
+    pub min_points: u8,
+    /// Smallest accepted conditioning `27 det(M') / trace(M')^3` of an incomplete window's
+    /// scaled 3x3 system (1 for an isotropic system, 0 for a singular one; a full window has
+    /// about 0.94, a 2x2 corner window 0.21, three points in an L 0.22), in (0, 1). Default
+    /// 0.02: only near-collinear windows, which pass the image-line test only because of
+    /// irregular beam spacing, are rejected.
+    pub min_conditioning: f32,
+    /// Whether to apply the 5x5 median. Default true.
+    pub median: bool,
+    /// A valid pixel whose 5x5 window holds fewer valid pixels than this (itself included)
+    /// keeps its own normal instead of the median: with so few neighbours the median is not a
+    /// robust estimate. 1..=25, default 5.
+    pub median_min_valid: u8,
+}
+
+impl RingFalsConfig {
+    /// The defaults described on each field.
+    pub const DEFAULT: Self = Self {
+        min_range: 0.3,
+        max_range: 1000.0,
+        max_incidence_deg: 80.0,
+        range_jump_abs: 0.05,
+        fit_tolerance_rel: 0.01,
+        min_points: 4,
+        min_conditioning: 0.02,
+        median: true,
+        median_min_valid: 5,
+    };
+
+    /// Checks every field against its documented range.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let ok = |c: bool, e: ConfigError| if c { Ok(()) } else { Err(e) };
+        ok(self.min_range >= 0.01 && self.min_range < 1.0e4, ConfigError::MinRange)?;
+        ok(self.max_range > self.min_range && self.max_range <= 1.0e4, ConfigError::MaxRange)?;
+        ok(self.max_incidence_deg > 0.0 && self.max_incidence_deg <= 89.0, ConfigError::MaxIncidence)?;
+        ok(self.range_jump_abs.is_finite() && self.range_jump_abs >= 0.0, ConfigError::RangeJumpAbs)?;
+        ok((0.002..=1.0).contains(&self.fit_tolerance_rel), ConfigError::FitToleranceRel)?;
+        ok((3..=9).contains(&self.min_points), ConfigError::MinPoints)?;
+        ok(self.min_conditioning > 0.0 && self.min_conditioning < 1.0, ConfigError::MinConditioning)?;
+        ok((1..=25).contains(&self.median_min_valid), ConfigError::MedianMinValid)
+    }
+}
+
+impl Default for RingFalsConfig {
+    fn default() -> Self {
+        Self::DEFAULT
+    }
+}
+
+/// Which [`RingFalsConfig`] field is out of range.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum ConfigError {
+    /// `min_range` must be at least 0.01 m (a zero range marks an empty pixel).
+    MinRange,
+    /// `max_range` must be greater than `min_range` and at most 10 km.
+    MaxRange,
+    /// `max_incidence_deg` must be in (0, 89].
+    MaxIncidence,
+    /// `range_jump_abs` must be finite and at least 0.
+    RangeJumpAbs,
+    /// `fit_tolerance_rel` must be in [0.002, 1].
+    FitToleranceRel,
+    /// `min_points` must be in 3..=9.
+    MinPoints,
+    /// `min_conditioning` must be in (0, 1).
+    MinConditioning,
+    /// `median_min_valid` must be in 1..=25.
+    MedianMinValid,
+}
+
+impl core::fmt::Display for ConfigError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str(match self {
+            Self::MinRange => "ring_fals: min_range must be in [0.01, 1e4) m",
+            Self::MaxRange => "ring_fals: max_range must be in (min_range, 1e4] m",
+            Self::MaxIncidence => "ring_fals: max_incidence_deg must be in (0, 89]",
+            Self::RangeJumpAbs => "ring_fals: range_jump_abs must be finite and >= 0",
+            Self::FitToleranceRel => "ring_fals: fit_tolerance_rel must be in [0.002, 1]",
+            Self::MinPoints => "ring_fals: min_points must be in 3..=9",
+            Self::MinConditioning => "ring_fals: min_conditioning must be in (0, 1)",
+            Self::MedianMinValid => "ring_fals: median_min_valid must be in 1..=25",
+        })
+    }
+}
+
+impl core::error::Error for ConfigError {}
+
+// ---------------------------------------------------------------------------------------------
+// The ring table
+// ---------------------------------------------------------------------------------------------
+
+/// Why a [`RingTable`] could not be built.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum TableError {
+    /// A configuration value is out of range.
+    Config(ConfigError),
+    /// The layout has fewer than 2 rows: one row of returns cannot define a plane.
+    TooFewRows,
+    /// The layout has fewer than 16 columns (the median works on 16 columns at a time).
+    TooFewCols,
+    /// A row's neighbouring rows lie at (almost) its own elevation, so its window has no
+    /// vertical extent.
+    FlatRow {
+        /// The row.
+        row: u16,
+    },
+}
+
+impl core::fmt::Display for TableError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::Config(e) => write!(f, "{e}"),
+            Self::TooFewRows => f.write_str("ring_fals: the layout needs at least 2 rows"),
+            Self::TooFewCols => f.write_str("ring_fals: the layout needs at least 16 columns"),
+            Self::FlatRow { row } => write!(f, "ring_fals: row {row} has no vertical extent"),
+        }
+    }
+}
+
+impl core::error::Error for TableError {}
+
+impl From<ConfigError> for TableError {
+    fn from(e: ConfigError) -> Self {
+        Self::Config(e)
+    }
+}
+
+/// Window index of neighbour (dr, dc), both in -1..=1: `k = 3 (dr + 1) + (dc + 1)`; 4 is the
+/// centre.
+const CENTRE: usize = 4;
+
+/// Per-row coefficients: everything about a pixel's window that does not depend on its column.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct RowCoeffs {
+    /// Scaled local coordinates of the nine window rays: `u[0][k]` along the centre ray,
+    /// `u[1][k]` along the azimuth tangent divided by the column step, `u[2][k]` along the
+    /// elevation tangent divided by the row step. Zero for neighbours outside the image.
+    u: [[f32; 9]; 3],
+    /// Products `u_k u_k^T` (00, 01, 02, 11, 12, 22) of every window ray, to build `M'` of an
+    /// incomplete window as a masked sum.
+    uu: [[f32; 9]; 6],
+    /// Relative range-jump gate per neighbour (see [`RingFalsConfig::max_incidence_deg`]);
+    /// +inf for neighbours outside the image.
+    gate: [f32; 9],
+    /// Bit k set when neighbour k is inside the image (rows do not wrap).
+    exists: u16,
+    /// The same gate for the 5x5 median window (index 5 (dr + 2) + (dc + 2)), as a bound on
+    /// the difference of the pixels' range keys (`KEY_SCALE log2(1 + gate)`): a pixel of the
+    /// window takes part in the median only if it is on the centre's surface. 0 for rows
+    /// outside the image.
+    gate5: [i16; 25],
+    /// Inverse of `M'` for the nominal window (every neighbour inside the image present),
+    /// symmetric: 00, 01, 02, 11, 12, 22.
+    minv: [f32; 6],
+    /// Whether the nominal window passed the conditioning check.
+    nominal_ok: bool,
+    /// cos and sin of the row's elevation.
+    ce: f32,
+    se: f32,
+    /// cos and sin of the azimuth of the row's internal column 0.
+    ca0: f32,
+    sa0: f32,
+    /// 1 / column step and 1 / row step (radians), to undo the scaling of the local frame.
+    inv_dh: f32,
+    inv_dv: f32,
+}
+
+impl RowCoeffs {
+    const ZERO: Self = Self {
+        u: [[0.0; 9]; 3],
+        uu: [[0.0; 9]; 6],
+        gate: [0.0; 9],
+        exists: 0,
+        gate5: [0; 25],
+        minv: [0.0; 6],
+        nominal_ok: false,
+        ce: 0.0,
+        se: 0.0,
+        ca0: 0.0,
+        sa0: 0.0,
+        inv_dh: 0.0,
+        inv_dv: 0.0,
+    };
+}
+
+/// The Ring FALS lookup table of one sensor layout, built from its beam intrinsics.
+///
+/// Holds, per row, the window geometry in the local frame of the row's pixels and its inverse
+/// system matrix, plus per column the sine and cosine of the column's azimuth, and the
+/// [`RingFalsConfig`] in use. Rows whose column 0 looks in a different azimuth than others
+/// (staggered layouts, Velodyne laser azimuth offsets) are re-aligned internally by a whole
+/// number of columns so that every window covers geometric neighbours; results are reported in
+/// the caller's columns.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RingTable {
+    rows: u16,
+    cols: u16,
+    config: RingFalsConfig,
+    /// Internal column = (caller column + shift) mod cols.
+    shift: [u16; MAX_ROWS],
+    row: [RowCoeffs; MAX_ROWS],
+    /// cos and sin of `step * c`, the azimuth of internal column c relative to column 0.
+    col_cos: [f32; MAX_COLS],
+    col_sin: [f32; MAX_COLS],
+}
+
+impl Default for RingTable {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl RingTable {
+    /// An empty table (no rows); `const` so that it can be a `static`. Build it with
+    /// [`Self::build`].
+    pub const fn new() -> Self {
+        Self {
+            rows: 0,
+            cols: 0,
+            config: RingFalsConfig::DEFAULT,
+            shift: [0; MAX_ROWS],
+            row: [RowCoeffs::ZERO; MAX_ROWS],
+            col_cos: [0.0; MAX_COLS],
+            col_sin: [0.0; MAX_COLS],
+        }
+    }
+
+    /// Builds the table for `layout` with `config` (computed in f64, stored in f32). Fails for a
+    /// bad configuration, a layout of fewer than 2 rows or a row without vertical extent; the
+    /// table is left empty then.
+    pub fn build(&mut self, layout: &RangeImageLayout, config: &RingFalsConfig) -> Result<(), TableError> {
+        self.rows = 0;
+        self.cols = 0;
+        config.validate()?;
+        let (rows, cols) = (layout.rows(), layout.cols());
+        if rows < 2 {
+            return Err(TableError::TooFewRows);
+        }
+        if cols < QLANES {
+            return Err(TableError::TooFewCols);
+        }
+        let step = layout.column_step();
+        let dh = libm::fabs(step);
+        let alpha = (config.max_incidence_deg as f64).to_radians();
+
+        // Re-align rows whose azimuth origin differs from row 0's by whole columns.
+        let mut az0 = [0.0f64; MAX_ROWS];
+        let ref_az = layout.azimuth0(0) as f64;
+        for r in 0..rows {
+            let a = layout.azimuth0(r) as f64;
+            let d = wrap_pi(a - ref_az) / step;
+            let s = libm::round(d);
+            let s_mod = s - cols as f64 * libm::floor(s / cols as f64);
+            self.shift[r] = (s_mod as u32 % cols as u32) as u16;
+            az0[r] = a - s * step;
+        }
+
+        for c in 0..cols {
+            let a = step * c as f64;
+            self.col_cos[c] = libm::cos(a) as f32;
+            self.col_sin[c] = libm::sin(a) as f32;
+        }
+
+        for r in 0..rows {
+            let el = layout.elevation(r) as f64;
+            let (se, ce) = (libm::sin(el), libm::cos(el));
+            // Row step: mean distance in elevation to the rows present above and below.
+            let mut dv_sum = 0.0;
+            let mut dv_n = 0.0;
+            for rn in [r.wrapping_sub(1), r + 1] {
+                if rn < rows {
+                    dv_sum += libm::fabs(layout.elevation(rn) as f64 - el);
+                    dv_n += 1.0;
+                }
+            }
+            let dv = dv_sum / dv_n;
+            if !(dv > 1e-5) {
+                return Err(TableError::FlatRow { row: r as u16 });
+            }
+
+            let mut rc = RowCoeffs::ZERO;
+            let mut m = [0.0f64; 6];
+            for k in 0..9 {
+                let (dr, dc) = (k as isize / 3 - 1, k as isize % 3 - 1);
+                let rn = r as isize + dr;
+                if rn < 0 || rn >= rows as isize {
+                    rc.gate[k] = f32::INFINITY;
+                    continue;
+                }
+                let rn = rn as usize;
+                rc.exists |= 1 << k;
+                // The neighbour's ray in the frame where the centre pixel looks at azimuth 0.
+                let eln = layout.elevation(rn) as f64;
+                let (sen, cen) = (libm::sin(eln), libm::cos(eln));
+                let da = az0[rn] - az0[r] + dc as f64 * step;
+                let (sd, cd) = (libm::sin(da), libm::cos(da));
+                let v = [cen * cd, cen * sd, sen];
+                let a = ce * v[0] + se * v[2];
+                let x = v[1] / dh;
+                let y = (-se * v[0] + ce * v[2]) / dv;
+                rc.u[0][k] = a as f32;
+                rc.u[1][k] = x as f32;
+                rc.u[2][k] = y as f32;
+                let p = [a * a, a * x, a * y, x * x, x * y, y * y];
+                for i in 0..6 {
+                    m[i] += p[i];
+                    rc.uu[i][k] = p[i] as f32;
+                }
+                rc.gate[k] =
+                    if k == CENTRE { 0.0 } else { incidence_gate(alpha, libm::acos(a.clamp(-1.0, 1.0))) };
+            }
+            // Gates of the 5x5 median window.
+            let ray = |rr: usize, dc: f64| {
+                let e = layout.elevation(rr) as f64;
+                let a = az0[rr] + dc * step;
+                [libm::cos(e) * libm::cos(a), libm::cos(e) * libm::sin(a), libm::sin(e)]
+            };
+            let vc = ray(r, 0.0);
+            for j in 0..25 {
+                let (dr, dc) = (j as isize / 5 - 2, j as isize % 5 - 2);
+                let rn = r as isize + dr;
+                if rn < 0 || rn >= rows as isize {
+                    continue;
+                }
+                let vn = ray(rn as usize, dc as f64);
+                let ca = vc[0] * vn[0] + vc[1] * vn[1] + vc[2] * vn[2];
+                let g =
+                    if j == 12 { 0.0 } else { incidence_gate(alpha, libm::acos(ca.clamp(-1.0, 1.0))) as f64 };
+                rc.gate5[j] = (KEY_SCALE as f64 * libm::log2(1.0 + g)).min(30000.0) as i16;
+            }
+            let (adj, det) = adjugate_f64(&m);
+            let tr = m[0] + m[3] + m[5];
+            rc.nominal_ok = det > 0.0 && 27.0 * det >= config.min_conditioning as f64 * tr * tr * tr;
+            if rc.nominal_ok {
+                for i in 0..6 {
+                    rc.minv[i] = (adj[i] / det) as f32;
+                }
+            }
+            rc.ce = ce as f32;
+            rc.se = se as f32;
+            rc.ca0 = libm::cos(az0[r]) as f32;
+            rc.sa0 = libm::sin(az0[r]) as f32;
+            rc.inv_dh = (1.0 / dh) as f32;
+            rc.inv_dv = (1.0 / dv) as f32;
+            self.row[r] = rc;
+        }
+        self.config = *config;
+        self.rows = rows as u16;
+        self.cols = cols as u16;
+        Ok(())
+    }
+
+    /// Rows of the layout (0 until built).
+    pub fn rows(&self) -> usize {
+        self.rows as usize
+    }
+
+    /// Columns of the layout (0 until built).
+    pub fn cols(&self) -> usize {
+        self.cols as usize
+    }
+
+    /// The configuration the table was built with.
+    pub fn config(&self) -> &RingFalsConfig {
+        &self.config
+    }
+
+    /// Internal (re-aligned) column of the caller's pixel (row, col); both must be in range.
+    #[inline]
+    fn internal_col(&self, row: usize, col: usize) -> usize {
+        let c = col + self.shift[row] as usize;
+        if c >= self.cols as usize { c - self.cols as usize } else { c }
+    }
+
+    /// Unit ray (cos az, sin az) of the internal pixel (row, internal col), as the solve uses it.
+    #[inline]
+    fn azimuth_cs(&self, row: usize, icol: usize) -> (f32, f32) {
+        let rc = &self.row[row];
+        let (cc, sc) = (self.col_cos[icol], self.col_sin[icol]);
+        (rc.ca0 * cc - rc.sa0 * sc, rc.sa0 * cc + rc.ca0 * sc)
+    }
+}
+
+/// Largest relative range change between two rays `theta` apart on a plane seen at incidence
+/// `alpha` or less: `cos(alpha) / cos(alpha + theta) - 1` (capped at 1000 near grazing).
+fn incidence_gate(alpha: f64, theta: f64) -> f32 {
+    let far = alpha + theta;
+    if far >= core::f64::consts::FRAC_PI_2 - 1e-3 {
+        1.0e3
+    } else {
+        (libm::cos(alpha) / libm::cos(far) - 1.0) as f32
+    }
+}
+
+/// Wraps an angle to (-pi, pi].
+fn wrap_pi(a: f64) -> f64 {
+    let t = core::f64::consts::TAU;
+    a - t * libm::floor((a + core::f64::consts::PI) / t)
+}
+
+/// Adjugate and determinant of a symmetric 3x3 matrix stored as 00, 01, 02, 11, 12, 22.
+fn adjugate_f64(m: &[f64; 6]) -> ([f64; 6], f64) {
+    let [a, b, c, d, e, f] = *m;
+    let adj = [d * f - e * e, c * e - b * f, b * e - c * d, a * f - c * c, b * c - a * e, a * d - b * b];
+    let det = a * adj[0] + b * adj[1] + c * adj[2];
+    (adj, det)
+}
+
+/// The same in f32, for the per-scan gap-aware solve.
+#[inline]
+fn adjugate_f32(m: &[f32; 6]) -> ([f32; 6], f32) {
+    let [a, b, c, d, e, f] = *m;
+    let adj = [d * f - e * e, c * e - b * f, b * e - c * d, a * f - c * c, b * c - a * e, a * d - b * b];
+    let det = a * adj[0] + b * adj[1] + c * adj[2];
+    (adj, det)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Learning a layout from observed points
+// ---------------------------------------------------------------------------------------------
+
+/// Why [`RingLearner::layout`] could not produce a layout.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum LearnError {
+    /// The learner was not [reset](RingLearner::reset) to a size.
+    NotStarted,
+    /// A row saw fewer points than required.
+    Unobserved {
+        /// The row.
+        row: u16,
+    },
+    /// A row's azimuth offsets disagree (mean resultant length below 0.95: the points are not
+    /// binned by a fixed column step, e.g. the column direction or count is wrong).
+    Inconsistent {
+        /// The row.
+        row: u16,
+    },
+    /// The learned angles do not make a valid layout.
+    Layout(LayoutError),
+}
+
+impl core::fmt::Display for LearnError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::NotStarted => f.write_str("ring_fals: learner not started"),
+            Self::Unobserved { row } => write!(f, "ring_fals: row {row} has too few observed points"),
+            Self::Inconsistent { row } => {
+                write!(f, "ring_fals: row {row} azimuths do not follow the column step")
+            }
+            Self::Layout(e) => write!(f, "{e}"),
+        }
+    }
+}
+
+impl core::error::Error for LearnError {}
+
+/// What the learner found for one row.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct LearnedRow {
+    /// Points accumulated.
+    pub points: u32,
+    /// Mean elevation, radians.
+    pub elevation: f64,
+    /// Standard deviation of the elevation, radians.
+    pub elevation_std: f64,
+    /// Circular mean of (point azimuth - column step * column): the azimuth of column 0, radians.
+    pub azimuth0: f64,
+    /// Mean resultant length of those azimuths (1 = all identical).
+    pub azimuth_consistency: f64,
+}
+
+/// Learns a [`RangeImageLayout`] from observed points, for sensors whose beam intrinsics are
+/// unknown: the running mean direction of the returns of every ring.
+///
+/// A spinning LiDAR's pixel (row, col) looks along its beam's elevation and along the beam's
+/// azimuth offset plus `col` column steps, so the mean direction of every pixel follows from
+/// two numbers per row. The learner therefore keeps running sums per row (elevation, and the
+/// circular mean of azimuth minus column angle) over every observed point: a few hundred bytes
+/// instead of a table per pixel, no holes where a pixel was never hit (the reference leaves
+/// those with a zero matrix, notes A.4), and the table is then built from the learned layout
+/// exactly as from a calibration.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RingLearner {
+    rows: u16,
+    cols: u16,
+    clockwise: bool,
+    /// Points skipped (no pixel, outside the size, range under 1 m or not finite).
+    pub rejected: u32,
+    n: [u32; MAX_ROWS],
+    sum_el: [f64; MAX_ROWS],
+    sum_el2: [f64; MAX_ROWS],
+    sum_c: [f64; MAX_ROWS],
+    sum_s: [f64; MAX_ROWS],
+}
+
+impl Default for RingLearner {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl RingLearner {
+    /// Closest range the learner uses: nearer returns are dominated by the beam-origin offsets.
+    pub const MIN_RANGE: f32 = 1.0;
+
+    /// An unstarted learner; `const` so that it can be a `static`.
+    pub const fn new() -> Self {
+        Self {
+            rows: 0,
+            cols: 0,
+            clockwise: true,
+            rejected: 0,
+            n: [0; MAX_ROWS],
+            sum_el: [0.0; MAX_ROWS],
+            sum_el2: [0.0; MAX_ROWS],
+            sum_c: [0.0; MAX_ROWS],
+            sum_s: [0.0; MAX_ROWS],
+        }
+    }
+
+    /// Starts learning a layout of `rows` x `cols` whose columns advance clockwise (seen from
+    /// above) or not; forgets everything seen before.
+    pub fn reset(&mut self, rows: usize, cols: usize, clockwise: bool) -> Result<(), LayoutError> {
+        RangeImageLayout::new(rows, cols, clockwise)?;
+        *self = Self::new();
+        self.rows = rows as u16;
+        self.cols = cols as u16;
+        self.clockwise = clockwise;
+        Ok(())
+    }
+
+    /// Accumulates the points of one scan (their `row`/`col` and direction).
+    pub fn observe(&mut self, points: &[ScanPoint]) {
+        let step = core::f64::consts::TAU / self.cols.max(1) as f64 * if self.clockwise { -1.0 } else { 1.0 };
+        for p in points {
+            let (row, col) = (p.row as usize, p.col as usize);
+            let r = p.range();
+            if row >= self.rows as usize
+                || col >= self.cols as usize
+                || !(r >= Self::MIN_RANGE && r.is_finite())
+            {
+                self.rejected = self.rejected.saturating_add(1);
+                continue;
+            }
+            let [x, y, z] = p.xyz.map(|v| v as f64);
+            let el = libm::atan2(z, libm::sqrt(x * x + y * y));
+            let d = libm::atan2(y, x) - step * col as f64;
+            self.n[row] = self.n[row].saturating_add(1);
+            self.sum_el[row] += el;
+            self.sum_el2[row] += el * el;
+            self.sum_c[row] += libm::cos(d);
+            self.sum_s[row] += libm::sin(d);
+        }
+    }
+
+    /// The learned numbers of one row, if it saw any point.
+    pub fn row(&self, row: usize) -> Option<LearnedRow> {
+        if row >= self.rows as usize || self.n[row] == 0 {
+            return None;
+        }
+        let n = self.n[row] as f64;
+        let el = self.sum_el[row] / n;
+        let var = (self.sum_el2[row] / n - el * el).max(0.0);
+        Some(LearnedRow {
+            points: self.n[row],
+            elevation: el,
+            elevation_std: libm::sqrt(var),
+            azimuth0: libm::atan2(self.sum_s[row], self.sum_c[row]),
+            azimuth_consistency: libm::hypot(self.sum_s[row], self.sum_c[row]) / n,
+        })
+    }
+
+    /// The learned layout; every row must have seen at least `min_points_per_row` points.
+    pub fn layout(&self, min_points_per_row: u32) -> Result<RangeImageLayout, LearnError> {
+        if self.rows == 0 {
+            return Err(LearnError::NotStarted);
+        }
+        let mut l = RangeImageLayout::new(self.rows as usize, self.cols as usize, self.clockwise)
+            .map_err(LearnError::Layout)?;
+        for r in 0..self.rows as usize {
+            let row = r as u16;
+            let lr = self.row(r).ok_or(LearnError::Unobserved { row })?;
+            if lr.points < min_points_per_row.max(1) {
+                return Err(LearnError::Unobserved { row });
+            }
+            if lr.azimuth_consistency < 0.95 {
+                return Err(LearnError::Inconsistent { row });
+            }
+            l.set_row(r, lr.elevation as f32, lr.azimuth0 as f32).map_err(LearnError::Layout)?;
+        }
+        Ok(l)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Per-scan storage and estimation
+// ---------------------------------------------------------------------------------------------
+
+/// Border around the image in the storage: two rows above and below (never data, so windows
+/// near the top and bottom rows are simply incomplete) and two columns left and right (copies
+/// of the opposite edge, so windows wrap around the 0/360 degree seam).
+const PAD: usize = 2;
+/// Columns of the row scratch.
+const SCRATCH_COLS: usize = MAX_COLS + 2 * PAD;
+/// Quantisation of unit-normal components for the median: 1/32000, about 0.002 degrees.
+const QSCALE: f32 = 32000.0;
+/// Median value of an invalid pixel (above every quantised component).
+const QINVALID: i16 = i16::MAX;
+/// Range keys: 2048 per octave of range (0.034 % resolution); 1/range from 1e-5 to 8 fits.
+const KEY_SCALE: f32 = 2048.0;
+/// Key of a pixel without a return: far from every real key.
+const KEY_EMPTY: i16 = i16::MIN;
+
+/// Pixel states.
+const EMPTY: u8 = 0;
+/// Valid, from the full window.
+const FULL: u8 = 1;
+/// Has a return; the full window was not usable: the gap-aware path decides.
+const PARTIAL: u8 = 2;
+/// Valid, from the gap-aware path.
+const GAP: u8 = 3;
+/// Has a return but no reliable normal.
+const INVALID: u8 = 4;
+
+/// Padded pixel count that a [`RingFals`] needs for a `rows` x `cols` layout: use it as the
+/// const parameter, e.g. `RingFals<{ storage_pixels(32, 1800) }>`.
+pub const fn storage_pixels(rows: usize, cols: usize) -> usize {
+    (rows + 2 * PAD) * (cols + 2 * PAD)
+}
+
+/// Storage for the largest supported layouts: 128 x 2048 (Ouster OS-x-128).
+pub type RingFals128x2048 = RingFals<{ storage_pixels(128, 2048) }>;
+/// Storage for a 64 x 2048 layout.
+pub type RingFals64x2048 = RingFals<{ storage_pixels(64, 2048) }>;
+/// Storage for a 32 x 1800 layout (VLP-32C at 10 Hz).
+pub type RingFals32x1800 = RingFals<{ storage_pixels(32, 1800) }>;
+/// Storage for a 16 x 1024 layout (OS1-16).
+pub type RingFals16x1024 = RingFals<{ storage_pixels(16, 1024) }>;
+
+/// The normal of one point: unit length and facing the sensor when `valid`, all zero otherwise.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[repr(C)]
+pub struct PointNormal {
+    /// Unit normal in the LiDAR frame, pointing toward the sensor; zero when not valid.
+    pub normal: [f32; 3],
+    /// Whether `normal` is a reliable estimate.
+    pub valid: bool,
+}
+
+impl PointNormal {
+    /// No normal.
+    pub const INVALID: Self = Self { normal: [0.0; 3], valid: false };
+
+    /// The normal if valid.
+    #[inline]
+    pub fn get(&self) -> Option<[f32; 3]> {
+        if self.valid { Some(self.normal) } else { None }
+    }
+}
+
+/// Why [`RingFals::estimate`] refused a scan (nothing was computed).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum EstimateError {
+    /// The table has not been built.
+    NoTable,
+    /// The storage holds fewer pixels than the table's layout needs.
+    Capacity {
+        /// [`storage_pixels`] of the layout.
+        needed: u32,
+        /// The storage's const parameter.
+        capacity: u32,
+    },
+    /// `out` must hold exactly one entry per point.
+    OutputLength,
+    /// More than `u32::MAX` points.
+    TooManyPoints,
+}
+
+impl core::fmt::Display for EstimateError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::NoTable => f.write_str("ring_fals: the table is not built"),
+            Self::Capacity { needed, capacity } => {
+                write!(f, "ring_fals: layout needs {needed} storage pixels, storage has {capacity}")
+            }
+            Self::OutputLength => f.write_str("ring_fals: output slice length differs from the point count"),
+            Self::TooManyPoints => f.write_str("ring_fals: more than u32::MAX points"),
+        }
+    }
+}
+
+impl core::error::Error for EstimateError {}
+
+/// What happened to one scan.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct RingFalsStats {
+    /// Points in the scan.
+    pub points: u32,
+    /// Points that own a pixel (the nearest return of the pixel).
+    pub projected: u32,
+    /// Points that hit a pixel another point also hit (all but the nearest of each pixel).
+    pub collisions: u32,
+    /// Points without a pixel (`NO_PIXEL`, or row/column outside the layout).
+    pub no_pixel: u32,
+    /// Points dropped for their range: non-finite, below `min_range` or above `max_range`.
+    pub rejected_range: u32,
+    /// Pixels with a valid normal.
+    pub valid_pixels: u32,
+    /// Pixels with a return but no reliable normal.
+    pub invalid_pixels: u32,
+    /// Valid pixels solved from an incomplete window (gap-aware path).
+    pub gap_solves: u32,
+    /// Pixels whose window had a point off the fitted plane (a crease, an occluding edge) and
+    /// went through the trimmed solve (valid or not).
+    pub trimmed_solves: u32,
+    /// Valid pixels that kept their own normal because their median window was too sparse or
+    /// the median was degenerate.
+    pub median_kept_own: u32,
+    /// Points given a valid normal (owners and colliding points within the range gate).
+    pub valid_points: u32,
+}
+
+/// Lanes of the gap-aware solve (f32): 8 neighbouring columns.
+const LANES: usize = 8;
+/// Lanes of the median (i16): 16 neighbouring columns, two SSE2 registers or one AVX2 register
+/// per operation.
+const QLANES: usize = 16;
+/// One vector of quantised normal components.
+type Lane = [i16; QLANES];
+
+/// Caller-owned working memory of Ring FALS for layouts of up to `P` padded pixels (see
+/// [`storage_pixels`] and the aliases such as [`RingFals32x1800`]).
+///
+/// Holds the per-scan images (range, inverse range, owner point, normals, median planes, pixel
+/// state) and a row scratch. One `RingFals` serves any table that fits; switching tables costs
+/// one re-initialisation.
+#[derive(Debug)]
+pub struct RingFals<const P: usize> {
+    rows: usize,
+    cols: usize,
+    stride: usize,
+    stats: RingFalsStats,
+    /// Squared range per pixel; 0 = no return.
+    range2: [f32; P],
+    /// 1 / range per pixel; 0 = no return.
+    inv: [f32; P],
+    /// Index of the point that owns the pixel (valid where `range2 > 0`).
+    owner: [u32; P],
+    /// Normal per pixel, planar; zero where not valid.
+    nx: [f32; P],
+    ny: [f32; P],
+    nz: [f32; P],
+    /// Quantised normal per pixel for the median; [`QINVALID`] where not valid.
+    qx: [i16; P],
+    qy: [i16; P],
+    qz: [i16; P],
+    /// -1 where the pixel is not valid, 0 where valid.
+    qinv: [i16; P],
+    /// Range key per pixel for the median's same-surface test: `KEY_SCALE log2(1/range)`;
+    /// [`KEY_EMPTY`] where there is no return.
+    key: [i16; P],
+    state: [u8; P],
+    /// Per row: the five values of each column's 5-row strip, sorted; [channel * 5 + rank].
+    strips: [[i16; SCRATCH_COLS]; 15],
+    /// Per row: minus the number of invalid pixels in each column's 5-row strip.
+    strip_inv: [i16; SCRATCH_COLS],
+}
+
+impl<const P: usize> Default for RingFals<P> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl<const P: usize> RingFals<P> {
+    /// Empty storage; `const` so that it can be a `static`.
+    pub const fn new() -> Self {
+        Self {
+            rows: 0,
+            cols: 0,
+            stride: 0,
+            stats: RingFalsStats {
+                points: 0,
+                projected: 0,
+                collisions: 0,
+                no_pixel: 0,
+                rejected_range: 0,
+                valid_pixels: 0,
+                invalid_pixels: 0,
+                gap_solves: 0,
+                trimmed_solves: 0,
+                median_kept_own: 0,
+                valid_points: 0,
+            },
+            range2: [0.0; P],
+            inv: [0.0; P],
+            owner: [0; P],
+            nx: [0.0; P],
+            ny: [0.0; P],
+            nz: [0.0; P],
+            // All zero, so that a `static` lives in .bss; `bind` sets the invalid markers.
+            qx: [0; P],
+            qy: [0; P],
+            qz: [0; P],
+            qinv: [0; P],
+            key: [0; P],
+            state: [EMPTY; P],
+            strips: [[0; SCRATCH_COLS]; 15],
+            strip_inv: [0; SCRATCH_COLS],
+        }
+    }
+
+    /// Statistics of the last scan.
+    pub fn stats(&self) -> RingFalsStats {
+        self.stats
+    }
+
+    /// Estimates the normal of every point of a scan.
+    ///
+    /// `points` use the table's layout for their `row`/`col`; `out[i]` receives the normal of
+    /// `points[i]` (invalid for points without a pixel, with a filtered range, or whose pixel
+    /// has no reliable normal; a point that lost its pixel to a nearer one shares that pixel's
+    /// normal if its range is within the pixel's range gate). Runs the four stages in order:
+    /// [`Self::project`], [`Self::solve`], [`Self::smooth`], [`Self::write_points`].
+    pub fn estimate(
+        &mut self,
+        table: &RingTable,
+        points: &[ScanPoint],
+        out: &mut [PointNormal],
+    ) -> Result<RingFalsStats, EstimateError> {
+        if out.len() != points.len() {
+            return Err(EstimateError::OutputLength);
+        }
+        self.project(table, points)?;
+        self.solve(table);
+        self.smooth(table);
+        self.write_points(table, points, out);
+        Ok(self.stats)
+    }
+
+    /// Stage 1: checks the sizes and projects the points into the range image (nearest return
+    /// per pixel). Also binds the storage to the table's size.
+    pub fn project(&mut self, table: &RingTable, points: &[ScanPoint]) -> Result<(), EstimateError> {
+        let (rows, cols) = (table.rows(), table.cols());
+        if rows == 0 {
+            return Err(EstimateError::NoTable);
+        }
+        let needed = storage_pixels(rows, cols);
+        if needed > P {
+            return Err(EstimateError::Capacity { needed: needed as u32, capacity: P as u32 });
+        }
+        if points.len() > u32::MAX as usize {
+            return Err(EstimateError::TooManyPoints);
+        }
+        if rows != self.rows || cols != self.cols {
+            self.bind(rows, cols);
+        }
+        let stride = self.stride;
+        self.stats = RingFalsStats { points: points.len() as u32, ..RingFalsStats::default() };
+
+        // Clear the image rows (the pad rows stay empty forever).
+        self.range2[PAD * stride..(PAD + rows) * stride].fill(0.0);
+
+        let cfg = table.config;
+        let (min2, max2) = (cfg.min_range * cfg.min_range, cfg.max_range * cfg.max_range);
+        let mut st = self.stats;
+        for (i, p) in points.iter().enumerate() {
+            let (row, col) = (p.row as usize, p.col as usize);
+            if row >= rows || col >= cols {
+                st.no_pixel += 1;
+                continue;
+            }
+            let [x, y, z] = p.xyz;
+            let r2 = x * x + y * y + z * z;
+            // Written so that NaN fails: a non-finite point is rejected, never projected.
+            if !(r2 >= min2 && r2 <= max2) {
+                st.rejected_range += 1;
+                continue;
+            }
+            let px = (row + PAD) * stride + table.internal_col(row, col) + PAD;
+            let old = self.range2[px];
+            if old == 0.0 {
+                st.projected += 1;
+                self.range2[px] = r2;
+                self.owner[px] = i as u32;
+            } else {
+                st.collisions += 1;
+                if r2 < old {
+                    self.range2[px] = r2;
+                    self.owner[px] = i as u32;
+                }
+            }
+        }
+        self.stats = st;
+        Ok(())
+    }
+
+    /// Stage 2: per pixel, the Ring FALS normal from its 3x3 window (full windows vectorised,
+    /// incomplete ones through the gap-aware solve), oriented toward the sensor and normalised.
+    pub fn solve(&mut self, table: &RingTable) {
+        let (rows, cols, stride) = (self.rows, self.cols, self.stride);
+        if rows == 0 || table.rows() != rows || table.cols() != cols {
+            return;
+        }
+        // Inverse range of every image row, then wrap its pad columns.
+        for r in PAD..PAD + rows {
+            let src = &self.range2[r * stride..(r + 1) * stride];
+            let dst = &mut self.inv[r * stride..(r + 1) * stride];
+            for (d, &s) in dst.iter_mut().zip(src) {
+                *d = if s > 0.0 { rsqrt(s) } else { 0.0 };
+            }
+            wrap_row(&mut self.inv[r * stride..(r + 1) * stride], cols);
+            let (w, key) =
+                (&self.inv[r * stride..(r + 1) * stride], &mut self.key[r * stride..(r + 1) * stride]);
+            for (k, &w) in key.iter_mut().zip(w) {
+                *k = if w > 0.0 { (log2_approx(w) * KEY_SCALE) as i16 } else { KEY_EMPTY };
+            }
+        }
+
+        let abs = table.config.range_jump_abs;
+        let rel = table.config.fit_tolerance_rel;
+        let mut gap_solves = 0u32;
+        let mut trimmed = 0u32;
+        let mut valid = 0u32;
+        let mut invalid = 0u32;
+        for r in 0..rows {
+            let rc = &table.row[r];
+            let base = (r + PAD) * stride + PAD;
+            {
+                let up = &self.inv[base - stride - 1..][..cols + 2];
+                let mid = &self.inv[base - 1..][..cols + 2];
+                let dn = &self.inv[base + stride - 1..][..cols + 2];
+                let cs = (&table.col_cos[..cols], &table.col_sin[..cols]);
+                let nx = &mut self.nx[base..][..cols];
+                let ny = &mut self.ny[base..][..cols];
+                let nz = &mut self.nz[base..][..cols];
+                let state = &mut self.state[base..][..cols];
+                solve_row_full(rc, abs, rel, up, mid, dn, cs, nx, ny, nz, state);
+            }
+            // Incomplete windows, 8 columns at a time: the masked least squares over the
+            // neighbours present; windows that still fail the plane-fit check go to the
+            // trimmed solve one by one.
+            let mut c0 = 0;
+            while c0 < cols {
+                let c = c0.min(cols - LANES);
+                c0 += LANES;
+                let px0 = base + c;
+                if !self.state[px0..px0 + LANES].contains(&PARTIAL) {
+                    continue;
+                }
+                let w9: [[f32; LANES]; 9] = core::array::from_fn(|k| {
+                    let o = px0 + (k / 3) * stride + (k % 3) - stride - 1;
+                    core::array::from_fn(|l| self.inv[o + l])
+                });
+                let cs: [(f32, f32); LANES] = core::array::from_fn(|l| table.azimuth_cs(r, c + l));
+                let (ca, sa) = (cs.map(|v| v.0), cs.map(|v| v.1));
+                let (n, verdict) = solve_group_masked(rc, &table.config, &w9, &ca, &sa);
+                for l in 0..LANES {
+                    let px = px0 + l;
+                    if self.state[px] != PARTIAL {
+                        continue;
+                    }
+                    let solved = match verdict[l] {
+                        GAP => Some([n[0][l], n[1][l], n[2][l]]),
+                        TRIM => {
+                            trimmed += 1;
+                            let w: [f32; 9] = core::array::from_fn(|k| w9[k][l]);
+                            solve_trimmed(rc, &table.config, w, cs[l].0, cs[l].1)
+                        }
+                        _ => None,
+                    };
+                    let v = solved.unwrap_or([0.0; 3]);
+                    self.nx[px] = v[0];
+                    self.ny[px] = v[1];
+                    self.nz[px] = v[2];
+                    self.state[px] = if solved.is_some() { GAP } else { INVALID };
+                }
+            }
+            for &st in &self.state[base..base + cols] {
+                match st {
+                    FULL => valid += 1,
+                    GAP => {
+                        valid += 1;
+                        gap_solves += 1;
+                    }
+                    INVALID => invalid += 1,
+                    _ => {}
+                }
+            }
+        }
+        self.stats.gap_solves = gap_solves;
+        self.stats.trimmed_solves = trimmed;
+        self.stats.valid_pixels = valid;
+        self.stats.invalid_pixels = invalid;
+    }
+
+    /// Stage 3: the 5x5 median over valid pixels (per channel, columns wrapped, rows cut at the
+    /// border) and normalisation. Skipped when the table's config disables the median.
+    pub fn smooth(&mut self, table: &RingTable) {
+        let (rows, cols, stride) = (self.rows, self.cols, self.stride);
+        if rows == 0 || table.rows() != rows || table.cols() != cols || !table.config.median {
+            return;
+        }
+        // Quantised planes of the image rows, then their wrapped pad columns.
+        for r in PAD..PAD + rows {
+            let s = r * stride..(r + 1) * stride;
+            quantise_row(
+                &self.nx[s.clone()],
+                &self.ny[s.clone()],
+                &self.nz[s.clone()],
+                &self.state[s.clone()],
+                &mut self.qx[s.clone()],
+                &mut self.qy[s.clone()],
+                &mut self.qz[s.clone()],
+                &mut self.qinv[s.clone()],
+            );
+            wrap_row(&mut self.qx[s.clone()], cols);
+            wrap_row(&mut self.qy[s.clone()], cols);
+            wrap_row(&mut self.qz[s.clone()], cols);
+            wrap_row(&mut self.qinv[s], cols);
+        }
+
+        let min_valid = table.config.median_min_valid as i16;
+        let mut kept_own = 0u32;
+        for r in 0..rows {
+            // Column strips of rows r-2..=r+2 (padded rows r..=r+4): sorted values and counts.
+            let top = r * stride;
+            {
+                let planes = [&self.qx, &self.qy, &self.qz];
+                for (ch, q) in planes.iter().enumerate() {
+                    let s: [&[i16]; 5] = core::array::from_fn(|i| &q[top + i * stride..][..stride]);
+                    let (a, rest) = self.strips[ch * 5..ch * 5 + 5].split_at_mut(1);
+                    let (b, rest) = rest.split_at_mut(1);
+                    let (c, rest) = rest.split_at_mut(1);
+                    let (d, e) = rest.split_at_mut(1);
+                    sort_strips(
+                        s,
+                        [
+                            &mut a[0][..stride],
+                            &mut b[0][..stride],
+                            &mut c[0][..stride],
+                            &mut d[0][..stride],
+                            &mut e[0][..stride],
+                        ],
+                    );
+                }
+                let s: [&[i16]; 5] = core::array::from_fn(|i| &self.qinv[top + i * stride..][..stride]);
+                let dst = &mut self.strip_inv[..stride];
+                for (j, d) in dst.iter_mut().enumerate() {
+                    *d = s[0][j] + s[1][j] + s[2][j] + s[3][j] + s[4][j];
+                }
+            }
+
+            let rc = &table.row[r];
+            let base = (r + PAD) * stride + PAD;
+            // Groups of 16 columns; the last group is moved left to end at the last column and
+            // skips the lanes the previous group already did.
+            let mut c0 = 0;
+            while c0 < cols {
+                let c0_eff = c0.min(cols - QLANES);
+                kept_own += self.median_group(table, rc, base, c0_eff, c0 - c0_eff, min_valid);
+                c0 += QLANES;
+            }
+        }
+        self.stats.median_kept_own = kept_own;
+    }
+
+    /// Median of the 16 pixels at image columns c0..c0+16 of one image row. Returns how many
+    /// kept their own normal.
+    #[allow(clippy::too_many_arguments)]
+    fn median_group(
+        &mut self,
+        table: &RingTable,
+        rc: &RowCoeffs,
+        base: usize,
+        c0: usize,
+        first_lane: usize,
+        min_valid: i16,
+    ) -> u32 {
+        let stride = self.stride;
+        let centre = base + c0;
+        let st: [u8; QLANES] =
+            core::array::from_fn(|l| if l < first_lane { EMPTY } else { self.state[centre + l] });
+        if st.iter().all(|&s| s != FULL && s != GAP) {
+            return 0;
+        }
+        // Which window pixels take part, per lane: a valid normal on the centre's surface (the
+        // range gate of the solve for the pixel's angular distance, on range keys). Leaving out
+        // the wall behind a pole keeps the pole's edge normals from being pulled toward the
+        // wall's.
+        let sc = c0 + PAD; // strip column of the lane's own column
+        let kc = lane_load(&self.key[centre..]);
+        // Absolute part of the gate: log2(1 + abs / r) <= abs / (r ln 2).
+        let tc: Lane = core::array::from_fn(|l| {
+            (self.inv[centre + l] * (table.config.range_jump_abs * KEY_SCALE * core::f32::consts::LOG2_E))
+                .min(30000.0) as i16
+        });
+        let mut masks = [[0i16; QLANES]; 25];
+        let mut any: Lane = [0; QLANES];
+        for dr in 0..5 {
+            let row0 = centre + dr * stride - 2 * stride - 2;
+            for dc in 0..5 {
+                let j = 5 * dr + dc;
+                let inv = lane_load(&self.qinv[row0 + dc..]);
+                let kq = lane_load(&self.key[row0 + dc..]);
+                let g = rc.gate5[j];
+                masks[j] = core::array::from_fn(|l| {
+                    let d = kc[l].saturating_sub(kq[l]);
+                    let d = d.max(0i16.saturating_sub(d));
+                    inv[l] | -((d.saturating_sub(tc[l]) > g) as i16)
+                });
+                for l in 0..QLANES {
+                    any[l] |= masks[j][l];
+                }
+            }
+        }
+        let mut med = [[0i16; QLANES]; 3];
+        let mut neg_count: Lane = [0; QLANES];
+        if any == [0; QLANES] {
+            // Every window complete and on one surface: the sorted column strips are shared
+            // between windows.
+            for (ch, m) in med.iter_mut().enumerate() {
+                let mut v = [[0i16; QLANES]; 25];
+                for dc in 0..5 {
+                    for k in 0..5 {
+                        v[5 * dc + k] = lane_load(&self.strips[ch * 5 + k][sc + dc - 2..]);
+                    }
+                }
+                *m = median25_presorted(&mut v);
+            }
+        } else {
+            // Left-out pixels enter the network as alternately -inf and +inf sentinels (per
+            // window, in scan order), so that the network's middle output is the median of the
+            // pixels kept (the lower median for an even count).
+            let mut flips = [[0i16; QLANES]; 25];
+            let mut tog: Lane = [0; QLANES];
+            for j in 0..25 {
+                let m = masks[j];
+                for l in 0..QLANES {
+                    neg_count[l] += m[l];
+                    tog[l] ^= m[l];
+                    flips[j][l] = tog[l] & m[l];
+                }
+            }
+            let planes = [&self.qx, &self.qy, &self.qz];
+            for (ch, q) in planes.iter().enumerate() {
+                // A fresh local array per channel, indexed by constants only in the network, so
+                // that it lives in registers.
+                let mut v = [[0i16; QLANES]; 25];
+                for dr in 0..5 {
+                    let row0 = centre + dr * stride - 2 * stride - 2;
+                    for dc in 0..5 {
+                        let j = 5 * dr + dc;
+                        let x = lane_load(&q[row0 + dc..]);
+                        v[j] = core::array::from_fn(|l| x[l] ^ flips[j][l]);
+                    }
+                }
+                med[ch] = median25(&mut v);
+            }
+        }
+
+        // Back to unit vectors; fall back to the pixel's own normal when the window is too
+        // sparse, the median is degenerate (|m| < 0.5) or it faces away from the sensor.
+        let mut use_med = [false; QLANES];
+        let mut n = [[0.0f32; QLANES]; 3];
+        for l in 0..QLANES {
+            let valid = (st[l] == FULL) | (st[l] == GAP);
+            let m = [med[0][l] as f32, med[1][l] as f32, med[2][l] as f32];
+            let n2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2];
+            let [cc, sc] = [table.col_cos[c0 + l], table.col_sin[c0 + l]];
+            let (ca, sa) = (rc.ca0 * cc - rc.sa0 * sc, rc.sa0 * cc + rc.ca0 * sc);
+            let facing = rc.ce * (ca * m[0] + sa * m[1]) + rc.se * m[2];
+            use_med[l] =
+                valid & (25 + neg_count[l] >= min_valid) & (n2 >= 0.25 * QSCALE * QSCALE) & (facing < 0.0);
+            let s = rsqrt(n2);
+            for ch in 0..3 {
+                n[ch][l] = m[ch] * s;
+            }
+        }
+        let planes = [&mut self.nx, &mut self.ny, &mut self.nz];
+        for (ch, plane) in planes.into_iter().enumerate() {
+            let dst = &mut plane[centre..centre + QLANES];
+            for l in 0..QLANES {
+                dst[l] = if use_med[l] { n[ch][l] } else { dst[l] };
+            }
+        }
+        let valid = st.iter().filter(|&&s| s == FULL || s == GAP).count();
+        (valid - use_med.iter().filter(|&&u| u).count()) as u32
+    }
+
+    /// Stage 4: the normal of every point, from its pixel.
+    pub fn write_points(&mut self, table: &RingTable, points: &[ScanPoint], out: &mut [PointNormal]) {
+        let (rows, cols, stride) = (self.rows, self.cols, self.stride);
+        let mut valid_points = 0u32;
+        if rows == 0 || table.rows() != rows || table.cols() != cols || out.len() != points.len() {
+            out.fill(PointNormal::INVALID);
+            return;
+        }
+        let cfg = table.config;
+        let (min2, max2) = (cfg.min_range * cfg.min_range, cfg.max_range * cfg.max_range);
+        for (i, (p, o)) in points.iter().zip(out.iter_mut()).enumerate() {
+            *o = PointNormal::INVALID;
+            let (row, col) = (p.row as usize, p.col as usize);
+            if row >= rows || col >= cols {
+                continue;
+            }
+            let [x, y, z] = p.xyz;
+            let r2 = x * x + y * y + z * z;
+            if !(r2 >= min2 && r2 <= max2) {
+                continue;
+            }
+            let px = (row + PAD) * stride + table.internal_col(row, col) + PAD;
+            let s = self.state[px];
+            if s != FULL && s != GAP {
+                continue;
+            }
+            if self.owner[px] != i as u32 {
+                // A point that lost its pixel to a nearer one shares the pixel's normal only if
+                // it lies on the same surface: within the gate to a same-row neighbour.
+                let (ri, rp) = (libm::sqrtf(r2), libm::sqrtf(self.range2[px]));
+                let g = table.row[row].gate[CENTRE + 1];
+                if !(ri - rp <= g * rp + cfg.range_jump_abs) {
+                    continue;
+                }
+            }
+            *o = PointNormal { normal: [self.nx[px], self.ny[px], self.nz[px]], valid: true };
+            valid_points += 1;
+        }
+        self.stats.valid_points = valid_points;
+    }
+
+    /// The normal of pixel (row, col) of the last scan, in the caller's columns; `None` when the
+    /// pixel has no valid normal or is outside the layout.
+    pub fn pixel_normal(&self, table: &RingTable, row: usize, col: usize) -> Option<[f32; 3]> {
+        if row >= self.rows || col >= self.cols || table.rows() != self.rows || table.cols() != self.cols {
+            return None;
+        }
+        let px = (row + PAD) * self.stride + table.internal_col(row, col) + PAD;
+        match self.state[px] {
+            FULL | GAP => Some([self.nx[px], self.ny[px], self.nz[px]]),
+            _ => None,
+        }
+    }
+
+    /// Whether pixel (row, col) of the last scan was solved from an incomplete window.
+    pub fn pixel_is_gap_solve(&self, table: &RingTable, row: usize, col: usize) -> bool {
+        if row >= self.rows || col >= self.cols || table.rows() != self.rows || table.cols() != self.cols {
+            return false;
+        }
+        let px = (row + PAD) * self.stride + table.internal_col(row, col) + PAD;
+        self.state[px] == GAP
+    }
+
+    /// Sets up the planes for a new size: every pixel empty, every median value invalid.
+    fn bind(&mut self, rows: usize, cols: usize) {
+        self.rows = rows;
+        self.cols = cols;
+        self.stride = cols + 2 * PAD;
+        let n = storage_pixels(rows, cols);
+        self.range2[..n].fill(0.0);
+        self.inv[..n].fill(0.0);
+        self.owner[..n].fill(0);
+        self.nx[..n].fill(0.0);
+        self.ny[..n].fill(0.0);
+        self.nz[..n].fill(0.0);
+        self.qx[..n].fill(QINVALID);
+        self.qy[..n].fill(QINVALID);
+        self.qz[..n].fill(QINVALID);
+        self.qinv[..n].fill(-1);
+        self.key[..n].fill(KEY_EMPTY);
+        self.state[..n].fill(EMPTY);
+    }
+}
+
+/// Copies the two image columns at each end of a padded row into the opposite pad columns.
+#[inline]
+fn wrap_row<T: Copy>(row: &mut [T], cols: usize) {
+    // Layout: [pad0 pad1 | c0 c1 ... c(cols-1) | pad2 pad3]
+    row[0] = row[cols];
+    row[1] = row[cols + 1];
+    row[cols + PAD] = row[PAD];
+    row[cols + PAD + 1] = row[PAD + 1];
+}
+
+/// log2(x) for finite x > 0 from the float's exponent and a quartic in its mantissa (error
+/// below 2.1e-4), in f32 arithmetic only so that it vectorises.
+#[inline(always)]
+fn log2_approx(x: f32) -> f32 {
+    let bits = x.to_bits();
+    let e = ((bits >> 23) & 0xff) as i32 - 127;
+    let f = f32::from_bits((bits & 0x007f_ffff) | 0x3f80_0000);
+    let p = -2.496_773_8 + f * (4.028_373 + f * (-2.081_060_2 + f * (0.628_815_7 + f * -0.079_150_37)));
+    e as f32 + p
+}
+
+/// 1/sqrt(x) for x > 0 in f32 arithmetic only (so that it vectorises and gives the same bits on
+/// every target): a bit-level first guess refined by three Newton steps, relative error below
+/// 2e-7.
+#[inline(always)]
+fn rsqrt(x: f32) -> f32 {
+    let y = f32::from_bits(0x5f37_5a86u32.wrapping_sub(x.to_bits() >> 1));
+    let h = 0.5 * x;
+    let y = y * (1.5 - h * y * y);
+    let y = y * (1.5 - h * y * y);
+    y * (1.5 - h * y * y)
+}
+
+/// The full-window solve of one image row, vectorisable: writes the oriented unit normal and
+/// FULL for pixels whose complete window passed the gates, zero and PARTIAL for pixels with a
+/// return whose window is incomplete, zero and EMPTY for pixels without a return.
+#[allow(clippy::too_many_arguments)]
+#[inline(never)]
+fn solve_row_full(
+    rc: &RowCoeffs,
+    abs: f32,
+    rel: f32,
+    up: &[f32],
+    mid: &[f32],
+    dn: &[f32],
+    cs: (&[f32], &[f32]),
+    nx: &mut [f32],
+    ny: &mut [f32],
+    nz: &mut [f32],
+    state: &mut [u8],
+) {
+    let n = nx.len();
+    let (up, mid, dn) = (&up[..n + 2], &mid[..n + 2], &dn[..n + 2]);
+    let (col_cos, col_sin) = (&cs.0[..n], &cs.1[..n]);
+    let (ny, nz, state) = (&mut ny[..n], &mut nz[..n], &mut state[..n]);
+    let [u0, u1, u2] = rc.u;
+    let mi = rc.minv;
+    let nominal = rc.nominal_ok;
+    for j in 0..n {
+        let w = [up[j], up[j + 1], up[j + 2], mid[j], mid[j + 1], mid[j + 2], dn[j], dn[j + 1], dn[j + 2]];
+        let wc = w[CENTRE];
+        let mut b = [0.0f32; 3];
+        let mut ww = 0.0f32;
+        for k in 0..9 {
+            b[0] += u0[k] * w[k];
+            b[1] += u1[k] * w[k];
+            b[2] += u2[k] * w[k];
+            ww += w[k] * w[k];
+        }
+        let m0 = mi[0] * b[0] + mi[1] * b[1] + mi[2] * b[2];
+        let m1 = mi[1] * b[0] + mi[3] * b[1] + mi[4] * b[2];
+        let m2 = mi[2] * b[0] + mi[4] * b[1] + mi[5] * b[2];
+        // Plane-fit check (see FIT_K): the sum of squared residuals of the nine equations,
+        // sum w^2 - m . b'. A neighbour without a return (w = 0, a point at infinity) fails it,
+        // so does one on another surface; neighbours outside the image (u = 0, w = 0) do not
+        // count.
+        let tol = wc * (rel + abs * wc);
+        let ssr = ww - (m0 * b[0] + m1 * b[1] + m2 * b[2]);
+        let mut ok = wc > 0.0 && ssr <= FIT_K * tol * tol;
+        let (cc, sc) = (col_cos[j], col_sin[j]);
+        let (ca, sa) = (rc.ca0 * cc - rc.sa0 * sc, rc.sa0 * cc + rc.ca0 * sc);
+        let (v, o) = to_global(rc, m0, m1, m2, ca, sa);
+        ok &= nominal & o;
+        nx[j] = if ok { v[0] } else { 0.0 };
+        ny[j] = if ok { v[1] } else { 0.0 };
+        nz[j] = if ok { v[2] } else { 0.0 };
+        state[j] = if ok {
+            FULL
+        } else if wc > 0.0 {
+            PARTIAL
+        } else {
+            EMPTY
+        };
+    }
+}
+
+/// From the scaled local solution (m0 along the ray, m1 and m2 the scaled tangent parts) to the
+/// unit normal in the LiDAR frame, pointing toward the sensor. The second value is false when
+/// the solution is unusable (not finite, zero, or its plane equation does not face the sensor:
+/// `n . p = 1` requires m0 > 0).
+#[inline(always)]
+fn to_global(rc: &RowCoeffs, m0: f32, m1: f32, m2: f32, ca: f32, sa: f32) -> ([f32; 3], bool) {
+    let t1 = m1 * rc.inv_dh;
+    let t2 = m2 * rc.inv_dv;
+    let h = m0 * rc.ce - t2 * rc.se;
+    let x = ca * h - sa * t1;
+    let y = sa * h + ca * t1;
+    let z = m0 * rc.se + t2 * rc.ce;
+    let n2 = x * x + y * y + z * z;
+    // FALS normals point away from the sensor (m0 > 0): flip them toward it.
+    let s = -rsqrt(n2);
+    let ok = (m0 > 0.0) & (n2 > 1e-30) & (n2 < 1e30);
+    ([x * s, y * s, z * s], ok)
+}
+
+/// Present-neighbour bit masks (bit k of the 3x3 window, centre excluded) whose offsets span
+/// both image directions (not all on one line through the centre).
+const SPANS_PLANE: [bool; 512] = {
+    let mut t = [false; 512];
+    let mut mask = 0;
+    while mask < 512 {
+        let (mut srr, mut scc, mut src) = (0i32, 0i32, 0i32);
+        let mut k = 0;
+        while k < 9 {
+            if mask & (1 << k) != 0 {
+                let (dr, dc) = (k / 3 - 1, k % 3 - 1);
+                srr += dr * dr;
+                scc += dc * dc;
+                src += dr * dc;
+            }
+            k += 1;
+        }
+        t[mask] = srr * scc - src * src > 0;
+        mask += 1;
+    }
+    t
+};
+
+/// The plane-fit check: a window's squared residuals (in inverse range) may sum to at most
+/// `FIT_K tol^2`, `tol = wc (fit_tolerance_rel + range_jump_abs wc)` being the inverse-range form
+/// of `fit_tolerance_rel r + range_jump_abs`. Range noise of `s` per point passes while its
+/// expected sum `6 s^2` stays below that (`s` up to 0.8 `tol`); a single point off the plane by
+/// more than about 2.2 `tol` fails it, wherever the noise.
+const FIT_K: f32 = 4.0;
+
+/// Verdict of the masked solve: the window fits but should be trimmed point by point.
+const TRIM: u8 = 5;
+
+/// The gap-aware solve of 8 neighbouring pixels at once (branch-free, so it vectorises): the
+/// least squares over each window's present neighbours (a return, within the range gate), `M'`
+/// and `b'` as masked sums. Per lane: GAP with the normal when the plane fits every point,
+/// TRIM when the system is sound but some point is off the plane, INVALID when too few points
+/// are present or the system is ill-conditioned (which includes all points on one image line).
+fn solve_group_masked(
+    rc: &RowCoeffs,
+    cfg: &RingFalsConfig,
+    w9: &[[f32; LANES]; 9],
+    ca: &[f32; LANES],
+    sa: &[f32; LANES],
+) -> ([[f32; LANES]; 3], [u8; LANES]) {
+    let wc = w9[CENTRE];
+    let t: [f32; LANES] = core::array::from_fn(|l| cfg.range_jump_abs * wc[l]);
+    let mut m = [[0.0f32; LANES]; 6];
+    let mut b = [[0.0f32; LANES]; 3];
+    let mut ww = [0.0f32; LANES];
+    let mut count = [0.0f32; LANES];
+    for k in 0..9 {
+        if (rc.exists >> k) & 1 == 0 {
+            continue;
+        }
+        let g = rc.gate[k];
+        let uu: [f32; 6] = core::array::from_fn(|i| rc.uu[i][k]);
+        let u = [rc.u[0][k], rc.u[1][k], rc.u[2][k]];
+        let w = &w9[k];
+        for l in 0..LANES {
+            let present = (w[l] > 0.0) & ((wc[l] - w[l]).abs() <= w[l] * (g + t[l]));
+            let p = if present { 1.0f32 } else { 0.0 };
+            let pw = p * w[l];
+            for i in 0..6 {
+                m[i][l] += p * uu[i];
+            }
+            b[0][l] += pw * u[0];
+            b[1][l] += pw * u[1];
+            b[2][l] += pw * u[2];
+            ww[l] += pw * w[l];
+            count[l] += p;
+        }
+    }
+    let mut out = [[0.0f32; LANES]; 3];
+    let mut verdict = [INVALID; LANES];
+    for l in 0..LANES {
+        let mm = [m[0][l], m[1][l], m[2][l], m[3][l], m[4][l], m[5][l]];
+        let bb = [b[0][l], b[1][l], b[2][l]];
+        let (adj, det) = adjugate_f32(&mm);
+        let tr = mm[0] + mm[3] + mm[5];
+        let sound = (wc[l] > 0.0)
+            & (count[l] >= cfg.min_points as f32)
+            & (det > 0.0)
+            & (27.0 * det >= cfg.min_conditioning * tr * tr * tr);
+        let s = 1.0 / det;
+        let m0 = (adj[0] * bb[0] + adj[1] * bb[1] + adj[2] * bb[2]) * s;
+        let m1 = (adj[1] * bb[0] + adj[3] * bb[1] + adj[4] * bb[2]) * s;
+        let m2 = (adj[2] * bb[0] + adj[4] * bb[1] + adj[5] * bb[2]) * s;
+        let tol = wc[l] * (cfg.fit_tolerance_rel + t[l]);
+        let fits = ww[l] - (m0 * bb[0] + m1 * bb[1] + m2 * bb[2]) <= FIT_K * tol * tol;
+        let (v, ok) = to_global(rc, m0, m1, m2, ca[l], sa[l]);
+        verdict[l] = if sound & fits & ok {
+            GAP
+        } else if sound {
+            TRIM
+        } else {
+            INVALID
+        };
+        out[0][l] = v[0];
+        out[1][l] = v[1];
+        out[2][l] = v[2];
+    }
+    (out, verdict)
+}
+
+/// The trimmed solve of one pixel whose masked solve did not fit: while a point is off the
+/// fitted plane, drop the neighbour with the largest deleted residual (its residual divided by
+/// 1 - its leverage, the residual it would have in a fit without it, which an outlier cannot
+/// hide by pulling the plane toward itself) and solve again. `None` when too few points remain,
+/// they lie on one image line, the system is ill-conditioned, or only the centre is off the
+/// plane of its neighbours, or more than [`MAX_TRIM`] points would have to go.
+fn solve_trimmed(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa: f32) -> Option<[f32; 3]> {
+    let wc = w[CENTRE];
+    if !(wc > 0.0) {
+        return None;
+    }
+    let t = cfg.range_jump_abs * wc;
+    let tol = wc * (cfg.fit_tolerance_rel + t);
+    let mut mask = 0usize;
+    for k in 0..9 {
+        let present = rc.exists & (1 << k) != 0 && w[k] > 0.0 && (wc - w[k]).abs() <= w[k] * (rc.gate[k] + t);
+        if present {
+            mask |= 1 << k;
+        }
+    }
+    // Each pass removes one neighbour, at most MAX_TRIM: a window that needs more is not a
+    // surface with a few points off it (an edge, a crease) but clutter without a plane.
+    for pass in 0..=MAX_TRIM {
+        if (mask.count_ones() as u8) < cfg.min_points || !SPANS_PLANE[mask] {
+            return None;
+        }
+        let mut m = [0.0f32; 6];
+        let mut b = [0.0f32; 3];
+        for k in 0..9 {
+            if mask & (1 << k) != 0 {
+                for i in 0..6 {
+                    m[i] += rc.uu[i][k];
+                }
+                b[0] += rc.u[0][k] * w[k];
+                b[1] += rc.u[1][k] * w[k];
+                b[2] += rc.u[2][k] * w[k];
+            }
+        }
+        let (adj, det) = adjugate_f32(&m);
+        let tr = m[0] + m[3] + m[5];
+        if !(det > 0.0 && 27.0 * det >= cfg.min_conditioning * tr * tr * tr) {
+            return None;
+        }
+        let s = 1.0 / det;
+        let sol = [
+            (adj[0] * b[0] + adj[1] * b[1] + adj[2] * b[2]) * s,
+            (adj[1] * b[0] + adj[3] * b[1] + adj[4] * b[2]) * s,
+            (adj[2] * b[0] + adj[4] * b[1] + adj[5] * b[2]) * s,
+        ];
+        let mut ssr = 0.0f32;
+        let mut worst = (0.0f32, usize::MAX);
+        for k in 0..9 {
+            if mask & (1 << k) == 0 {
+                continue;
+            }
+            let u = [rc.u[0][k], rc.u[1][k], rc.u[2][k]];
+            let e = (u[0] * sol[0] + u[1] * sol[1] + u[2] * sol[2] - w[k]).abs();
+            ssr += e * e;
+            if k != CENTRE {
+                // Leverage h = u^T M'^-1 u.
+                let h = (adj[0] * u[0] * u[0]
+                    + adj[3] * u[1] * u[1]
+                    + adj[5] * u[2] * u[2]
+                    + 2.0 * (adj[1] * u[0] * u[1] + adj[2] * u[0] * u[2] + adj[4] * u[1] * u[2]))
+                    * s;
+                let d = e / (1.0 - h).max(1e-3);
+                if !(d <= worst.0) {
+                    worst = (d, k);
+                }
+            }
+        }
+        if ssr <= FIT_K * tol * tol {
+            let (n, ok) = to_global(rc, sol[0], sol[1], sol[2], ca, sa);
+            return if ok { Some(n) } else { None };
+        }
+        if worst.1 == usize::MAX || pass == MAX_TRIM {
+            return None;
+        }
+        mask &= !(1 << worst.1);
+    }
+    None
+}
+
+/// Most points the trimmed solve may drop from a window (an occluding edge takes two or three,
+/// a crease between two planes three).
+const MAX_TRIM: usize = 3;
+
+/// Quantises one padded row of normals for the median: valid pixels to 1/QSCALE, the rest to
+/// the invalid sentinel with `qinv = -1`.
+#[allow(clippy::too_many_arguments)]
+fn quantise_row(
+    nx: &[f32],
+    ny: &[f32],
+    nz: &[f32],
+    state: &[u8],
+    qx: &mut [i16],
+    qy: &mut [i16],
+    qz: &mut [i16],
+    qinv: &mut [i16],
+) {
+    let n = nx.len();
+    let (ny, nz, state) = (&ny[..n], &nz[..n], &state[..n]);
+    let (qx, qy, qz, qinv) = (&mut qx[..n], &mut qy[..n], &mut qz[..n], &mut qinv[..n]);
+    for j in 0..n {
+        let v = state[j] == FULL || state[j] == GAP;
+        // |n| <= 1, so the products lie in [-32000, 32000]; `as` truncates toward zero.
+        qx[j] = if v { (nx[j] * QSCALE) as i16 } else { QINVALID };
+        qy[j] = if v { (ny[j] * QSCALE) as i16 } else { QINVALID };
+        qz[j] = if v { (nz[j] * QSCALE) as i16 } else { QINVALID };
+        qinv[j] = if v { 0 } else { -1 };
+    }
+}
+
+/// Sorts every column's 5-row strip: `s[i][j]` is row i of column j, `d[k][j]` receives the
+/// k-th smallest of column j.
+#[inline(never)]
+fn sort_strips(s: [&[i16]; 5], d: [&mut [i16]; 5]) {
+    let n = d[0].len();
+    let s: [&[i16]; 5] = core::array::from_fn(|i| &s[i][..n]);
+    let [d0, d1, d2, d3, d4] = d;
+    let (d1, d2, d3, d4) = (&mut d1[..n], &mut d2[..n], &mut d3[..n], &mut d4[..n]);
+    for j in 0..n {
+        let mut v = [s[0][j], s[1][j], s[2][j], s[3][j], s[4][j]];
+        sort5(&mut v);
+        d0[j] = v[0];
+        d1[j] = v[1];
+        d2[j] = v[2];
+        d3[j] = v[3];
+        d4[j] = v[4];
+    }
+}
+
+#[inline(always)]
+fn lane_load(s: &[i16]) -> Lane {
+    let s = &s[..QLANES];
+    core::array::from_fn(|l| s[l])
+}
+
+// ---------------------------------------------------------------------------------------------
+// Sorting networks (verified exhaustively by the 0-1 principle in the tests below)
+// ---------------------------------------------------------------------------------------------
+
+/// Optimal 9-comparator sorting network for 5 values.
+#[inline(always)]
+fn sort5(v: &mut [i16; 5]) {
+    macro_rules! s {
+        ($a:expr, $b:expr) => {{
+            let (x, y) = (v[$a], v[$b]);
+            v[$a] = x.min(y);
+            v[$b] = x.max(y);
+        }};
+    }
+    s!(0, 1);
+    s!(3, 4);
+    s!(2, 4);
+    s!(2, 3);
+    s!(0, 3);
+    s!(0, 2);
+    s!(1, 4);
+    s!(1, 3);
+    s!(1, 2);
+}
+
+/// Which outputs of a comparator are used: both, only the minimum (`L`), only the maximum (`H`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[allow(dead_code)]
+enum Cx {
+    B,
+    L,
+    H,
+}
+
+#[inline(always)]
+fn lmin(a: Lane, b: Lane) -> Lane {
+    core::array::from_fn(|l| a[l].min(b[l]))
+}
+
+#[inline(always)]
+fn lmax(a: Lane, b: Lane) -> Lane {
+    core::array::from_fn(|l| a[l].max(b[l]))
+}
+
+/// Defines a median network both as data (for the exhaustive test) and as straight-line code
+/// (for speed): comparator (a, b, kind) leaves the minimum on wire a and the maximum on wire b.
+macro_rules! median_network {
+    ($(#[$m:meta])* $data:ident, $apply:ident, $out:expr; $(($a:expr, $b:expr, $k:ident)),* $(,)?) => {
+        $(#[$m])*
+        #[allow(dead_code)]
+        const $data: (&[(u8, u8, Cx)], usize) = (&[$(($a, $b, Cx::$k)),*], $out);
+
+        #[inline(always)]
+        fn $apply(v: &mut [Lane; 25]) -> Lane {
+            $( median_network!(@cx v, $a, $b, $k); )*
+            v[$out]
+        }
+    };
+    (@cx $v:ident, $a:expr, $b:expr, B) => {{ let (x, y) = ($v[$a], $v[$b]); $v[$a] = lmin(x, y); $v[$b] = lmax(x, y); }};
+    (@cx $v:ident, $a:expr, $b:expr, L) => {{ $v[$a] = lmin($v[$a], $v[$b]); }};
+    (@cx $v:ident, $a:expr, $b:expr, H) => {{ $v[$b] = lmax($v[$a], $v[$b]); }};
+}
+
+median_network! {
+    /// Median of 25 values: Batcher's odd-even merge sort for 32 inputs restricted to 25 and
+    /// pruned backwards from output 12 (113 comparators, 202 min/max operations).
+    MEDIAN25, median25, 12;
+    (0, 1, B), (2, 3, B), (4, 5, B), (6, 7, B), (8, 9, B), (10, 11, B), (12, 13, B), (14, 15, B),
+    (16, 17, B), (18, 19, B), (20, 21, B), (22, 23, B), (0, 2, B), (1, 3, B), (4, 6, B), (5, 7, B),
+    (8, 10, B), (9, 11, B), (12, 14, B), (13, 15, B), (16, 18, B), (17, 19, B), (20, 22, B),
+    (21, 23, B), (1, 2, B), (5, 6, B), (9, 10, B), (13, 14, B), (17, 18, B), (21, 22, B), (0, 4, B),
+    (1, 5, B), (2, 6, B), (3, 7, B), (8, 12, B), (9, 13, B), (10, 14, B), (11, 15, B), (16, 20, B),
+    (17, 21, B), (18, 22, B), (19, 23, B), (2, 4, B), (3, 5, B), (10, 12, B), (11, 13, B), (18, 20, B),
+    (19, 21, B), (1, 2, B), (3, 4, B), (5, 6, B), (9, 10, B), (11, 12, B), (13, 14, B), (17, 18, B),
+    (19, 20, B), (21, 22, B), (0, 8, B), (1, 9, B), (2, 10, B), (3, 11, B), (4, 12, B), (5, 13, B),
+    (6, 14, B), (7, 15, L), (16, 24, B), (4, 8, B), (5, 9, B), (6, 10, B), (7, 11, B), (20, 24, B),
+    (2, 4, B), (3, 5, B), (6, 8, B), (7, 9, B), (10, 12, B), (11, 13, B), (18, 20, B), (19, 21, B),
+    (22, 24, B), (1, 2, B), (3, 4, B), (5, 6, B), (7, 8, B), (9, 10, B), (11, 12, B), (13, 14, L),
+    (17, 18, B), (19, 20, B), (21, 22, B), (23, 24, B), (0, 16, H), (1, 17, H), (2, 18, H), (3, 19, H),
+    (4, 20, H), (5, 21, H), (6, 22, L), (7, 23, L), (8, 24, L), (8, 16, H), (9, 17, H), (10, 18, L),
+    (11, 19, L), (12, 20, L), (13, 21, L), (6, 10, H), (7, 11, H), (12, 16, L), (13, 17, L),
+    (10, 12, H), (11, 13, L), (11, 12, H)
+}
+
+median_network! {
+    /// Median of 25 values given as five sorted columns of five (wires 5c..5c+4 ascending):
+    /// sort the rows, keep the 13 candidates that can still be the median, take their median;
+    /// pruned backwards from the output and stripped of comparators whose order the sorted
+    /// columns already fix (70 comparators, 116 min/max operations).
+    MEDIAN25_PRESORTED, median25_presorted, 12;
+    (0, 5, B), (15, 20, B), (10, 20, B), (10, 15, H), (0, 15, H), (5, 20, B), (5, 15, H), (1, 6, B),
+    (16, 21, B), (11, 21, B), (11, 16, B), (1, 16, B), (1, 11, H), (6, 21, B), (6, 16, B), (6, 11, H),
+    (2, 7, B), (17, 22, B), (12, 22, B), (12, 17, B), (2, 17, B), (2, 12, H), (7, 22, L), (7, 17, B),
+    (7, 12, B), (3, 8, B), (18, 23, B), (13, 23, B), (13, 18, B), (3, 18, B), (3, 13, B), (8, 23, L),
+    (8, 18, L), (8, 13, B), (4, 9, B), (19, 24, B), (14, 24, B), (14, 19, B), (4, 19, B), (4, 14, B),
+    (9, 24, L), (9, 19, L), (9, 14, L), (21, 7, B), (13, 4, B), (15, 11, B), (20, 16, B), (7, 17, L),
+    (20, 11, B), (7, 12, B), (8, 13, B), (15, 21, B), (20, 7, B), (11, 21, B), (16, 7, B), (20, 11, B),
+    (16, 21, B), (7, 12, B), (4, 9, B), (15, 3, H), (20, 8, H), (11, 13, H), (16, 4, L), (21, 9, L),
+    (21, 3, H), (7, 8, L), (12, 13, L), (16, 7, H), (12, 3, L), (7, 12, H)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Runs a network on 64 bit-sliced 0/1 inputs at once (min = AND, max = OR).
+    fn run_bits(net: &[(u8, u8, Cx)], v: &mut [u64; 25]) {
+        for &(a, b, k) in net {
+            let (x, y) = (v[a as usize], v[b as usize]);
+            match k {
+                Cx::B => {
+                    v[a as usize] = x & y;
+                    v[b as usize] = x | y;
+                }
+                Cx::L => v[a as usize] = x & y,
+                Cx::H => v[b as usize] = x | y,
+            }
+        }
+    }
+
+    /// 0-1 principle: a comparator network selects the median of every input iff it does for
+    /// every 0/1 input. All 2^25 inputs, 64 per word.
+    #[test]
+    fn median25_is_exact_for_all_zero_one_inputs() {
+        let (net, out) = MEDIAN25;
+        for hi in 0u64..(1 << 19) {
+            let mut v = [0u64; 25];
+            for (i, w) in v.iter_mut().enumerate() {
+                *w = if i < 6 {
+                    // Bits 0..6 of the input vary along the 64 lanes.
+                    let mut m = 0u64;
+                    for lane in 0..64u64 {
+                        if lane >> i & 1 == 1 {
+                            m |= 1 << lane;
+                        }
+                    }
+                    m
+                } else if hi >> (i - 6) & 1 == 1 {
+                    u64::MAX
+                } else {
+                    0
+                };
+            }
+            let ones: [u32; 64] =
+                core::array::from_fn(|lane| (0..25).filter(|&i| v[i] >> lane & 1 == 1).count() as u32);
+            run_bits(net, &mut v);
+            for (lane, &n1) in ones.iter().enumerate() {
+                // The median (13th smallest) is 1 iff at least 13 ones.
+                assert_eq!(v[out] >> lane & 1 == 1, n1 >= 13, "input {hi:x}/{lane}");
+            }
+        }
+    }
+
+    /// The presorted network on every 0/1 input whose five columns are sorted (6^5 of them).
+    #[test]
+    fn median25_presorted_is_exact_for_sorted_columns() {
+        let (net, out) = MEDIAN25_PRESORTED;
+        for code in 0..6u32.pow(5) {
+            let mut v = [0u64; 25];
+            let mut ones = 0;
+            let mut c = code;
+            for col in 0..5 {
+                let k = (c % 6) as usize;
+                c /= 6;
+                for rank in 5 - k..5 {
+                    v[5 * col + rank] = 1;
+                }
+                ones += k;
+            }
+            run_bits(net, &mut v);
+            assert_eq!(v[out] == 1, ones >= 13, "code {code}");
+        }
+    }
+
+    #[test]
+    fn sort5_sorts_everything() {
+        for bits in 0..32u32 {
+            let mut v: [i16; 5] = core::array::from_fn(|i| (bits >> i & 1) as i16);
+            sort5(&mut v);
+            assert!(v.windows(2).all(|w| w[0] <= w[1]), "{bits:b}");
+        }
+    }
+
+    #[test]
+    fn straight_line_networks_match_their_data() {
+        // Pseudo-random lanes; the straight-line code must give the true median.
+        let mut s = 0x1234_5678_9abc_def0u64;
+        for _ in 0..200 {
+            let mut v = [[0i16; QLANES]; 25];
+            for x in v.iter_mut().flatten() {
+                s ^= s << 13;
+                s ^= s >> 7;
+                s ^= s << 17;
+                *x = (s % 2001) as i16 - 1000;
+            }
+            let want: Lane = core::array::from_fn(|l| {
+                let mut c: [i16; 25] = core::array::from_fn(|i| v[i][l]);
+                c.sort();
+                c[12]
+            });
+            assert_eq!(median25(&mut v.clone()), want);
+            // Presorted: sort each column of five first.
+            let mut p = v;
+            for l in 0..QLANES {
+                for col in 0..5 {
+                    let mut c: [i16; 5] = core::array::from_fn(|k| p[5 * col + k][l]);
+                    c.sort();
+                    for k in 0..5 {
+                        p[5 * col + k][l] = c[k];
+                    }
+                }
+            }
+            assert_eq!(median25_presorted(&mut p), want);
+        }
+    }
+
+    #[test]
+    fn rsqrt_is_accurate() {
+        let mut x = 1e-6f32;
+        while x < 1e8 {
+            let want = 1.0 / libm::sqrt(x as f64);
+            let got = rsqrt(x) as f64;
+            assert!(((got - want) / want).abs() < 2e-7, "x {x}: {got} vs {want}");
+            x *= 1.013;
+        }
+    }
+
+    #[test]
+    fn log2_approx_is_accurate() {
+        let mut x = 1e-5f32;
+        while x < 1e3 {
+            let e = (log2_approx(x) as f64 - libm::log2(x as f64)).abs();
+            assert!(e < 2.2e-4, "x {x}: error {e}");
+            x *= 1.0071;
+        }
+    }
+
+    #[test]
+    fn spans_plane_table() {
+        let bit = |dr: i32, dc: i32| 1usize << ((dr + 1) * 3 + dc + 1);
+        assert!(!SPANS_PLANE[bit(0, -1) | bit(0, 1)]);
+        assert!(!SPANS_PLANE[bit(-1, -1) | bit(1, 1)]);
+        assert!(!SPANS_PLANE[bit(-1, 0) | bit(1, 0) | bit(0, 0)]);
+        assert!(SPANS_PLANE[bit(0, 1) | bit(-1, 0)]);
+        assert!(SPANS_PLANE[bit(-1, -1) | bit(1, 1) | bit(0, 1)]);
+    }
+
+    #[test]
+    fn config_validation() {
+        assert_eq!(RingFalsConfig::DEFAULT.validate(), Ok(()));
+        let bad = |f: fn(&mut RingFalsConfig)| {
+            let mut c = RingFalsConfig::DEFAULT;
+            f(&mut c);
+            c.validate()
+        };
+        assert_eq!(bad(|c| c.min_range = f32::NAN), Err(ConfigError::MinRange));
+        assert_eq!(bad(|c| c.min_range = 0.0), Err(ConfigError::MinRange));
+        assert_eq!(bad(|c| c.max_range = 0.1), Err(ConfigError::MaxRange));
+        assert_eq!(bad(|c| c.max_range = f32::INFINITY), Err(ConfigError::MaxRange));
+        assert_eq!(bad(|c| c.fit_tolerance_rel = 0.0), Err(ConfigError::FitToleranceRel));
+        assert_eq!(bad(|c| c.max_incidence_deg = 90.0), Err(ConfigError::MaxIncidence));
+        assert_eq!(bad(|c| c.range_jump_abs = -1.0), Err(ConfigError::RangeJumpAbs));
+        assert_eq!(bad(|c| c.min_points = 2), Err(ConfigError::MinPoints));
+        assert_eq!(bad(|c| c.min_conditioning = 0.0), Err(ConfigError::MinConditioning));
+        assert_eq!(bad(|c| c.median_min_valid = 0), Err(ConfigError::MedianMinValid));
+    }
+
+    #[test]
+    fn table_rejects_degenerate_layouts() {
+        let mut t = RingTable::new();
+        let one = RangeImageLayout::from_elevations(&[0.0], 64, true).unwrap();
+        assert_eq!(t.build(&one, &RingFalsConfig::DEFAULT), Err(TableError::TooFewRows));
+        let narrow = RangeImageLayout::from_elevations(&[0.1, 0.0], 15, true).unwrap();
+        assert_eq!(t.build(&narrow, &RingFalsConfig::DEFAULT), Err(TableError::TooFewCols));
+        let flat = RangeImageLayout::from_elevations(&[0.1, 0.1, 0.1], 64, true).unwrap();
+        assert_eq!(t.build(&flat, &RingFalsConfig::DEFAULT), Err(TableError::FlatRow { row: 0 }));
+        let mut cfg = RingFalsConfig::DEFAULT;
+        cfg.min_points = 10;
+        let ok = RangeImageLayout::from_elevations(&[0.1, 0.0], 64, true).unwrap();
+        assert_eq!(t.build(&ok, &cfg), Err(TableError::Config(ConfigError::MinPoints)));
+        assert_eq!(t.rows(), 0);
+        assert_eq!(t.build(&ok, &RingFalsConfig::DEFAULT), Ok(()));
+        assert_eq!(t.rows(), 2);
+    }
+
+    #[test]
+    fn full_window_system_is_well_conditioned_in_the_local_frame() {
+        // VLP-32C-like central rows, 1800 columns: det(M) of the global-frame system is ~1e-7;
+        // the scaled local system is close to diag(9, 6, 6).
+        let els: [f32; 3] = [0.01, 0.0, -0.01];
+        let l = RangeImageLayout::from_elevations(&els, 1800, true).unwrap();
+        let mut t = RingTable::new();
+        t.build(&l, &RingFalsConfig::DEFAULT).unwrap();
+        let rc = &t.row[1];
+        assert!(rc.nominal_ok);
+        let mut m = [0.0f64; 6];
+        for k in 0..9 {
+            let u = [rc.u[0][k] as f64, rc.u[1][k] as f64, rc.u[2][k] as f64];
+            m[0] += u[0] * u[0];
+            m[3] += u[1] * u[1];
+            m[5] += u[2] * u[2];
+        }
+        assert!((m[0] - 9.0).abs() < 1e-3 && (m[3] - 6.0).abs() < 1e-3 && (m[5] - 6.0).abs() < 0.1, "{m:?}");
+    }
+}
