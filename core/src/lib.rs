@@ -15,7 +15,7 @@
 //! | Ring FALS normals | `ring_fals` |
 //! | wire formats (Velodyne, Ouster, IMU frames) | `sensor` |
 //! | IMU samples, initialisation and propagation | [`imu`] |
-//! | voxel map with incremental distributions | `voxel_map`, `surfel` |
+//! | voxel map with incremental distributions | [`voxel_map`], [`surfel`] |
 //! | data association | `association` |
 //! | iterated error-state Kalman filter | `eskf` |
 //! | the per-scan pipeline | `odometry` |
@@ -29,3 +29,5 @@ pub mod imu;
 pub mod range_image;
 pub mod scan;
 pub mod sensor;
+pub mod surfel;
+pub mod voxel_map;

@@ -1,0 +1,1552 @@
+//! The map: a fixed pool of voxels, each keeping the distribution of the points that fell into
+//! it, found through an open-addressing hash index (paper sections III-C, IV-D; reference notes
+//! B). Memory is the caller's and bounded; nothing here allocates, grows or panics.
+//!
+//! ## Storage
+//! The caller provides the voxel pool (`&mut [Voxel]`, [`Voxel::EMPTY`] is all-zero bytes so a
+//! firmware `static` lands in `.bss`) and the hash index (`&mut [IndexSlot]`, a power of two at
+//! least twice the pool, so the load factor never exceeds 1/2). [`MapStorage`] bundles both as
+//! const-generic arrays with a `const fn new()`. A [`Voxel`] is [`VOXEL_BYTES`] = 168 bytes, an
+//! index slot 8; per voxel of capacity that is 184 bytes (with the index at twice the pool).
+//!
+//! Live voxels occupy `pool[..len]` densely: removing one moves the last into its place
+//! (swap-remove), so sweeps read memory sequentially and no free list is needed. A
+//! [`VoxelHandle`] is a pool position: valid until the next call that mutates the map.
+//!
+//! ## Per voxel
+//! - the true point count (separate from the state: the reference's `-9999` "converged" marker
+//!   corrupted merged surfels, reference notes C.2);
+//! - `Σ d` and `Σ d dᵀ` in `f32` with `d = p - c`, `c` the voxel centre. Offsets are at most half a
+//!   voxel, so the sums stay small and Eq. (4) does not cancel catastrophically anywhere in the
+//!   world (a test shows world-frame `f32` sums failing 10 km out where these pass);
+//! - the ring normal: the sum of the incoming Ring FALS normals (oriented towards the sensor by
+//!   the caller) and how many points had one (`normal_count`, separate from the count);
+//! - up to 8 representative points with their normals for nearest-neighbour search: **one per
+//!   octant** of the voxel. A point goes to its octant's slot; an occupied slot keeps whichever
+//!   point lies closer to the octant centre (ties keep the old one). Representatives are thus a
+//!   2x finer downsampling grid (the ikd-tree's rule, "closest to the box centre", one level
+//!   down): every point ever inserted has a representative in its own octant, within
+//!   `sqrt(3)/2` voxel of it, and they stay spread across the voxel. Positions are stored as
+//!   `i16` offsets from the centre (resolution `voxel_size / 32768`, 12 µm at 0.4 m) and normals
+//!   as `i8` triples (direction error under 0.5 degrees). Representatives keep updating after the
+//!   distribution is fixed (an `O(1)` compare per point); the distribution does not;
+//! - the state ([`VoxelState`]) and the stamp of the last scan that touched it (LRU).
+//!
+//! ## The state machine (paper section IV-A; reference notes B.2)
+//! `Accumulating` voxels add every point to their sums. The distribution is evaluated every
+//! `eta` points (and at `saturate_at`): the voxel becomes `Converged` when it is a surfel
+//! ([`SurfelCriteria`]: `rho > 0.6`, `gamma > 100` by default) **and** its mean ring normal agrees
+//! with the smallest-eigenvalue eigenvector within `max_normal_angle_deg` (20 degrees, the
+//! paper's test; in the reference code the angle does not gate convergence). Otherwise, once
+//! `saturate_at` (= 2 `eta`) points are in, it becomes `Saturated`. Converged and saturated
+//! voxels no longer change their distribution, count or ring normal.
+//!
+//! ## Bounded memory
+//! - Points farther than `evict_radius` from the sensor are not inserted (counted).
+//! - Each [`VoxelMap::insert`] first sweeps `sweep_per_insert` pool slots from a cursor that
+//!   wraps around the pool, evicting voxels farther than `evict_radius` from the sensor, so the
+//!   whole pool is checked every `capacity / sweep_per_insert` scans at a fixed cost per scan.
+//! - When a new voxel is needed and the pool is full, a batch of `evict_batch` voxels is evicted
+//!   at once (three sequential passes over the pool, amortised over the batch): the farthest from
+//!   the sensor first (distance in buckets of `evict_radius / 192`), least recently used first
+//!   within the threshold bucket, pool order last. Voxels touched by the current stamp are never
+//!   evicted; when nothing else is left, the new voxel's point is dropped (counted).
+//! - The index uses linear probing with backward-shift deletion (no tombstones), so lookups stay
+//!   short after any number of evictions; every probe loop is bounded by the index length.
+// `!(x > t)` rejects NaN as well as small values, on purpose; indexed loops over the three
+// axes read like the maths.
+#![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
+
+use crate::surfel::{self, Moments, Shape, SurfelCriteria, SurfelReject};
+
+/// Representative points per voxel (one per octant).
+pub const OCTANTS: usize = 8;
+/// The largest `k` a k-NN query returns.
+pub const KNN_MAX: usize = 8;
+/// The most distinct voxels one large-surfel merge takes.
+pub const MERGE_MAX: usize = 27;
+/// Size of one [`Voxel`] in bytes.
+pub const VOXEL_BYTES: usize = core::mem::size_of::<Voxel>();
+/// Pool capacity suggested for the presets ([`MapConfig::VLP32C`], [`MapConfig::OS1_16`]):
+/// 2^18 voxels (44 MB at 168 bytes), about twice the ground disc inside the eviction radius
+/// (`π R² / L²` ≈ 126,000 voxels for both), leaving room for walls and vegetation.
+pub const PRESET_POOL_VOXELS: usize = 1 << 18;
+/// Index slots for [`PRESET_POOL_VOXELS`] (2^19, 4 MiB).
+pub const PRESET_INDEX_SLOTS: usize = 1 << 19;
+
+/// Voxel coordinates beyond this (in voxels, per axis) are out of range: the point is dropped.
+/// 2^22 voxels is 1,677 km at 0.4 m; it keeps `key + 0.5` exact in `f32`.
+const KEY_LIMIT: f32 = 4_194_304.0;
+/// Quantisation of representative offsets: `q = offset * QUANT / voxel_size`.
+const QUANT: f32 = 32768.0;
+/// Distance buckets of the full-pool eviction per `evict_radius`.
+const DIST_BUCKETS_PER_RADIUS: f32 = 192.0;
+
+const STATE_FREE: u8 = 0;
+const STATE_ACCUMULATING: u8 = 1;
+const STATE_CONVERGED: u8 = 2;
+const STATE_SATURATED: u8 = 3;
+
+/// One voxel of the pool. [`Voxel::EMPTY`] is all zeros. 168 bytes, no padding.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[repr(C)]
+pub struct Voxel {
+    key: [i32; 3],
+    last_seen: u32,
+    state: u8,
+    occupied: u8,
+    count: u16,
+    normal_count: u16,
+    _reserved: u16,
+    reps: [[i16; 3]; OCTANTS],
+    rep_normals: [[i8; 3]; OCTANTS],
+    sum: [f32; 3],
+    sum_sq: [f32; 6],
+    ring_sum: [f32; 3],
+    /// `e_d` of the latest evaluation, oriented with the ring normal (or towards the sensor).
+    normal: [f32; 3],
+    /// Ascending covariance eigenvalues of the latest evaluation.
+    eigenvalues: [f32; 3],
+}
+
+impl Voxel {
+    /// An unused slot (all-zero bytes).
+    pub const EMPTY: Voxel = Voxel {
+        key: [0; 3],
+        last_seen: 0,
+        state: STATE_FREE,
+        occupied: 0,
+        count: 0,
+        normal_count: 0,
+        _reserved: 0,
+        reps: [[0; 3]; OCTANTS],
+        rep_normals: [[0; 3]; OCTANTS],
+        sum: [0.0; 3],
+        sum_sq: [0.0; 6],
+        ring_sum: [0.0; 3],
+        normal: [0.0; 3],
+        eigenvalues: [0.0; 3],
+    };
+}
+
+impl Default for Voxel {
+    fn default() -> Self {
+        Self::EMPTY
+    }
+}
+
+/// One slot of the hash index: the key's 32-bit hash and the pool position + 1 (0 = empty).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[repr(transparent)]
+pub struct IndexSlot(u64);
+
+impl IndexSlot {
+    /// An empty slot (all-zero bytes).
+    pub const EMPTY: IndexSlot = IndexSlot(0);
+
+    #[inline]
+    fn new(hash: u32, slot: u32) -> Self {
+        Self((u64::from(hash) << 32) | u64::from(slot + 1))
+    }
+    #[inline]
+    fn is_empty(self) -> bool {
+        self.0 == 0
+    }
+    #[inline]
+    fn hash(self) -> u32 {
+        (self.0 >> 32) as u32
+    }
+    #[inline]
+    fn slot(self) -> u32 {
+        (self.0 as u32).wrapping_sub(1)
+    }
+}
+
+/// Caller-owned storage for a map of `V` voxels with an index of `I` slots (a power of two,
+/// `I >= 2 V`); `const fn new()` so it can be a `static` (all zeros: `.bss`).
+#[derive(Debug)]
+pub struct MapStorage<const V: usize, const I: usize> {
+    /// The voxel pool.
+    pub pool: [Voxel; V],
+    /// The hash index.
+    pub index: [IndexSlot; I],
+}
+
+impl<const V: usize, const I: usize> MapStorage<V, I> {
+    /// Empty storage.
+    pub const fn new() -> Self {
+        Self { pool: [Voxel::EMPTY; V], index: [IndexSlot::EMPTY; I] }
+    }
+
+    /// A map over this storage (see [`VoxelMap::new`]).
+    pub fn map(&mut self, config: MapConfig) -> Result<VoxelMap<'_>, MapError> {
+        VoxelMap::new(&mut self.pool, &mut self.index, config)
+    }
+}
+
+impl<const V: usize, const I: usize> Default for MapStorage<V, I> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// Large-surfel settings (paper section IV-B3; reference notes C.2).
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct LargeSurfelConfig {
+    /// Minimum total (true) point count of the merged voxels. Default 63: the reference's
+    /// `N >= eta * 5 * 0.5 = 62.5` for eta 25.
+    pub min_points: u32,
+    /// Minimum number of distinct voxels merged. Default 2 (one voxel is a small surfel).
+    pub min_voxels: u8,
+    /// Every merged voxel's mean must lie within this of the merged plane, metres. Default 0.15.
+    pub max_mean_distance: f32,
+    /// Apply the surfel criteria to the merged distribution (the paper does; the reference code
+    /// computes rho and gamma there but never tests them). Default true.
+    pub apply_criteria: bool,
+}
+
+impl LargeSurfelConfig {
+    /// The defaults documented on each field.
+    pub const DEFAULT: Self =
+        Self { min_points: 63, min_voxels: 2, max_mean_distance: 0.15, apply_criteria: true };
+}
+
+/// Map settings. Every threshold is here; [`MapConfig::VLP32C`] and [`MapConfig::OS1_16`] are the
+/// paper's two setups.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct MapConfig {
+    /// Voxel edge, metres: 0.4 (VLP-32C, M2DGR) or 0.5 (OS1-16, NTU VIRAL). The scan should be
+    /// downsampled on the same grid so each voxel gets at most one point per scan (paper V-A).
+    pub voxel_size: f32,
+    /// `eta`: the distribution is evaluated every `eta` points (default 25, the paper's value;
+    /// at least 3).
+    pub eta: u16,
+    /// A voxel that has not converged is fixed (saturated) at this many points. Default 50
+    /// (`2 eta`, the paper's rule). At least `eta`.
+    pub saturate_at: u16,
+    /// Surfel test for a voxel and for a merged (large) surfel.
+    pub criteria: SurfelCriteria,
+    /// Convergence also needs the mean ring normal within this angle of `e_d`, degrees.
+    /// Default 20 (the paper's value).
+    pub max_normal_angle_deg: f32,
+    /// The mean ring normal is used only if the incoming normals agree: the length of their
+    /// mean (1 when all are equal, near 0 when they point every way) must reach this. Default
+    /// 0.5.
+    pub min_ring_coherence: f32,
+    /// Voxels farther than this from the sensor are evicted, and points farther are not
+    /// inserted, metres. Default 80 (VLP-32C) / 100 (OS1-16).
+    pub evict_radius: f32,
+    /// Pool slots the eviction sweep checks per insert call. Default 8192 (the whole of a 2^18
+    /// pool every 32 scans, a few tens of microseconds per scan).
+    pub sweep_per_insert: u32,
+    /// Voxels evicted at once when the pool is full; 0 means `capacity / 16`. Default 0.
+    pub evict_batch: u32,
+    /// Large-surfel settings.
+    pub large: LargeSurfelConfig,
+}
+
+impl MapConfig {
+    /// Velodyne VLP-32C (M2DGR): 0.4 m voxels, 80 m eviction radius.
+    pub const VLP32C: Self = Self {
+        voxel_size: 0.4,
+        eta: 25,
+        saturate_at: 50,
+        criteria: SurfelCriteria::DEFAULT,
+        max_normal_angle_deg: 20.0,
+        min_ring_coherence: 0.5,
+        evict_radius: 80.0,
+        sweep_per_insert: 8192,
+        evict_batch: 0,
+        large: LargeSurfelConfig::DEFAULT,
+    };
+
+    /// Ouster OS1-16 (NTU VIRAL): 0.5 m voxels, 100 m eviction radius.
+    pub const OS1_16: Self = Self { voxel_size: 0.5, evict_radius: 100.0, ..Self::VLP32C };
+
+    fn validate(&self) -> Result<(), MapError> {
+        let bad = |field| Err(MapError::InvalidConfig { field });
+        if !(self.voxel_size.is_finite() && self.voxel_size >= 1e-3) {
+            return bad("voxel_size");
+        }
+        if self.eta < 3 {
+            return bad("eta");
+        }
+        if self.saturate_at < self.eta {
+            return bad("saturate_at");
+        }
+        let c = &self.criteria;
+        if !(c.planarity_min.is_finite() && c.gamma_min.is_finite() && c.gamma_min >= 0.0) {
+            return bad("criteria");
+        }
+        if !(self.max_normal_angle_deg >= 0.0 && self.max_normal_angle_deg <= 90.0) {
+            return bad("max_normal_angle_deg");
+        }
+        if !(self.min_ring_coherence >= 0.0 && self.min_ring_coherence <= 1.0) {
+            return bad("min_ring_coherence");
+        }
+        if !(self.evict_radius.is_finite() && self.evict_radius > 0.0) {
+            return bad("evict_radius");
+        }
+        if !(self.large.max_mean_distance >= 0.0 && self.large.max_mean_distance.is_finite()) {
+            return bad("large.max_mean_distance");
+        }
+        Ok(())
+    }
+}
+
+impl Default for MapConfig {
+    fn default() -> Self {
+        Self::VLP32C
+    }
+}
+
+/// Construction errors.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum MapError {
+    /// The pool has no slot.
+    PoolEmpty,
+    /// The pool has more than `u32::MAX - 1` slots.
+    PoolTooLarge,
+    /// The index length is not a power of two.
+    IndexNotPowerOfTwo,
+    /// The index must have at least `needed` slots (twice the pool, bounding the load at 1/2).
+    IndexTooSmall {
+        /// Slots needed.
+        needed: usize,
+    },
+    /// A configuration value is out of range.
+    InvalidConfig {
+        /// The offending field.
+        field: &'static str,
+    },
+}
+
+impl core::fmt::Display for MapError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::PoolEmpty => f.write_str("voxel pool is empty"),
+            Self::PoolTooLarge => f.write_str("voxel pool exceeds u32::MAX - 1 slots"),
+            Self::IndexNotPowerOfTwo => f.write_str("hash index length is not a power of two"),
+            Self::IndexTooSmall { needed } => {
+                write!(f, "hash index needs at least {needed} slots (twice the pool)")
+            }
+            Self::InvalidConfig { field } => write!(f, "invalid map config: {field}"),
+        }
+    }
+}
+
+impl core::error::Error for MapError {}
+
+/// Errors of [`VoxelMap::insert`]; nothing is inserted when one is returned.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum InsertError {
+    /// The sensor position has a NaN or infinite coordinate.
+    SensorNotFinite,
+    /// The stamp is smaller than the previous call's (stamps must not decrease).
+    StampWentBackwards {
+        /// The previous stamp.
+        last: u32,
+        /// The stamp passed.
+        got: u32,
+    },
+}
+
+impl core::fmt::Display for InsertError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::SensorNotFinite => f.write_str("sensor position is not finite"),
+            Self::StampWentBackwards { last, got } => {
+                write!(f, "map stamp went backwards ({got} after {last})")
+            }
+        }
+    }
+}
+
+impl core::error::Error for InsertError {}
+
+/// The state of a voxel's distribution.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum VoxelState {
+    /// Still adding points.
+    Accumulating,
+    /// A surfel whose ring normal agreed with `e_d`: fixed.
+    Converged,
+    /// Reached `saturate_at` points without converging: fixed.
+    Saturated,
+}
+
+/// A voxel's position in the pool. Valid until the next call that mutates the map.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct VoxelHandle(pub u32);
+
+impl VoxelHandle {
+    /// The pool position.
+    pub fn index(self) -> usize {
+        self.0 as usize
+    }
+}
+
+/// A point to insert: world frame, with its Ring FALS normal if it has one.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct MapPoint {
+    /// World-frame position, metres.
+    pub xyz: [f32; 3],
+    /// World-frame normal, oriented towards the sensor. Normals that are not finite or whose
+    /// length is outside `[0.5, 1.5]` count as missing ([`InsertStats::bad_normals`]); the rest
+    /// are normalised.
+    pub normal: Option<[f32; 3]>,
+}
+
+/// What one [`VoxelMap::insert`] did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct InsertStats {
+    /// Points offered.
+    pub points: u32,
+    /// Points that reached a voxel (including voxels whose distribution is fixed).
+    pub inserted: u32,
+    /// Points added to a distribution (their voxel was accumulating).
+    pub accumulated: u32,
+    /// Voxels created.
+    pub new_voxels: u32,
+    /// Voxels evicted by the distance sweep.
+    pub evicted_far: u32,
+    /// Voxels evicted to make room in a full pool.
+    pub evicted_full: u32,
+    /// Points dropped: pool full and nothing evictable (all touched by this stamp).
+    pub dropped_full: u32,
+    /// Points dropped: a coordinate not finite or out of range.
+    pub dropped_invalid: u32,
+    /// Points dropped: farther than `evict_radius` from the sensor.
+    pub dropped_far: u32,
+    /// Normals given but unusable (treated as missing).
+    pub bad_normals: u32,
+    /// Voxels that converged.
+    pub converged: u32,
+    /// Voxels that saturated.
+    pub saturated: u32,
+}
+
+/// Read access to one voxel (visibility and consistency checks).
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct VoxelInfo {
+    /// Integer voxel coordinates, `floor(p / voxel_size)`.
+    pub key: [i32; 3],
+    /// The distribution's state.
+    pub state: VoxelState,
+    /// Points in the distribution (true count).
+    pub count: u32,
+    /// How many of them brought a usable normal.
+    pub normal_count: u32,
+    /// Stamp of the last insert that touched the voxel.
+    pub last_seen: u32,
+    /// Mean of the distribution, world frame.
+    pub mean: [f32; 3],
+    /// The voxel normal for visibility and consistency checks: for a converged voxel the
+    /// normalised average of the mean ring normal and `e_d` (the paper's "replaced by the average
+    /// of their values"), otherwise the mean ring normal; `None` without usable normals.
+    pub normal: Option<[f32; 3]>,
+}
+
+/// The surfel of one converged voxel.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct SmallSurfel {
+    /// The voxel.
+    pub voxel: VoxelHandle,
+    /// Mean of its points, world frame.
+    pub mean: [f32; 3],
+    /// `e_d`, oriented with the voxel's ring normal.
+    pub normal: [f32; 3],
+    /// Ascending covariance eigenvalues, metres².
+    pub eigenvalues: [f32; 3],
+    /// Points in the distribution.
+    pub count: u32,
+}
+
+/// A large-scale surfel: distinct voxels' distributions merged by Eq. (5).
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct LargeSurfel {
+    /// Mean of the union, world frame.
+    pub mean: [f32; 3],
+    /// `e_d` of the union, oriented with the sum of the voxels' ring normals (or, without any,
+    /// as the eigen solver returned it).
+    pub normal: [f32; 3],
+    /// Ascending covariance eigenvalues of the union, metres².
+    pub eigenvalues: [f32; 3],
+    /// Total point count (true counts).
+    pub count: u32,
+    /// Distinct voxels merged.
+    pub voxels: u32,
+}
+
+/// Parameters of a k-NN query.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct KnnQuery {
+    /// How many neighbours (at most [`KNN_MAX`]). Default 5.
+    pub k: usize,
+    /// Only points within this distance, metres. Default: the voxel size (see [`VoxelMap::knn`]).
+    pub max_dist: f32,
+    /// Take at most one point (its nearest representative) per voxel, so the k results name k
+    /// distinct voxels, as the reference's ikd-tree (one point per voxel) gives. Default false.
+    pub one_per_voxel: bool,
+}
+
+impl KnnQuery {
+    /// `k` neighbours within `max_dist`, any number per voxel.
+    pub const fn new(k: usize, max_dist: f32) -> Self {
+        Self { k, max_dist, one_per_voxel: false }
+    }
+}
+
+/// One neighbour found by [`VoxelMap::knn`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Neighbour {
+    /// The map point, world frame.
+    pub point: [f32; 3],
+    /// Its normal, if it had one.
+    pub normal: Option<[f32; 3]>,
+    /// Squared distance from the query, metres².
+    pub dist2: f32,
+    /// The voxel holding it.
+    pub voxel: VoxelHandle,
+}
+
+impl Neighbour {
+    const NONE: Neighbour = Neighbour { point: [0.0; 3], normal: None, dist2: 0.0, voxel: VoxelHandle(0) };
+}
+
+/// Result buffer of [`VoxelMap::knn`]: up to [`KNN_MAX`] neighbours sorted by distance.
+#[derive(Clone, Copy, Debug)]
+pub struct Neighbours {
+    items: [Neighbour; KNN_MAX],
+    len: usize,
+}
+
+impl Neighbours {
+    /// Empty.
+    pub const fn new() -> Self {
+        Self { items: [Neighbour::NONE; KNN_MAX], len: 0 }
+    }
+    /// The neighbours, nearest first.
+    pub fn as_slice(&self) -> &[Neighbour] {
+        &self.items[..self.len]
+    }
+    /// How many were found.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+    /// Whether none was found.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+    /// The neighbours' points, for [`surfel::fit_plane`]; the array is filled up to `len()`.
+    pub fn points(&self) -> [[f32; 3]; KNN_MAX] {
+        let mut out = [[0.0; 3]; KNN_MAX];
+        for (o, n) in out.iter_mut().zip(self.as_slice()) {
+            *o = n.point;
+        }
+        out
+    }
+    /// The neighbours' voxel handles, for [`VoxelMap::large_surfel`]; filled up to `len()`.
+    pub fn voxels(&self) -> [VoxelHandle; KNN_MAX] {
+        let mut out = [VoxelHandle(0); KNN_MAX];
+        for (o, n) in out.iter_mut().zip(self.as_slice()) {
+            *o = n.voxel;
+        }
+        out
+    }
+    /// The point-to-plane fallback: a plane through the neighbours, accepted only if every one
+    /// lies within `max_dist` of it (reference: 0.1 m). See [`surfel::fit_plane`].
+    pub fn fit_plane(&self, max_dist: f32) -> Result<surfel::Plane, SurfelReject> {
+        let pts = self.points();
+        surfel::fit_plane(&pts[..self.len], max_dist)
+    }
+}
+
+impl Default for Neighbours {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// Values derived from the config once.
+#[derive(Clone, Copy, Debug)]
+struct Derived {
+    inv_size: f32,
+    half: f32,
+    quant: f32,
+    dequant: f32,
+    cos_max_angle: f32,
+    evict_r2: f32,
+    bucket_scale: f32,
+    /// Slack for box-distance pruning (points may sit a rounding error outside their box).
+    slack: f32,
+}
+
+/// Counters over the map's life.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct MapCounters {
+    /// Voxels created.
+    pub created: u64,
+    /// Voxels evicted by the distance sweep.
+    pub evicted_far: u64,
+    /// Voxels evicted from a full pool.
+    pub evicted_full: u64,
+    /// Points dropped because the pool was full.
+    pub dropped_full: u64,
+}
+
+/// The voxel map over caller-owned storage. See the module documentation.
+#[derive(Debug)]
+pub struct VoxelMap<'a> {
+    pool: &'a mut [Voxel],
+    index: &'a mut [IndexSlot],
+    len: usize,
+    mask: usize,
+    cfg: MapConfig,
+    d: Derived,
+    cursor: usize,
+    stamp: u32,
+    has_stamp: bool,
+    counters: MapCounters,
+}
+
+/// The 27 voxel offsets of a neighbourhood, the centre first, then faces, edges and corners.
+const NEIGHBOURS: [[i32; 3]; 27] = neighbour_order();
+
+const fn neighbour_order() -> [[i32; 3]; 27] {
+    let mut out = [[0i32; 3]; 27];
+    let mut n = 0;
+    let mut ring = 0;
+    while ring <= 3 {
+        let mut i = 0i32;
+        while i < 27 {
+            let d = [i / 9 - 1, (i / 3) % 3 - 1, i % 3 - 1];
+            let m = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+            if m == ring {
+                out[n] = d;
+                n += 1;
+            }
+            i += 1;
+        }
+        ring += 1;
+    }
+    out
+}
+
+/// 32-bit hash of a voxel key (multiply-xor, then a 64-bit finaliser; bucket = low bits).
+#[inline]
+fn hash_key(k: [i32; 3]) -> u32 {
+    let h = u64::from(k[0] as u32).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        ^ u64::from(k[1] as u32).wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
+        ^ u64::from(k[2] as u32).wrapping_mul(0x1656_67B1_9E37_79F9);
+    let h = (h ^ (h >> 31)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    (h >> 32) as u32
+}
+
+// ---- The open-addressing index (linear probing, backward-shift deletion) ----------------------
+
+/// Finds the index position of the entry for a key with hash `h`; `is_key(slot)` confirms a
+/// candidate. Stops at the first empty slot, and after `index.len()` probes at the latest.
+#[inline]
+fn index_find(
+    index: &[IndexSlot],
+    mask: usize,
+    h: u32,
+    mut is_key: impl FnMut(u32) -> bool,
+) -> Option<(usize, u32)> {
+    let mut pos = h as usize & mask;
+    for _ in 0..index.len() {
+        let e = index[pos];
+        if e.is_empty() {
+            return None;
+        }
+        if e.hash() == h && is_key(e.slot()) {
+            return Some((pos, e.slot()));
+        }
+        pos = (pos + 1) & mask;
+    }
+    None
+}
+
+/// Finds the index position that holds `slot` for a key with hash `h`.
+#[inline]
+fn index_find_slot(index: &[IndexSlot], mask: usize, h: u32, slot: u32) -> Option<usize> {
+    index_find(index, mask, h, |s| s == slot).map(|(pos, _)| pos)
+}
+
+/// Inserts an entry (the key must not be present). `false` if the index is full (cannot happen
+/// while the load is at most 1/2).
+#[inline]
+fn index_insert(index: &mut [IndexSlot], mask: usize, h: u32, slot: u32) -> bool {
+    let mut pos = h as usize & mask;
+    for _ in 0..index.len() {
+        if index[pos].is_empty() {
+            index[pos] = IndexSlot::new(h, slot);
+            return true;
+        }
+        pos = (pos + 1) & mask;
+    }
+    false
+}
+
+/// Removes the entry at `pos` and shifts the following cluster back so no lookup needs a
+/// tombstone: an entry moves into the hole if its home bucket is not cyclically inside
+/// `(hole, entry]`.
+fn index_remove_at(index: &mut [IndexSlot], mask: usize, mut hole: usize) {
+    index[hole] = IndexSlot::EMPTY;
+    let mut j = hole;
+    for _ in 0..index.len() {
+        j = (j + 1) & mask;
+        let e = index[j];
+        if e.is_empty() {
+            return;
+        }
+        let home = e.hash() as usize & mask;
+        // Distance from home to j and from hole to j, cyclically.
+        let d_home = j.wrapping_sub(home) & mask;
+        let d_hole = j.wrapping_sub(hole) & mask;
+        if d_home >= d_hole {
+            index[hole] = e;
+            index[j] = IndexSlot::EMPTY;
+            hole = j;
+        }
+    }
+}
+
+// ---- Small vector helpers ----------------------------------------------------------------------
+
+#[inline]
+fn d2f(a: [f32; 3], b: [f32; 3]) -> f32 {
+    let (x, y, z) = (a[0] - b[0], a[1] - b[1], a[2] - b[2]);
+    x * x + y * y + z * z
+}
+
+#[inline]
+fn to64(a: [f32; 3]) -> [f64; 3] {
+    [f64::from(a[0]), f64::from(a[1]), f64::from(a[2])]
+}
+
+#[inline]
+fn to32(a: [f64; 3]) -> [f32; 3] {
+    [a[0] as f32, a[1] as f32, a[2] as f32]
+}
+
+fn normalised(v: [f64; 3]) -> Option<[f64; 3]> {
+    let n = libm::sqrt(surfel::dot3(v, v));
+    if n > 0.0 && n.is_finite() { Some([v[0] / n, v[1] / n, v[2] / n]) } else { None }
+}
+
+impl<'a> VoxelMap<'a> {
+    /// A map over caller-provided storage. `index.len()` must be a power of two and at least
+    /// `2 * pool.len()`. The index is cleared (`O(index.len())`); the pool's contents are
+    /// ignored (slots are overwritten when used).
+    pub fn new(
+        pool: &'a mut [Voxel],
+        index: &'a mut [IndexSlot],
+        config: MapConfig,
+    ) -> Result<Self, MapError> {
+        config.validate()?;
+        if pool.is_empty() {
+            return Err(MapError::PoolEmpty);
+        }
+        if pool.len() as u64 >= u64::from(u32::MAX) {
+            return Err(MapError::PoolTooLarge);
+        }
+        if !index.len().is_power_of_two() {
+            return Err(MapError::IndexNotPowerOfTwo);
+        }
+        let needed = pool.len().saturating_mul(2);
+        if index.len() < needed {
+            return Err(MapError::IndexTooSmall { needed });
+        }
+        index.fill(IndexSlot::EMPTY);
+        let mask = index.len() - 1;
+        let d = Self::derive(&config);
+        Ok(Self {
+            pool,
+            index,
+            len: 0,
+            mask,
+            cfg: config,
+            d,
+            cursor: 0,
+            stamp: 0,
+            has_stamp: false,
+            counters: MapCounters::default(),
+        })
+    }
+
+    fn derive(c: &MapConfig) -> Derived {
+        let s = c.voxel_size;
+        Derived {
+            inv_size: 1.0 / s,
+            half: 0.5 * s,
+            quant: QUANT / s,
+            dequant: s / QUANT,
+            cos_max_angle: libm::cosf(c.max_normal_angle_deg.to_radians()),
+            evict_r2: c.evict_radius * c.evict_radius,
+            bucket_scale: DIST_BUCKETS_PER_RADIUS / c.evict_radius,
+            slack: s * 1e-3,
+        }
+    }
+
+    /// Removes every voxel (keeps the storage and config; resets the stamp).
+    pub fn clear(&mut self) {
+        self.index.fill(IndexSlot::EMPTY);
+        self.len = 0;
+        self.cursor = 0;
+        self.has_stamp = false;
+        self.stamp = 0;
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &MapConfig {
+        &self.cfg
+    }
+
+    /// Live voxels.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    /// Whether the map holds no voxel.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Pool capacity (voxels).
+    pub fn capacity(&self) -> usize {
+        self.pool.len()
+    }
+
+    /// Lifetime counters.
+    pub fn counters(&self) -> MapCounters {
+        self.counters
+    }
+
+    /// Representative points held by the map (`O(len)`).
+    pub fn point_count(&self) -> usize {
+        self.pool[..self.len].iter().map(|v| v.occupied.count_ones() as usize).sum()
+    }
+
+    /// The voxel key of a world point, `floor(p / voxel_size)`; `None` if a coordinate is not
+    /// finite or out of range (more than 2^22 voxels from the origin).
+    #[inline]
+    pub fn key_of(&self, p: [f32; 3]) -> Option<[i32; 3]> {
+        let mut k = [0i32; 3];
+        for a in 0..3 {
+            let v = p[a] * self.d.inv_size;
+            if !(libm::fabsf(v) < KEY_LIMIT) {
+                return None;
+            }
+            k[a] = libm::floorf(v) as i32;
+        }
+        Some(k)
+    }
+
+    /// The centre of a voxel, world frame (the origin of its sums and representatives).
+    #[inline]
+    pub fn centre(&self, k: [i32; 3]) -> [f32; 3] {
+        let s = self.cfg.voxel_size;
+        [(k[0] as f32 + 0.5) * s, (k[1] as f32 + 0.5) * s, (k[2] as f32 + 0.5) * s]
+    }
+
+    #[inline]
+    fn find_slot(&self, k: [i32; 3]) -> Option<u32> {
+        let pool = &*self.pool;
+        index_find(self.index, self.mask, hash_key(k), |s| pool[s as usize].key == k).map(|(_, s)| s)
+    }
+
+    /// The voxel with integer coordinates `key`.
+    pub fn find_key(&self, key: [i32; 3]) -> Option<VoxelHandle> {
+        self.find_slot(key).map(VoxelHandle)
+    }
+
+    /// The voxel holding world point `p`.
+    pub fn find(&self, p: [f32; 3]) -> Option<VoxelHandle> {
+        self.key_of(p).and_then(|k| self.find_key(k))
+    }
+
+    #[inline]
+    fn live(&self, h: VoxelHandle) -> Option<&Voxel> {
+        if h.index() < self.len { Some(&self.pool[h.index()]) } else { None }
+    }
+
+    /// A voxel's sums as `f64` moments about its centre.
+    fn moments(&self, v: &Voxel) -> Moments {
+        Moments {
+            n: u32::from(v.count),
+            origin: to64(self.centre(v.key)),
+            sum: to64(v.sum),
+            sum_sq: [
+                f64::from(v.sum_sq[0]),
+                f64::from(v.sum_sq[1]),
+                f64::from(v.sum_sq[2]),
+                f64::from(v.sum_sq[3]),
+                f64::from(v.sum_sq[4]),
+                f64::from(v.sum_sq[5]),
+            ],
+        }
+    }
+
+    /// The distribution of a voxel as `f64` moments (about its centre).
+    pub fn voxel_moments(&self, h: VoxelHandle) -> Option<Moments> {
+        self.live(h).map(|v| self.moments(v))
+    }
+
+    fn ring_dir(v: &Voxel) -> Option<([f64; 3], f64)> {
+        if v.normal_count == 0 {
+            return None;
+        }
+        let s = to64(v.ring_sum);
+        let len = libm::sqrt(surfel::dot3(s, s)) / f64::from(v.normal_count);
+        normalised(s).map(|d| (d, len))
+    }
+
+    /// Read access to a voxel (mean, voxel normal, state, counts).
+    pub fn voxel(&self, h: VoxelHandle) -> Option<VoxelInfo> {
+        let v = self.live(h)?;
+        let m = self.moments(v);
+        let mean = to32(m.mean().unwrap_or(m.origin));
+        let ring = Self::ring_dir(v);
+        let normal = match (v.state, ring) {
+            (STATE_CONVERGED, Some((r, _))) => {
+                let e = to64(v.normal);
+                normalised([r[0] + e[0], r[1] + e[1], r[2] + e[2]]).map(to32)
+            }
+            (_, Some((r, _))) => Some(to32(r)),
+            _ => None,
+        };
+        Some(VoxelInfo {
+            key: v.key,
+            state: state_of(v.state),
+            count: u32::from(v.count),
+            normal_count: u32::from(v.normal_count),
+            last_seen: v.last_seen,
+            mean,
+            normal,
+        })
+    }
+
+    /// Every live voxel with its handle, in pool order.
+    pub fn voxels(&self) -> impl Iterator<Item = (VoxelHandle, VoxelInfo)> + '_ {
+        (0..self.len as u32).filter_map(|i| self.voxel(VoxelHandle(i)).map(|v| (VoxelHandle(i), v)))
+    }
+
+    /// Calls `f(voxel, point, normal)` for every representative point of the map.
+    pub fn for_each_point(&self, mut f: impl FnMut(VoxelHandle, [f32; 3], Option<[f32; 3]>)) {
+        for (i, v) in self.pool[..self.len].iter().enumerate() {
+            let c = self.centre(v.key);
+            for o in 0..OCTANTS {
+                if v.occupied & (1 << o) != 0 {
+                    f(VoxelHandle(i as u32), self.rep_point(c, v.reps[o]), rep_normal(v, o));
+                }
+            }
+        }
+    }
+
+    #[inline]
+    fn rep_point(&self, c: [f32; 3], q: [i16; 3]) -> [f32; 3] {
+        let s = self.d.dequant;
+        [c[0] + f32::from(q[0]) * s, c[1] + f32::from(q[1]) * s, c[2] + f32::from(q[2]) * s]
+    }
+
+    // ---- Insertion ------------------------------------------------------------------------------
+
+    /// Inserts one scan's points (world frame, downsampled on the voxel grid) seen from `sensor`
+    /// (world frame), stamped `stamp` (e.g. the scan index; must not decrease between calls,
+    /// equal stamps are fine). First sweeps part of the pool for voxels beyond `evict_radius`
+    /// (module docs), then inserts the points in order. Allocation-free, `O(points +
+    /// sweep_per_insert)` plus, when the pool is full, an `O(capacity)` eviction per
+    /// `evict_batch` new voxels.
+    pub fn insert<I>(&mut self, points: I, sensor: [f32; 3], stamp: u32) -> Result<InsertStats, InsertError>
+    where
+        I: IntoIterator<Item = MapPoint>,
+    {
+        if sensor.iter().any(|x| !x.is_finite()) {
+            return Err(InsertError::SensorNotFinite);
+        }
+        if self.has_stamp && stamp < self.stamp {
+            return Err(InsertError::StampWentBackwards { last: self.stamp, got: stamp });
+        }
+        self.stamp = stamp;
+        self.has_stamp = true;
+        let mut st = InsertStats::default();
+        self.sweep(sensor, &mut st);
+        let mut full_failed = false;
+        for p in points {
+            st.points = st.points.saturating_add(1);
+            self.insert_one(p, sensor, &mut st, &mut full_failed);
+        }
+        if st.dropped_full > 0 {
+            warn!("voxel map full: {} points dropped", st.dropped_full);
+        }
+        Ok(st)
+    }
+
+    /// [`Self::insert`] for a slice.
+    pub fn insert_slice(
+        &mut self,
+        points: &[MapPoint],
+        sensor: [f32; 3],
+        stamp: u32,
+    ) -> Result<InsertStats, InsertError> {
+        self.insert(points.iter().copied(), sensor, stamp)
+    }
+
+    fn insert_one(&mut self, p: MapPoint, sensor: [f32; 3], st: &mut InsertStats, full_failed: &mut bool) {
+        let Some(k) = self.key_of(p.xyz) else {
+            st.dropped_invalid += 1;
+            return;
+        };
+        if d2f(p.xyz, sensor) > self.d.evict_r2 {
+            st.dropped_far += 1;
+            return;
+        }
+        let normal = match p.normal {
+            None => None,
+            Some(n) => {
+                let l2 = n[0] * n[0] + n[1] * n[1] + n[2] * n[2];
+                if l2.is_finite() && (0.25..=2.25).contains(&l2) {
+                    let inv = 1.0 / libm::sqrtf(l2);
+                    Some([n[0] * inv, n[1] * inv, n[2] * inv])
+                } else {
+                    st.bad_normals += 1;
+                    None
+                }
+            }
+        };
+        let h = hash_key(k);
+        let slot = {
+            let pool = &*self.pool;
+            index_find(self.index, self.mask, h, |s| pool[s as usize].key == k).map(|(_, s)| s)
+        };
+        let slot = match slot {
+            Some(s) => s as usize,
+            None => {
+                if self.len == self.pool.len() {
+                    if !*full_failed {
+                        let n = self.make_room(sensor);
+                        st.evicted_full += n as u32;
+                        if n == 0 {
+                            *full_failed = true;
+                        }
+                    }
+                    if self.len == self.pool.len() {
+                        st.dropped_full += 1;
+                        self.counters.dropped_full += 1;
+                        return;
+                    }
+                }
+                let s = self.len;
+                if !index_insert(self.index, self.mask, h, s as u32) {
+                    // Unreachable while index.len() >= 2 * pool.len(); counted, never a panic.
+                    st.dropped_full += 1;
+                    self.counters.dropped_full += 1;
+                    return;
+                }
+                self.pool[s] = Voxel { key: k, state: STATE_ACCUMULATING, ..Voxel::EMPTY };
+                self.len += 1;
+                st.new_voxels += 1;
+                self.counters.created += 1;
+                s
+            }
+        };
+        st.inserted += 1;
+        let c = self.centre(k);
+        let off = [p.xyz[0] - c[0], p.xyz[1] - c[1], p.xyz[2] - c[2]];
+        let d = self.d;
+        let cfg = self.cfg;
+        let stamp = self.stamp;
+        let v = &mut self.pool[slot];
+        v.last_seen = stamp;
+        update_rep(v, off, normal, &d);
+        if v.state != STATE_ACCUMULATING {
+            return;
+        }
+        st.accumulated += 1;
+        v.count += 1;
+        for a in 0..3 {
+            v.sum[a] += off[a];
+        }
+        v.sum_sq[0] += off[0] * off[0];
+        v.sum_sq[1] += off[0] * off[1];
+        v.sum_sq[2] += off[0] * off[2];
+        v.sum_sq[3] += off[1] * off[1];
+        v.sum_sq[4] += off[1] * off[2];
+        v.sum_sq[5] += off[2] * off[2];
+        if let Some(n) = normal {
+            v.normal_count += 1;
+            for a in 0..3 {
+                v.ring_sum[a] += n[a];
+            }
+        }
+        if v.count.is_multiple_of(cfg.eta) || v.count >= cfg.saturate_at {
+            let to_c = [sensor[0] - c[0], sensor[1] - c[1], sensor[2] - c[2]];
+            match self.evaluate(slot, to_c) {
+                STATE_CONVERGED => st.converged += 1,
+                STATE_SATURATED => st.saturated += 1,
+                _ => {}
+            }
+        }
+    }
+
+    /// Eigen-analysis of an accumulating voxel; updates its state. `to_sensor` orients `e_d`
+    /// when there is no ring normal.
+    fn evaluate(&mut self, slot: usize, to_sensor: [f32; 3]) -> u8 {
+        let v = self.pool[slot];
+        let m = self.moments(&v);
+        let shape = Shape::of_covariance(&m.covariance());
+        let mut e = shape.normal();
+        let ring = Self::ring_dir(&v);
+        let reference = match ring {
+            Some((r, _)) => r,
+            None => to64(to_sensor),
+        };
+        if surfel::dot3(e, reference) < 0.0 {
+            e = [-e[0], -e[1], -e[2]];
+        }
+        let surfel_ok = self.cfg.criteria.check(&shape).is_ok();
+        let agrees = match ring {
+            Some((r, len)) => {
+                len >= f64::from(self.cfg.min_ring_coherence)
+                    && surfel::dot3(e, r) >= f64::from(self.d.cos_max_angle)
+            }
+            None => false,
+        };
+        let state = if surfel_ok && agrees {
+            STATE_CONVERGED
+        } else if v.count >= self.cfg.saturate_at {
+            STATE_SATURATED
+        } else {
+            STATE_ACCUMULATING
+        };
+        let w = &mut self.pool[slot];
+        w.normal = to32(e);
+        w.eigenvalues = to32(shape.eigenvalues);
+        w.state = state;
+        state
+    }
+
+    // ---- Eviction --------------------------------------------------------------------------------
+
+    /// Removes the voxel at pool position `slot`: deletes its index entry and moves the last live
+    /// voxel into its place.
+    fn remove_slot(&mut self, slot: usize) {
+        let k = self.pool[slot].key;
+        if let Some(pos) = index_find_slot(self.index, self.mask, hash_key(k), slot as u32) {
+            index_remove_at(self.index, self.mask, pos);
+        }
+        let last = self.len - 1;
+        if slot != last {
+            let moved = self.pool[last];
+            let hm = hash_key(moved.key);
+            if let Some(pos) = index_find_slot(self.index, self.mask, hm, last as u32) {
+                self.index[pos] = IndexSlot::new(hm, slot as u32);
+            }
+            self.pool[slot] = moved;
+        }
+        self.pool[last] = Voxel::EMPTY;
+        self.len = last;
+    }
+
+    /// The distance sweep: checks `sweep_per_insert` slots from the cursor.
+    fn sweep(&mut self, sensor: [f32; 3], st: &mut InsertStats) {
+        let budget = (self.cfg.sweep_per_insert as usize).min(self.len);
+        for _ in 0..budget {
+            if self.len == 0 {
+                break;
+            }
+            if self.cursor >= self.len {
+                self.cursor = 0;
+            }
+            let c = self.centre(self.pool[self.cursor].key);
+            if d2f(c, sensor) > self.d.evict_r2 {
+                self.remove_slot(self.cursor);
+                st.evicted_far += 1;
+                self.counters.evicted_far += 1;
+            } else {
+                self.cursor += 1;
+            }
+        }
+    }
+
+    #[inline]
+    fn dist_bucket(&self, v: &Voxel, sensor: [f32; 3]) -> usize {
+        let d = libm::sqrtf(d2f(self.centre(v.key), sensor)) * self.d.bucket_scale;
+        if d < 255.0 { d as usize } else { 255 }
+    }
+
+    #[inline]
+    fn age_bucket(&self, v: &Voxel) -> usize {
+        (self.stamp.saturating_sub(v.last_seen)).min(255) as usize
+    }
+
+    /// Evicts a batch from a full pool (module docs). Returns how many were evicted.
+    fn make_room(&mut self, sensor: [f32; 3]) -> usize {
+        let cap = self.pool.len();
+        let batch = match self.cfg.evict_batch {
+            0 => (cap / 16).max(1),
+            b => (b as usize).clamp(1, cap),
+        };
+        // Pass 1: distance histogram of the evictable voxels.
+        let mut hist = [0u32; 256];
+        let mut evictable = 0usize;
+        for v in &self.pool[..self.len] {
+            if v.last_seen != self.stamp {
+                hist[self.dist_bucket(v, sensor)] += 1;
+                evictable += 1;
+            }
+        }
+        if evictable == 0 {
+            return 0;
+        }
+        let target = batch.min(evictable);
+        let mut above = 0usize;
+        let mut b_thr = 0usize;
+        for b in (0..256).rev() {
+            if above + hist[b] as usize >= target {
+                b_thr = b;
+                break;
+            }
+            above += hist[b] as usize;
+        }
+        let mut need_b = target - above;
+        // Pass 2: age histogram inside the threshold bucket (LRU tie-break).
+        let mut a_thr = 0usize;
+        let mut need_a = 0usize;
+        let all_of_b = need_b >= hist[b_thr] as usize;
+        if !all_of_b {
+            let mut ages = [0u32; 256];
+            for v in &self.pool[..self.len] {
+                if v.last_seen != self.stamp && self.dist_bucket(v, sensor) == b_thr {
+                    ages[self.age_bucket(v)] += 1;
+                }
+            }
+            let mut older = 0usize;
+            for a in (0..256).rev() {
+                if older + ages[a] as usize >= need_b {
+                    a_thr = a;
+                    need_a = need_b - older;
+                    break;
+                }
+                older += ages[a] as usize;
+            }
+        }
+        // Pass 3: evict.
+        let mut evicted = 0usize;
+        let mut i = 0usize;
+        while i < self.len && evicted < target {
+            let v = &self.pool[i];
+            let mut go = false;
+            if v.last_seen != self.stamp {
+                let b = self.dist_bucket(v, sensor);
+                if b > b_thr {
+                    go = true;
+                } else if b == b_thr && need_b > 0 {
+                    if all_of_b {
+                        go = true;
+                    } else {
+                        let a = self.age_bucket(v);
+                        if a > a_thr {
+                            go = true;
+                        } else if a == a_thr && need_a > 0 {
+                            need_a -= 1;
+                            go = true;
+                        }
+                    }
+                    if go {
+                        need_b -= 1;
+                    }
+                }
+            }
+            if go {
+                self.remove_slot(i);
+                evicted += 1;
+            } else {
+                i += 1;
+            }
+        }
+        self.counters.evicted_full += evicted as u64;
+        debug!("voxel map full: evicted {} voxels (distance bucket >= {})", evicted, b_thr);
+        evicted
+    }
+
+    // ---- Queries ---------------------------------------------------------------------------------
+
+    /// The `k` nearest map points to `q` within `max_dist`, nearest first, written to `out`;
+    /// returns how many were found.
+    ///
+    /// The search covers the query's voxel and its 26 neighbours, nearest boxes first, skipping
+    /// boxes farther than the current k-th distance. Every map point within `voxel_size` of the
+    /// query lies in those 27 voxels, so with `max_dist <= voxel_size` the result is the exact
+    /// k-NN of the whole map (up to rounding at voxel faces); with a larger `max_dist` it is the
+    /// exact k-NN among the 27 voxels. Ties keep the first found (deterministic). A non-finite
+    /// query finds nothing.
+    pub fn knn(&self, q: [f32; 3], query: &KnnQuery, out: &mut Neighbours) -> usize {
+        out.len = 0;
+        let k = query.k.min(KNN_MAX);
+        let Some(key) = self.key_of(q) else { return 0 };
+        if k == 0 || !(query.max_dist >= 0.0) {
+            return 0;
+        }
+        let bound2 = query.max_dist * query.max_dist;
+        let c0 = self.centre(key);
+        // Squared gaps from q to the faces of the neighbouring boxes, per axis: [-1, 0, +1].
+        let mut gap2 = [[0.0f32; 3]; 3];
+        for a in 0..3 {
+            let rel = q[a] - c0[a];
+            let lo = (rel + self.d.half - self.d.slack).max(0.0);
+            let hi = (self.d.half - rel - self.d.slack).max(0.0);
+            gap2[a] = [lo * lo, 0.0, hi * hi];
+        }
+        // Candidates: (dist2, slot, octant), sorted ascending.
+        let mut cand = [(0.0f32, 0u32, 0u8); KNN_MAX];
+        let mut n = 0usize;
+        for off in NEIGHBOURS {
+            let bd2 = gap2[0][(off[0] + 1) as usize]
+                + gap2[1][(off[1] + 1) as usize]
+                + gap2[2][(off[2] + 1) as usize];
+            let worst = if n == k { cand[k - 1].0 } else { bound2 };
+            if bd2 > worst || (n == k && bd2 == worst) {
+                continue;
+            }
+            let nk = [key[0] + off[0], key[1] + off[1], key[2] + off[2]];
+            let Some(slot) = self.find_slot(nk) else { continue };
+            let v = &self.pool[slot as usize];
+            if v.occupied == 0 {
+                continue;
+            }
+            let c = self.centre(nk);
+            let rq = [q[0] - c[0], q[1] - c[1], q[2] - c[2]];
+            let s = self.d.dequant;
+            let mut best = (f32::INFINITY, 0u8);
+            for o in 0..OCTANTS {
+                if v.occupied & (1 << o) == 0 {
+                    continue;
+                }
+                let r = v.reps[o];
+                let dx = rq[0] - f32::from(r[0]) * s;
+                let dy = rq[1] - f32::from(r[1]) * s;
+                let dz = rq[2] - f32::from(r[2]) * s;
+                let d2 = dx * dx + dy * dy + dz * dz;
+                if query.one_per_voxel {
+                    if d2 < best.0 {
+                        best = (d2, o as u8);
+                    }
+                } else {
+                    push_candidate(&mut cand, &mut n, k, bound2, (d2, slot, o as u8));
+                }
+            }
+            if query.one_per_voxel && best.0.is_finite() {
+                push_candidate(&mut cand, &mut n, k, bound2, (best.0, slot, best.1));
+            }
+        }
+        for (i, &(d2, slot, o)) in cand[..n].iter().enumerate() {
+            let v = &self.pool[slot as usize];
+            let c = self.centre(v.key);
+            out.items[i] = Neighbour {
+                point: self.rep_point(c, v.reps[o as usize]),
+                normal: rep_normal(v, o as usize),
+                dist2: d2,
+                voxel: VoxelHandle(slot),
+            };
+        }
+        out.len = n;
+        n
+    }
+
+    /// The small-scale surfel of a voxel: only if it has converged.
+    pub fn small_surfel(&self, h: VoxelHandle) -> Result<SmallSurfel, SurfelReject> {
+        let v = self.live(h).ok_or(SurfelReject::InvalidHandle)?;
+        if v.state != STATE_CONVERGED {
+            return Err(SurfelReject::NotConverged);
+        }
+        let m = self.moments(v);
+        Ok(SmallSurfel {
+            voxel: h,
+            mean: to32(m.mean().unwrap_or(m.origin)),
+            normal: v.normal,
+            eigenvalues: v.eigenvalues,
+            count: u32::from(v.count),
+        })
+    }
+
+    /// The small-scale surfel of the voxel holding world point `p` (paper IV-B3: "the voxel
+    /// where the point is located, which must already be fixed"): only if it has converged.
+    pub fn small_surfel_at(&self, p: [f32; 3]) -> Result<SmallSurfel, SurfelReject> {
+        let h = self.find(p).ok_or(SurfelReject::InvalidHandle)?;
+        self.small_surfel(h)
+    }
+
+    /// The large-scale surfel of some voxels (typically the k-NN's, [`Neighbours::voxels`]): each
+    /// distinct voxel with at least `eta` points is merged once, by Eq. (5) with its true count
+    /// (converged, saturated and accumulating alike). Accepted if the union has
+    /// `large.min_points` points from `large.min_voxels` voxels, meets the surfel criteria
+    /// (`large.apply_criteria`), and every merged voxel's mean lies within
+    /// `large.max_mean_distance` of the merged plane.
+    pub fn large_surfel(&self, voxels: &[VoxelHandle]) -> Result<LargeSurfel, SurfelReject> {
+        let mut distinct = [VoxelHandle(0); MERGE_MAX];
+        let mut nd = 0usize;
+        for &h in voxels {
+            if self.live(h).is_none() {
+                return Err(SurfelReject::InvalidHandle);
+            }
+            if distinct[..nd].contains(&h) {
+                continue;
+            }
+            if self.pool[h.index()].count < self.cfg.eta {
+                continue;
+            }
+            if nd == MERGE_MAX {
+                return Err(SurfelReject::TooManyVoxels);
+            }
+            distinct[nd] = h;
+            nd += 1;
+        }
+        let lc = &self.cfg.large;
+        if nd == 0 || nd < usize::from(lc.min_voxels) {
+            return Err(SurfelReject::TooFewVoxels);
+        }
+        let first = &self.pool[distinct[0].index()];
+        let mut merged = Moments::new(to64(self.centre(first.key)));
+        let mut ring = [0.0f64; 3];
+        for h in &distinct[..nd] {
+            let v = &self.pool[h.index()];
+            merged.merge(&self.moments(v));
+            for a in 0..3 {
+                ring[a] += f64::from(v.ring_sum[a]);
+            }
+        }
+        if merged.n < lc.min_points {
+            return Err(SurfelReject::TooFewPoints);
+        }
+        let shape = Shape::of_covariance(&merged.covariance());
+        let [l1, _, l3] = shape.eigenvalues;
+        if !(l3 > 0.0) || l3 == l1 {
+            return Err(SurfelReject::Degenerate);
+        }
+        if lc.apply_criteria {
+            self.cfg.criteria.check(&shape)?;
+        }
+        let mut nrm = shape.normal();
+        if surfel::dot3(nrm, ring) < 0.0 {
+            nrm = [-nrm[0], -nrm[1], -nrm[2]];
+        }
+        let mean = merged.mean().unwrap_or(merged.origin);
+        for h in &distinct[..nd] {
+            let m = self.moments(&self.pool[h.index()]);
+            let mi = m.mean().unwrap_or(m.origin);
+            let dist = surfel::dot3(nrm, surfel::sub3(mi, mean)).abs();
+            if !(dist <= f64::from(lc.max_mean_distance)) {
+                return Err(SurfelReject::OffPlane);
+            }
+        }
+        Ok(LargeSurfel {
+            mean: to32(mean),
+            normal: to32(nrm),
+            eigenvalues: to32(shape.eigenvalues),
+            count: merged.n,
+            voxels: nd as u32,
+        })
+    }
+}
+
+/// Inserts a candidate into the sorted list (ascending distance; equal distances keep the
+/// earlier one first), keeping at most `k` within `bound2`.
+#[inline]
+fn push_candidate(
+    cand: &mut [(f32, u32, u8); KNN_MAX],
+    n: &mut usize,
+    k: usize,
+    bound2: f32,
+    c: (f32, u32, u8),
+) {
+    if !(c.0 <= bound2) {
+        return;
+    }
+    if *n == k {
+        if !(c.0 < cand[k - 1].0) {
+            return;
+        }
+        *n -= 1;
+    }
+    let mut i = *n;
+    while i > 0 && cand[i - 1].0 > c.0 {
+        cand[i] = cand[i - 1];
+        i -= 1;
+    }
+    cand[i] = c;
+    *n += 1;
+}
+
+fn state_of(s: u8) -> VoxelState {
+    match s {
+        STATE_CONVERGED => VoxelState::Converged,
+        STATE_SATURATED => VoxelState::Saturated,
+        _ => VoxelState::Accumulating,
+    }
+}
+
+fn rep_normal(v: &Voxel, o: usize) -> Option<[f32; 3]> {
+    let q = v.rep_normals[o];
+    if q == [0, 0, 0] {
+        return None;
+    }
+    let n = [f32::from(q[0]), f32::from(q[1]), f32::from(q[2])];
+    let l = libm::sqrtf(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    Some([n[0] / l, n[1] / l, n[2] / l])
+}
+
+/// The octant rule for representatives (module docs).
+#[inline]
+fn update_rep(v: &mut Voxel, off: [f32; 3], normal: Option<[f32; 3]>, d: &Derived) {
+    let o = usize::from(off[0] >= 0.0) | usize::from(off[1] >= 0.0) << 1 | usize::from(off[2] >= 0.0) << 2;
+    let quarter = 0.5 * d.half;
+    let oc = [
+        if off[0] >= 0.0 { quarter } else { -quarter },
+        if off[1] >= 0.0 { quarter } else { -quarter },
+        if off[2] >= 0.0 { quarter } else { -quarter },
+    ];
+    let q = [quantise(off[0], d.quant), quantise(off[1], d.quant), quantise(off[2], d.quant)];
+    let bit = 1u8 << o;
+    if v.occupied & bit != 0 {
+        let r = v.reps[o];
+        let old = [f32::from(r[0]) * d.dequant, f32::from(r[1]) * d.dequant, f32::from(r[2]) * d.dequant];
+        if !(d2f(off, oc) < d2f(old, oc)) {
+            return;
+        }
+    }
+    v.occupied |= bit;
+    v.reps[o] = q;
+    v.rep_normals[o] = match normal {
+        Some(n) => [quantise_unit(n[0]), quantise_unit(n[1]), quantise_unit(n[2])],
+        None => [0, 0, 0],
+    };
+}
+
+#[inline]
+fn quantise(x: f32, scale: f32) -> i16 {
+    libm::roundf(x * scale).clamp(-32767.0, 32767.0) as i16
+}
+
+#[inline]
+fn quantise_unit(x: f32) -> i8 {
+    libm::roundf(x * 127.0).clamp(-127.0, 127.0) as i8
+}
