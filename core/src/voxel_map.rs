@@ -1779,12 +1779,10 @@ mod tests {
                 let mut ns = [0.0f64; 3];
                 let mut nc = 0;
                 for p in &pts {
-                    if map.key_of(p.xyz) == Some(info.key) {
-                        if let Some(n) = p.normal {
-                            let n = unit(to64(n));
-                            ns = [ns[0] + n[0], ns[1] + n[1], ns[2] + n[2]];
-                            nc += 1;
-                        }
+                    if let (Some(n), true) = (p.normal, map.key_of(p.xyz) == Some(info.key)) {
+                        let n = unit(to64(n));
+                        ns = [ns[0] + n[0], ns[1] + n[1], ns[2] + n[2]];
+                        nc += 1;
                     }
                 }
                 assert_eq!(info.normal_count, nc);
