@@ -6,8 +6,9 @@
 //! The caller provides the voxel pool (`&mut [Voxel]`, [`Voxel::EMPTY`] is all-zero bytes so a
 //! firmware `static` lands in `.bss`) and the hash index (`&mut [IndexSlot]`, a power of two at
 //! least twice the pool, so the load factor never exceeds 1/2). [`MapStorage`] bundles both as
-//! const-generic arrays with a `const fn new()`. A [`Voxel`] is [`VOXEL_BYTES`] = 168 bytes, an
-//! index slot 8; per voxel of capacity that is 184 bytes (with the index at twice the pool).
+//! const-generic arrays with a `const fn new()`. A [`Voxel`] is [`VOXEL_BYTES`] = 192 bytes (three
+//! cache lines; the first holds all a lookup or k-NN query reads), an index slot 8; per voxel of
+//! capacity that is 208 bytes with the index at twice the pool.
 //!
 //! Live voxels occupy `pool[..len]` densely: removing one moves the last into its place
 //! (swap-remove), so sweeps read memory sequentially and no free list is needed. A
@@ -68,7 +69,7 @@ pub const MERGE_MAX: usize = 27;
 /// Size of one [`Voxel`] in bytes.
 pub const VOXEL_BYTES: usize = core::mem::size_of::<Voxel>();
 /// Pool capacity suggested for the presets ([`MapConfig::VLP32C`], [`MapConfig::OS1_16`]):
-/// 2^18 voxels (44 MB at 168 bytes), about twice the ground disc inside the eviction radius
+/// 2^18 voxels (48 MiB at 192 bytes), about twice the ground disc inside the eviction radius
 /// (`π R² / L²` ≈ 126,000 voxels for both), leaving room for walls and vegetation.
 pub const PRESET_POOL_VOXELS: usize = 1 << 18;
 /// Index slots for [`PRESET_POOL_VOXELS`] (2^19, 4 MiB).
@@ -82,24 +83,36 @@ const QUANT: f32 = 32768.0;
 /// Distance buckets of the full-pool eviction per `evict_radius`.
 const DIST_BUCKETS_PER_RADIUS: f32 = 192.0;
 
+/// Points looked up together by [`VoxelMap::insert`].
+const CHUNK: usize = 32;
+const NO_HINT: u32 = u32::MAX;
+
 const STATE_FREE: u8 = 0;
 const STATE_ACCUMULATING: u8 = 1;
 const STATE_CONVERGED: u8 = 2;
 const STATE_SATURATED: u8 = 3;
 
-/// One voxel of the pool. [`Voxel::EMPTY`] is all zeros. 168 bytes, no padding.
+/// One voxel of the pool: 192 bytes, aligned to a 64-byte cache line, no implicit padding;
+/// [`Voxel::EMPTY`] is all zeros.
+///
+/// The first cache line holds everything a lookup and a k-NN query read (key, state, count,
+/// occupancy and the representative points), so a query touches one line per voxel.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
-#[repr(C)]
+#[repr(C, align(64))]
 pub struct Voxel {
+    // Line 0 (64 bytes): lookups and k-NN.
     key: [i32; 3],
-    last_seen: u32,
     state: u8,
     occupied: u8,
     count: u16,
+    /// Representative offsets, axis-major (`reps[axis][octant]`) so the 8 distances of a
+    /// voxel compute as vectors.
+    reps: [[i16; OCTANTS]; 3],
+    // Lines 1-2: the distribution.
+    last_seen: u32,
     normal_count: u16,
     _reserved: u16,
-    reps: [[i16; 3]; OCTANTS],
     rep_normals: [[i8; 3]; OCTANTS],
     sum: [f32; 3],
     sum_sq: [f32; 6],
@@ -108,25 +121,27 @@ pub struct Voxel {
     normal: [f32; 3],
     /// Ascending covariance eigenvalues of the latest evaluation.
     eigenvalues: [f32; 3],
+    _spare: [u32; 6],
 }
 
 impl Voxel {
     /// An unused slot (all-zero bytes).
     pub const EMPTY: Voxel = Voxel {
         key: [0; 3],
-        last_seen: 0,
         state: STATE_FREE,
         occupied: 0,
         count: 0,
+        reps: [[0; OCTANTS]; 3],
+        last_seen: 0,
         normal_count: 0,
         _reserved: 0,
-        reps: [[0; 3]; OCTANTS],
         rep_normals: [[0; 3]; OCTANTS],
         sum: [0.0; 3],
         sum_sq: [0.0; 6],
         ring_sum: [0.0; 3],
         normal: [0.0; 3],
         eigenvalues: [0.0; 3],
+        _spare: [0; 6],
     };
 }
 
@@ -517,16 +532,23 @@ impl KnnQuery {
 pub struct Neighbour {
     /// The map point, world frame.
     pub point: [f32; 3],
-    /// Its normal, if it had one.
-    pub normal: Option<[f32; 3]>,
     /// Squared distance from the query, metres².
     pub dist2: f32,
     /// The voxel holding it.
     pub voxel: VoxelHandle,
+    /// Its normal, quantised (see [`Self::normal`]).
+    normal_q: [i8; 3],
 }
 
 impl Neighbour {
-    const NONE: Neighbour = Neighbour { point: [0.0; 3], normal: None, dist2: 0.0, voxel: VoxelHandle(0) };
+    const NONE: Neighbour =
+        Neighbour { point: [0.0; 3], dist2: 0.0, voxel: VoxelHandle(0), normal_q: [0; 3] };
+
+    /// The point's normal (unit, within 0.5 degrees of the one inserted), if it had one.
+    /// Computed on demand: the reference's association never reads per-point normals.
+    pub fn normal(&self) -> Option<[f32; 3]> {
+        rep_normal(self.normal_q)
+    }
 }
 
 /// Result buffer of [`VoxelMap::knn`]: up to [`KNN_MAX`] neighbours sorted by distance.
@@ -626,6 +648,50 @@ pub struct VoxelMap<'a> {
     counters: MapCounters,
 }
 
+/// The query's octant: its own box, then the face, edge and corner neighbours on its side
+/// (multiplied per axis by the side, -1 or +1).
+const NEAR_ORDER: [[i32; 3]; 8] =
+    [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, 0, 1], [0, 1, 1], [1, 1, 1]];
+
+/// The order a k-NN search visits the 27 boxes, per side of the voxel centre the query lies on
+/// (index: bit `a` set when the query is on the + side of axis `a`): the octant's 8 boxes
+/// ([`NEAR_ORDER`]), then the other 19 in [`NEIGHBOURS`] order.
+const SIDE_ORDERS: [[[i32; 3]; 27]; 8] = side_orders();
+
+const fn side_orders() -> [[[i32; 3]; 27]; 8] {
+    let mut out = [[[0i32; 3]; 27]; 8];
+    let mut si = 0;
+    while si < 8 {
+        let side = [
+            if si & 1 != 0 { 1 } else { -1 },
+            if si & 2 != 0 { 1 } else { -1 },
+            if si & 4 != 0 { 1 } else { -1 },
+        ];
+        let mut n = 0;
+        let mut i = 0;
+        while i < 8 {
+            let b = NEAR_ORDER[i];
+            out[si][n] = [b[0] * side[0], b[1] * side[1], b[2] * side[2]];
+            n += 1;
+            i += 1;
+        }
+        let mut j = 0;
+        while j < 27 {
+            let off = NEIGHBOURS[j];
+            let in_octant = (off[0] == 0 || off[0] == side[0])
+                && (off[1] == 0 || off[1] == side[1])
+                && (off[2] == 0 || off[2] == side[2]);
+            if !in_octant {
+                out[si][n] = off;
+                n += 1;
+            }
+            j += 1;
+        }
+        si += 1;
+    }
+    out
+}
+
 /// The 27 voxel offsets of a neighbourhood, the centre first, then faces, edges and corners.
 const NEIGHBOURS: [[i32; 3]; 27] = neighbour_order();
 
@@ -649,14 +715,31 @@ const fn neighbour_order() -> [[i32; 3]; 27] {
     out
 }
 
-/// 32-bit hash of a voxel key (multiply-xor, then a 64-bit finaliser; bucket = low bits).
+/// 32-bit hash of a voxel key; the index bucket is its low bits.
+///
+/// The voxel's 2x2x2 block (`key >> 1`) is hashed (multiply-xor, then a 64-bit finaliser) into
+/// the upper 29 bits and the voxel's position in the block fills the low 3, so the 8 voxels of a
+/// block have consecutive home buckets: their index entries share one cache line, and a query,
+/// which reads a voxel and its neighbours, touches a few index lines instead of one per voxel.
 #[inline]
 fn hash_key(k: [i32; 3]) -> u32 {
-    let h = u64::from(k[0] as u32).wrapping_mul(0x9E37_79B9_7F4A_7C15)
-        ^ u64::from(k[1] as u32).wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
-        ^ u64::from(k[2] as u32).wrapping_mul(0x1656_67B1_9E37_79F9);
+    block_hash([k[0] >> 1, k[1] >> 1, k[2] >> 1]) << 3 | sub_block(k)
+}
+
+/// The 29-bit hash of a 2x2x2 block of voxels.
+#[inline]
+fn block_hash(b: [i32; 3]) -> u32 {
+    let h = u64::from(b[0] as u32).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        ^ u64::from(b[1] as u32).wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
+        ^ u64::from(b[2] as u32).wrapping_mul(0x1656_67B1_9E37_79F9);
     let h = (h ^ (h >> 31)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    (h >> 32) as u32
+    (h >> 35) as u32
+}
+
+/// A voxel's position in its 2x2x2 block, 0..8.
+#[inline]
+fn sub_block(k: [i32; 3]) -> u32 {
+    ((k[0] & 1) | (k[1] & 1) << 1 | (k[2] & 1) << 2) as u32
 }
 
 // ---- The open-addressing index (linear probing, backward-shift deletion) ----------------------
@@ -678,6 +761,24 @@ fn index_find(
         }
         if e.hash() == h && is_key(e.slot()) {
             return Some((pos, e.slot()));
+        }
+        pos = (pos + 1) & mask;
+    }
+    None
+}
+
+/// The slot of the first entry with hash `h` (no key check, so no pool access: the caller
+/// checks the key and falls back to [`index_find`] on the rare 32-bit hash collision).
+#[inline]
+fn index_first_with_hash(index: &[IndexSlot], mask: usize, h: u32) -> Option<u32> {
+    let mut pos = h as usize & mask;
+    for _ in 0..index.len() {
+        let e = index[pos];
+        if e.is_empty() {
+            return None;
+        }
+        if e.hash() == h {
+            return Some(e.slot());
         }
         pos = (pos + 1) & mask;
     }
@@ -855,7 +956,7 @@ impl<'a> VoxelMap<'a> {
             if !(libm::fabsf(v) < KEY_LIMIT) {
                 return None;
             }
-            k[a] = libm::floorf(v) as i32;
+            k[a] = floor_i32(v);
         }
         Some(k)
     }
@@ -955,7 +1056,7 @@ impl<'a> VoxelMap<'a> {
             let c = self.centre(v.key);
             for o in 0..OCTANTS {
                 if v.occupied & (1 << o) != 0 {
-                    f(VoxelHandle(i as u32), self.rep_point(c, v.reps[o]), rep_normal(v, o));
+                    f(VoxelHandle(i as u32), self.rep_point(c, rep(v, o)), rep_normal(v.rep_normals[o]));
                 }
             }
         }
@@ -990,9 +1091,62 @@ impl<'a> VoxelMap<'a> {
         let mut st = InsertStats::default();
         self.sweep(sensor, &mut st);
         let mut full_failed = false;
-        for p in points {
-            st.points = st.points.saturating_add(1);
-            self.insert_one(p, sensor, &mut st, &mut full_failed);
+        // A software pipeline over chunks of CHUNK points (insertion is bound by memory
+        // latency): while chunk g - 2 is inserted, the voxels of chunk g - 1 (whose index
+        // entries have arrived) and the index lines of chunk g are being fetched. The slots
+        // found are hints only, checked again at insertion (an eviction may have moved voxels).
+        let mut it = points.into_iter();
+        let mut pts = [[MapPoint::default(); CHUNK]; 3];
+        let mut hashes = [[NO_HINT; CHUNK]; 3];
+        let mut hints = [[NO_HINT; CHUNK]; 3];
+        let mut lens = [0usize; 3];
+        let mut chunks = usize::MAX; // known once the input runs out
+        let mut g = 0usize;
+        loop {
+            if g < chunks {
+                let r = g % 3;
+                let mut n = 0;
+                while n < CHUNK {
+                    let Some(p) = it.next() else { break };
+                    pts[r][n] = p;
+                    let h = self.key_of(p.xyz).map_or(NO_HINT, hash_key);
+                    if h != NO_HINT {
+                        prefetch(&self.index[h as usize & self.mask]);
+                    }
+                    hashes[r][n] = h;
+                    n += 1;
+                }
+                lens[r] = n;
+                if n < CHUNK {
+                    chunks = if n > 0 { g + 1 } else { g };
+                }
+            }
+            if g >= 1 && g - 1 < chunks {
+                let r = (g - 1) % 3;
+                for i in 0..lens[r] {
+                    let h = hashes[r][i];
+                    let slot =
+                        if h == NO_HINT { None } else { index_first_with_hash(self.index, self.mask, h) };
+                    hints[r][i] = slot.unwrap_or(NO_HINT);
+                    if let Some(s) = slot {
+                        let v = &self.pool[s as usize];
+                        prefetch(v);
+                        prefetch(&v.last_seen);
+                        prefetch(&v.ring_sum);
+                    }
+                }
+            }
+            if g >= 2 && g - 2 < chunks {
+                let r = (g - 2) % 3;
+                for i in 0..lens[r] {
+                    st.points = st.points.saturating_add(1);
+                    self.insert_one(pts[r][i], hints[r][i], sensor, &mut st, &mut full_failed);
+                }
+            }
+            if g >= 2 && g > chunks {
+                break;
+            }
+            g += 1;
         }
         if st.dropped_full > 0 {
             warn!("voxel map full: {} points dropped", st.dropped_full);
@@ -1010,7 +1164,14 @@ impl<'a> VoxelMap<'a> {
         self.insert(points.iter().copied(), sensor, stamp)
     }
 
-    fn insert_one(&mut self, p: MapPoint, sensor: [f32; 3], st: &mut InsertStats, full_failed: &mut bool) {
+    fn insert_one(
+        &mut self,
+        p: MapPoint,
+        hint: u32,
+        sensor: [f32; 3],
+        st: &mut InsertStats,
+        full_failed: &mut bool,
+    ) {
         let Some(k) = self.key_of(p.xyz) else {
             st.dropped_invalid += 1;
             return;
@@ -1023,7 +1184,9 @@ impl<'a> VoxelMap<'a> {
             None => None,
             Some(n) => {
                 let l2 = n[0] * n[0] + n[1] * n[1] + n[2] * n[2];
-                if l2.is_finite() && (0.25..=2.25).contains(&l2) {
+                if (1.0 - 1e-5..=1.0 + 1e-5).contains(&l2) {
+                    Some(n) // already unit (the usual case): no square root
+                } else if l2.is_finite() && (0.25..=2.25).contains(&l2) {
                     let inv = 1.0 / libm::sqrtf(l2);
                     Some([n[0] * inv, n[1] * inv, n[2] * inv])
                 } else {
@@ -1033,7 +1196,10 @@ impl<'a> VoxelMap<'a> {
             }
         };
         let h = hash_key(k);
-        let slot = {
+        // Keys of live voxels are unique, so a live slot holding `k` is the voxel.
+        let slot = if (hint as usize) < self.len && self.pool[hint as usize].key == k {
+            Some(hint)
+        } else {
             let pool = &*self.pool;
             index_find(self.index, self.mask, h, |s| pool[s as usize].key == k).map(|(_, s)| s)
         };
@@ -1301,14 +1467,99 @@ impl<'a> VoxelMap<'a> {
     /// query finds nothing.
     pub fn knn(&self, q: [f32; 3], query: &KnnQuery, out: &mut Neighbours) -> usize {
         out.len = 0;
-        let k = query.k.min(KNN_MAX);
-        let Some(key) = self.key_of(q) else { return 0 };
-        if k == 0 || !(query.max_dist >= 0.0) {
-            return 0;
+        let Some((k, bound2)) = Self::knn_params(query) else { return 0 };
+        let Some(mut pre) = self.prepare(q) else { return 0 };
+        // The query's own box and the 7 others on its side of each face (its octant) hold the
+        // nearest points almost always: their index entries are probed together, so their
+        // cache misses overlap (queries are bound by memory latency). The other boxes are
+        // probed only if the search gets to them.
+        for bits in NEAR_ORDER {
+            let off = [bits[0] * pre.side[0], bits[1] * pre.side[1], bits[2] * pre.side[2]];
+            if pre.box_d2(off) <= bound2 {
+                self.probe(&mut pre, off);
+            }
         }
-        let bound2 = query.max_dist * query.max_dist;
+        self.finish_knn(&mut pre, q, query.one_per_voxel, k, bound2, out)
+    }
+
+    /// [`Self::knn`] for many queries: `out[i]` receives the neighbours of `queries[i]` (for
+    /// `i < min(queries.len(), out.len())`); returns the total found. The results are exactly
+    /// those of [`Self::knn`] called on each query in turn, obtained faster: queries go in
+    /// groups of 8, and all the index lines, then all the voxels, of a group's neighbourhoods
+    /// are read before any member is searched, so the cache misses overlap instead of being paid
+    /// one after another. Give the queries in scan order (nearby points close together).
+    pub fn knn_many(&self, queries: &[[f32; 3]], query: &KnnQuery, out: &mut [Neighbours]) -> usize {
+        let m = queries.len().min(out.len());
+        for o in out[..m].iter_mut() {
+            o.len = 0;
+        }
+        let Some((k, bound2)) = Self::knn_params(query) else { return 0 };
+        // A software pipeline over groups of KNN_GROUP queries: while group g is searched, the
+        // voxels of group g + 1 (whose index entries arrived meanwhile) and the index lines of
+        // group g + 2 are being fetched.
+        let groups = m.div_ceil(KNN_GROUP);
+        let mut ring = [[None; KNN_GROUP]; 3];
+        let mut total = 0;
+        for g in 0..groups + 2 {
+            // Stage 1, group g: keys, block hashes, prefetch of the blocks' home index lines.
+            if g < groups {
+                let slot = &mut ring[g % 3];
+                for (i, pre) in slot.iter_mut().enumerate() {
+                    let qi = g * KNN_GROUP + i;
+                    *pre = if qi < m { self.prepare(queries[qi]) } else { None };
+                    if let Some(p) = pre {
+                        for bh in p.bh {
+                            prefetch(&self.index[(bh << 3) as usize & self.mask]);
+                        }
+                    }
+                }
+            }
+            // Stage 2, group g - 1: probe the octants, prefetch their voxels.
+            if g >= 1 && g - 1 < groups {
+                for p in ring[(g - 1) % 3].iter_mut().flatten() {
+                    for bits in NEAR_ORDER {
+                        let off = [bits[0] * p.side[0], bits[1] * p.side[1], bits[2] * p.side[2]];
+                        if p.box_d2(off) <= bound2 {
+                            let slot = self.probe(p, off);
+                            if slot != NO_HINT {
+                                let v = &self.pool[slot as usize];
+                                prefetch(v); // line 0: key and representatives
+                                prefetch(&v.rep_normals); // line 1: their normals
+                            }
+                        }
+                    }
+                }
+            }
+            // Stage 3, group g - 2: the searches.
+            if g >= 2 {
+                let gg = g - 2;
+                for (i, pre) in ring[gg % 3].iter_mut().enumerate() {
+                    let qi = gg * KNN_GROUP + i;
+                    if let Some(p) = pre {
+                        total +=
+                            self.finish_knn(p, queries[qi], query.one_per_voxel, k, bound2, &mut out[qi]);
+                    }
+                }
+            }
+        }
+        total
+    }
+
+    /// `(k, max_dist²)`, or `None` if the query asks for nothing.
+    fn knn_params(query: &KnnQuery) -> Option<(usize, f32)> {
+        let k = query.k.min(KNN_MAX);
+        if k == 0 || !(query.max_dist >= 0.0) {
+            return None;
+        }
+        Some((k, query.max_dist * query.max_dist))
+    }
+
+    /// The query's voxel, the distances to its neighbouring boxes and the hashes of the 8
+    /// blocks (2x2x2 voxels) the neighbourhood spans; no box probed yet. `None` out of range.
+    #[inline]
+    fn prepare(&self, q: [f32; 3]) -> Option<Prepared> {
+        let key = self.key_of(q)?;
         let c0 = self.centre(key);
-        // Squared gaps from q to the faces of the neighbouring boxes, per axis: [-1, 0, +1].
         let mut gap2 = [[0.0f32; 3]; 3];
         for a in 0..3 {
             let rel = q[a] - c0[a];
@@ -1316,60 +1567,130 @@ impl<'a> VoxelMap<'a> {
             let hi = (self.d.half - rel - self.d.slack).max(0.0);
             gap2[a] = [lo * lo, 0.0, hi * hi];
         }
-        // Candidates: (dist2, slot, octant), sorted ascending.
+        let side = [
+            if q[0] < c0[0] { -1 } else { 1 },
+            if q[1] < c0[1] { -1 } else { 1 },
+            if q[2] < c0[2] { -1 } else { 1 },
+        ];
+        // keys k-1 .. k+1 span exactly two blocks per axis: (k-1)>>1 and the next.
+        let b0 = [(key[0] - 1) >> 1, (key[1] - 1) >> 1, (key[2] - 1) >> 1];
+        let mut bh = [0u32; 8];
+        for (i, h) in bh.iter_mut().enumerate() {
+            let i = i as i32;
+            *h = block_hash([b0[0] + (i & 1), b0[1] + (i >> 1 & 1), b0[2] + (i >> 2)]);
+        }
+        Some(Prepared { key, b0, gap2, side, bh, slots: [UNPROBED; 27] })
+    }
+
+    /// The slot of the first index entry with the hash of the box at `off` (not key-checked),
+    /// or `NO_HINT`; remembered in `pre`.
+    #[inline]
+    fn probe(&self, pre: &mut Prepared, off: [i32; 3]) -> u32 {
+        let li = lex(off);
+        if pre.slots[li] == UNPROBED {
+            let h = pre.hash(off);
+            pre.slots[li] = index_first_with_hash(self.index, self.mask, h).unwrap_or(NO_HINT);
+        }
+        pre.slots[li]
+    }
+
+    /// The search proper: the octant's boxes, then the other 19, each only if not already
+    /// farther than the k-th distance found.
+    fn finish_knn(
+        &self,
+        pre: &mut Prepared,
+        q: [f32; 3],
+        one_per_voxel: bool,
+        k: usize,
+        bound2: f32,
+        out: &mut Neighbours,
+    ) -> usize {
         let mut cand = [(0.0f32, 0u32, 0u8); KNN_MAX];
         let mut n = 0usize;
-        for off in NEIGHBOURS {
-            let bd2 = gap2[0][(off[0] + 1) as usize]
-                + gap2[1][(off[1] + 1) as usize]
-                + gap2[2][(off[2] + 1) as usize];
-            let worst = if n == k { cand[k - 1].0 } else { bound2 };
-            if bd2 > worst || (n == k && bd2 == worst) {
+        let si = usize::from(pre.side[0] > 0)
+            | usize::from(pre.side[1] > 0) << 1
+            | usize::from(pre.side[2] > 0) << 2;
+        for &off in &SIDE_ORDERS[si] {
+            if !box_within(pre.box_d2(off), &cand, n, k, bound2) {
                 continue;
             }
+            let slot = self.probe(pre, off);
+            if slot == NO_HINT {
+                continue;
+            }
+            let key = pre.key;
             let nk = [key[0] + off[0], key[1] + off[1], key[2] + off[2]];
-            let Some(slot) = self.find_slot(nk) else { continue };
-            let v = &self.pool[slot as usize];
-            if v.occupied == 0 {
-                continue;
-            }
-            let c = self.centre(nk);
-            let rq = [q[0] - c[0], q[1] - c[1], q[2] - c[2]];
-            let s = self.d.dequant;
-            let mut best = (f32::INFINITY, 0u8);
-            for o in 0..OCTANTS {
-                if v.occupied & (1 << o) == 0 {
-                    continue;
+            let slot = if self.pool[slot as usize].key == nk {
+                slot
+            } else {
+                // Another key with the same 32-bit hash came first: look it up properly.
+                match self.find_slot(nk) {
+                    Some(s2) => s2,
+                    None => continue,
                 }
-                let r = v.reps[o];
-                let dx = rq[0] - f32::from(r[0]) * s;
-                let dy = rq[1] - f32::from(r[1]) * s;
-                let dz = rq[2] - f32::from(r[2]) * s;
-                let d2 = dx * dx + dy * dy + dz * dz;
-                if query.one_per_voxel {
-                    if d2 < best.0 {
-                        best = (d2, o as u8);
-                    }
-                } else {
-                    push_candidate(&mut cand, &mut n, k, bound2, (d2, slot, o as u8));
-                }
-            }
-            if query.one_per_voxel && best.0.is_finite() {
-                push_candidate(&mut cand, &mut n, k, bound2, (best.0, slot, best.1));
-            }
+            };
+            self.scan_voxel(slot, nk, q, one_per_voxel, &mut cand, &mut n, k, bound2);
         }
         for (i, &(d2, slot, o)) in cand[..n].iter().enumerate() {
             let v = &self.pool[slot as usize];
             let c = self.centre(v.key);
             out.items[i] = Neighbour {
-                point: self.rep_point(c, v.reps[o as usize]),
-                normal: rep_normal(v, o as usize),
+                point: self.rep_point(c, rep(v, o as usize)),
+                normal_q: v.rep_normals[o as usize],
                 dist2: d2,
                 voxel: VoxelHandle(slot),
             };
         }
         out.len = n;
         n
+    }
+
+    /// Adds the representatives of the voxel at `slot` (key `nk`) to the candidates.
+    #[allow(clippy::too_many_arguments)]
+    #[inline]
+    fn scan_voxel(
+        &self,
+        slot: u32,
+        nk: [i32; 3],
+        q: [f32; 3],
+        one_per_voxel: bool,
+        cand: &mut [(f32, u32, u8); KNN_MAX],
+        n: &mut usize,
+        k: usize,
+        bound2: f32,
+    ) {
+        let v = &self.pool[slot as usize];
+        if v.occupied == 0 {
+            return;
+        }
+        let c = self.centre(nk);
+        let rq = [q[0] - c[0], q[1] - c[1], q[2] - c[2]];
+        let s = self.d.dequant;
+        // All 8 distances at once (vectorised; unoccupied octants are computed and ignored).
+        let mut d2s = [0.0f32; OCTANTS];
+        for o in 0..OCTANTS {
+            let dx = rq[0] - f32::from(v.reps[0][o]) * s;
+            let dy = rq[1] - f32::from(v.reps[1][o]) * s;
+            let dz = rq[2] - f32::from(v.reps[2][o]) * s;
+            d2s[o] = dx * dx + dy * dy + dz * dz;
+        }
+        let mut best = (f32::INFINITY, 0u8);
+        let mut bits = v.occupied;
+        while bits != 0 {
+            let o = bits.trailing_zeros() as usize;
+            bits &= bits - 1;
+            let d2 = d2s[o];
+            if one_per_voxel {
+                if d2 < best.0 {
+                    best = (d2, o as u8);
+                }
+            } else {
+                push_candidate(cand, n, k, bound2, (d2, slot, o as u8));
+            }
+        }
+        if one_per_voxel && best.0.is_finite() {
+            push_candidate(cand, n, k, bound2, (best.0, slot, best.1));
+        }
     }
 
     /// The small-scale surfel of a voxel: only if it has converged.
@@ -1468,6 +1789,68 @@ impl<'a> VoxelMap<'a> {
     }
 }
 
+/// A cache prefetch hint (no effect on results; a no-op where the target has none in stable
+/// Rust without `unsafe`).
+#[inline(always)]
+fn prefetch<T>(r: &T) {
+    #[cfg(all(any(target_arch = "x86", target_arch = "x86_64"), target_feature = "sse"))]
+    safe_arch::prefetch_t0(r);
+    #[cfg(not(all(any(target_arch = "x86", target_arch = "x86_64"), target_feature = "sse")))]
+    let _ = r;
+}
+
+/// Queries prepared together by [`VoxelMap::knn_many`].
+const KNN_GROUP: usize = 8;
+
+/// Slot not probed yet.
+const UNPROBED: u32 = u32::MAX - 1;
+
+/// Lexicographic index 0..27 of a neighbour offset.
+#[inline]
+fn lex(off: [i32; 3]) -> usize {
+    ((off[0] + 1) * 9 + (off[1] + 1) * 3 + (off[2] + 1)) as usize
+}
+
+/// A k-NN query's voxel, box distances, block hashes and probed index slots.
+#[derive(Clone, Copy, Debug)]
+struct Prepared {
+    key: [i32; 3],
+    /// The lowest of the two blocks the neighbourhood spans per axis.
+    b0: [i32; 3],
+    /// Squared gaps from the query to the neighbouring boxes' faces, per axis: [-1, 0, +1].
+    gap2: [[f32; 3]; 3],
+    /// The query's side of its voxel centre per axis (-1 or +1).
+    side: [i32; 3],
+    /// Hashes of the 8 blocks, index `dx | dy << 1 | dz << 2` for block `b0 + (dx, dy, dz)`.
+    bh: [u32; 8],
+    /// Per neighbour ([`lex`]): `UNPROBED`, `NO_HINT` (absent) or the slot of the first index
+    /// entry with the neighbour's hash.
+    slots: [u32; 27],
+}
+
+impl Prepared {
+    #[inline]
+    fn box_d2(&self, off: [i32; 3]) -> f32 {
+        self.gap2[0][(off[0] + 1) as usize]
+            + self.gap2[1][(off[1] + 1) as usize]
+            + self.gap2[2][(off[2] + 1) as usize]
+    }
+
+    /// `hash_key(key + off)`, from the block hashes.
+    #[inline]
+    fn hash(&self, off: [i32; 3]) -> u32 {
+        let nk = [self.key[0] + off[0], self.key[1] + off[1], self.key[2] + off[2]];
+        let b = [(nk[0] >> 1) - self.b0[0], (nk[1] >> 1) - self.b0[1], (nk[2] >> 1) - self.b0[2]];
+        self.bh[(b[0] | b[1] << 1 | b[2] << 2) as usize] << 3 | sub_block(nk)
+    }
+}
+
+/// Whether a box at squared distance `bd2` may still hold a candidate.
+#[inline]
+fn box_within(bd2: f32, cand: &[(f32, u32, u8); KNN_MAX], n: usize, k: usize, bound2: f32) -> bool {
+    if n == k { bd2 < cand[k - 1].0 } else { bd2 <= bound2 }
+}
+
 /// Inserts a candidate into the sorted list (ascending distance; equal distances keep the
 /// earlier one first), keeping at most `k` within `bound2`.
 #[inline]
@@ -1504,14 +1887,20 @@ fn state_of(s: u8) -> VoxelState {
     }
 }
 
-fn rep_normal(v: &Voxel, o: usize) -> Option<[f32; 3]> {
-    let q = v.rep_normals[o];
+/// A representative's quantised offset.
+#[inline]
+fn rep(v: &Voxel, o: usize) -> [i16; 3] {
+    [v.reps[0][o], v.reps[1][o], v.reps[2][o]]
+}
+
+/// A quantised normal as a unit vector; `None` for the "no normal" marker `[0, 0, 0]`.
+fn rep_normal(q: [i8; 3]) -> Option<[f32; 3]> {
     if q == [0, 0, 0] {
         return None;
     }
     let n = [f32::from(q[0]), f32::from(q[1]), f32::from(q[2])];
-    let l = libm::sqrtf(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
-    Some([n[0] / l, n[1] / l, n[2] / l])
+    let inv = 1.0 / libm::sqrtf(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    Some([n[0] * inv, n[1] * inv, n[2] * inv])
 }
 
 /// The octant rule for representatives (module docs).
@@ -1524,31 +1913,50 @@ fn update_rep(v: &mut Voxel, off: [f32; 3], normal: Option<[f32; 3]>, d: &Derive
         if off[1] >= 0.0 { quarter } else { -quarter },
         if off[2] >= 0.0 { quarter } else { -quarter },
     ];
-    let q = [quantise(off[0], d.quant), quantise(off[1], d.quant), quantise(off[2], d.quant)];
     let bit = 1u8 << o;
     if v.occupied & bit != 0 {
-        let r = v.reps[o];
+        let r = rep(v, o);
         let old = [f32::from(r[0]) * d.dequant, f32::from(r[1]) * d.dequant, f32::from(r[2]) * d.dequant];
         if !(d2f(off, oc) < d2f(old, oc)) {
             return;
         }
     }
+    let q = [quantise(off[0], d.quant), quantise(off[1], d.quant), quantise(off[2], d.quant)];
     v.occupied |= bit;
-    v.reps[o] = q;
+    for a in 0..3 {
+        v.reps[a][o] = q[a];
+    }
     v.rep_normals[o] = match normal {
         Some(n) => [quantise_unit(n[0]), quantise_unit(n[1]), quantise_unit(n[2])],
         None => [0, 0, 0],
     };
 }
 
+/// `floor(v)` for `|v| < 2^31` (callers check a smaller bound): truncation, minus one for
+/// negative non-integers. Exact, and cheaper than `libm::floorf` on targets without a rounding
+/// instruction in their baseline (x86-64 before SSE4.1, Cortex-M4F).
+#[inline]
+fn floor_i32(v: f32) -> i32 {
+    let t = v as i32;
+    if (t as f32) > v { t - 1 } else { t }
+}
+
+/// Rounds half away from zero (up to one unit in the last place at exact halves; either
+/// neighbour is an equally good quantisation) and saturates to `±limit`.
+#[inline]
+fn round_sat(x: f32, limit: f32) -> i32 {
+    let x = x.clamp(-limit, limit);
+    if x >= 0.0 { (x + 0.5) as i32 } else { (x - 0.5) as i32 }
+}
+
 #[inline]
 fn quantise(x: f32, scale: f32) -> i16 {
-    libm::roundf(x * scale).clamp(-32767.0, 32767.0) as i16
+    round_sat(x * scale, 32767.0) as i16
 }
 
 #[inline]
 fn quantise_unit(x: f32) -> i8 {
-    libm::roundf(x * 127.0).clamp(-127.0, 127.0) as i8
+    round_sat(x * 127.0, 127.0) as i8
 }
 
 #[cfg(test)]
@@ -1644,12 +2052,16 @@ mod tests {
 
     #[test]
     fn voxel_layout_is_small_and_empty_is_zero() {
-        assert_eq!(VOXEL_BYTES, 168);
+        assert_eq!(VOXEL_BYTES, 192);
+        assert_eq!(core::mem::align_of::<Voxel>(), 64);
+        assert_eq!(core::mem::offset_of!(Voxel, last_seen), 64, "line 0 holds the lookup and k-NN data");
         assert_eq!(core::mem::size_of::<IndexSlot>(), 8);
         assert_eq!(Voxel::EMPTY, Voxel::default());
         assert_eq!(IndexSlot::EMPTY.0, 0);
-        // Every field of EMPTY is an integer 0 or +0.0 and the layout has no padding (the size
-        // is the sum of the fields), so its bytes are all zero: a static pool goes to .bss.
+        // Every field of EMPTY is an integer 0 or +0.0 and the layout has no implicit padding
+        // (the fields, `_spare` included, add up to the size), so its bytes are all zero: a
+        // static pool goes to .bss.
+        assert_eq!(core::mem::offset_of!(Voxel, _spare) + 24, VOXEL_BYTES);
         let e = Voxel::EMPTY;
         assert!(e.sum.iter().chain(&e.sum_sq).chain(&e.ring_sum).all(|x| x.to_bits() == 0));
         static STORAGE: MapStorage<4, 8> = MapStorage::new();
@@ -2296,6 +2708,21 @@ mod tests {
             }
         }
         assert!(checked > 5000, "too few neighbours exercised: {checked}");
+        // knn_many gives exactly what knn gives, query by query (groups of 8 and a remainder).
+        let queries: Vec<[f32; 3]> = (0..203)
+            .map(|_| p32([rng.uniform(-1.7, 1.7), rng.uniform(-1.7, 1.7), rng.uniform(-0.2, 2.2)]))
+            .collect();
+        for query in [KnnQuery::new(5, 0.4), KnnQuery { k: 8, max_dist: 1.0, one_per_voxel: true }] {
+            let mut many = vec![Neighbours::new(); queries.len() + 3];
+            let total = map.knn_many(&queries, &query, &mut many);
+            let mut sum = 0;
+            for (q, m) in queries.iter().zip(&many) {
+                sum += map.knn(*q, &query, &mut out);
+                assert_eq!(m.as_slice(), out.as_slice());
+            }
+            assert_eq!(total, sum);
+            assert!(many[queries.len()..].iter().all(|m| m.is_empty()));
+        }
     }
 
     #[test]
@@ -2312,7 +2739,7 @@ mod tests {
         assert!(found >= 4, "{found}");
         for nb in out.as_slice() {
             // i8-quantised normals: within 0.5 degrees of the input (itself jittered ~2 degrees).
-            assert!(angle_deg(to64(nb.normal.unwrap()), n) < 6.0);
+            assert!(angle_deg(to64(nb.normal().unwrap()), n) < 6.0);
         }
         let plane = out.fit_plane(0.1).unwrap();
         let err = angle_deg(to64(plane.normal), n);
@@ -2710,5 +3137,89 @@ mod tests {
         assert_eq!(c.dropped_full, 0);
         std::println!("trajectory with {cap} voxels: {c:?}, at most {max_len} live");
         c
+    }
+
+    #[test]
+    fn floor_and_round_helpers_match_libm() {
+        let mut rng = Rng(4);
+        for i in 0..100_000 {
+            let v = match i % 4 {
+                0 => rng.uniform(-4e6, 4e6) as f32,
+                1 => rng.uniform(-3.0, 3.0) as f32,
+                2 => (rng.next_u64() % 2001) as f32 * 0.5 - 500.0, // integers and halves
+                _ => f32::from_bits(rng.next_u64() as u32 & 0x4A7F_FFFF), // any value below 2^22
+            };
+            assert_eq!(floor_i32(v), libm::floorf(v) as i32, "{v}");
+            let r = round_sat(v, 32767.0);
+            let c = v.clamp(-32767.0, 32767.0);
+            assert!((r as f32 - c).abs() <= 0.5 + 2.0 * f32::EPSILON * c.abs(), "{v} {r}");
+        }
+        assert_eq!(floor_i32(-0.0), 0);
+        assert_eq!(floor_i32(-1e-30), -1);
+        assert_eq!(round_sat(1e9, 127.0), 127);
+        assert_eq!(round_sat(-1e9, 127.0), -127);
+        assert_eq!(round_sat(f32::NAN, 127.0), 0);
+    }
+
+    #[test]
+    fn full_32_bit_hash_collisions_are_resolved_by_the_key() {
+        // Birthday search for two keys with the same 32-bit hash.
+        let mut seen: HashMap<u32, [i32; 3]> = HashMap::new();
+        let mut pair = None;
+        'search: for x in -200..200 {
+            for y in -200..200 {
+                for z in -20..20 {
+                    let k = [x, y, z];
+                    if let Some(other) = seen.insert(hash_key(k), k) {
+                        pair = Some((other, k));
+                        break 'search;
+                    }
+                }
+            }
+        }
+        let (a, b) = pair.expect("no collision among 6.4 million keys");
+        assert_ne!(a, b);
+        assert_eq!(hash_key(a), hash_key(b));
+        let cfg = MapConfig { evict_radius: 1e4, ..MapConfig::VLP32C };
+        let (mut pool, mut index) = storage(8);
+        let mut map = VoxelMap::new(&mut pool, &mut index, cfg).unwrap();
+        let inside =
+            |k: [i32; 3]| [(k[0] as f32 + 0.3) * 0.4, (k[1] as f32 + 0.6) * 0.4, (k[2] as f32 + 0.5) * 0.4];
+        // `a` first, so a probe for `b`'s hash meets `a`'s entry before `b`'s.
+        for (i, k) in [a, b].into_iter().enumerate() {
+            map.insert_slice(&[MapPoint { xyz: inside(k), normal: None }], [0.0; 3], i as u32).unwrap();
+        }
+        assert_eq!(map.len(), 2);
+        assert_eq!(map.voxel(map.find_key(a).unwrap()).unwrap().key, a);
+        assert_eq!(map.voxel(map.find_key(b).unwrap()).unwrap().key, b);
+        let mut out = Neighbours::new();
+        assert_eq!(map.knn(inside(b), &KnnQuery::new(5, 0.4), &mut out), 1);
+        assert_eq!(out.as_slice()[0].voxel, map.find_key(b).unwrap());
+        // Removing `a` leaves `b` reachable.
+        let sa = map.find_key(a).unwrap().index();
+        map.remove_slot(sa);
+        check_index(&map);
+        assert!(map.find_key(a).is_none());
+        assert_eq!(map.knn(inside(b), &KnnQuery::new(5, 0.4), &mut out), 1);
+    }
+
+    #[test]
+    fn block_hashes_derive_every_neighbour_hash() {
+        let mut rng = Rng(17);
+        for _ in 0..2000 {
+            let q = p32([rng.uniform(-1e4, 1e4), rng.uniform(-1e4, 1e4), rng.uniform(-50.0, 50.0)]);
+            let (mut pool, mut index) = storage(1);
+            let map = VoxelMap::new(&mut pool, &mut index, MapConfig::VLP32C).unwrap();
+            let pre = map.prepare(q).unwrap();
+            for off in NEIGHBOURS {
+                let k = pre.key;
+                assert_eq!(pre.hash(off), hash_key([k[0] + off[0], k[1] + off[1], k[2] + off[2]]));
+            }
+        }
+        // The 8 voxels of a block have consecutive home buckets.
+        let base = hash_key([4, -6, 10]) & !7;
+        for i in 0..8 {
+            assert_eq!(hash_key([4 + (i & 1), -6 + (i >> 1 & 1), 10 + (i >> 2)]), base | i as u32);
+        }
     }
 }
