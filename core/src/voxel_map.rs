@@ -54,6 +54,26 @@
 //!   evicted; when nothing else is left, the new voxel's point is dropped (counted).
 //! - The index uses linear probing with backward-shift deletion (no tombstones), so lookups stay
 //!   short after any number of evictions; every probe loop is bounded by the index length.
+//!
+//! ## Queries (all `&self`, allocation-free, deterministic)
+//! - [`VoxelMap::knn`] / [`VoxelMap::knn_many`]: the k (<= [`KNN_MAX`]) nearest representatives
+//!   within a distance, from the query's voxel and its 26 neighbours, with their normals and
+//!   voxel handles, nearest first; optionally one per voxel (k distinct voxels, as the
+//!   reference's one-point-per-voxel ikd-tree gives). Exact against brute force for
+//!   `max_dist <= voxel_size`.
+//! - [`VoxelMap::large_surfel`]: distinct voxels merged by Eq. (5) with true counts, accepted
+//!   by the surfel criteria and the 0.15 m mean-to-plane test.
+//! - [`VoxelMap::small_surfel`] / [`VoxelMap::small_surfel_at`]: a converged voxel's surfel.
+//! - [`Neighbours::fit_plane`] ([`surfel::fit_plane`]): the point-to-plane fallback.
+//! - [`VoxelMap::voxel`], [`VoxelMap::find`]: mean, voxel normal, state and counts.
+//!
+//! ## Speed
+//! Insertion and queries are bound by memory latency (a voxel and its index entry are two
+//! cache misses), so: a voxel's first cache line holds everything a lookup or a k-NN reads;
+//! the hash keeps the 8 voxels of each 2x2x2 block in adjacent index slots (one index line
+//! serves a neighbourhood); and [`VoxelMap::insert`] and [`VoxelMap::knn_many`] run software
+//! pipelines that fetch the index lines, then the voxels, of the next points while the current
+//! ones are processed (prefetch hints on x86; elsewhere the same code without hints).
 // `!(x > t)` rejects NaN as well as small values, on purpose; indexed loops over the three
 // axes read like the maths.
 #![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
@@ -109,19 +129,21 @@ pub struct Voxel {
     /// Representative offsets, axis-major (`reps[axis][octant]`) so the 8 distances of a
     /// voxel compute as vectors.
     reps: [[i16; OCTANTS]; 3],
-    // Lines 1-2: the distribution.
+    // Line 1 (64 bytes): what every insertion into an accumulating voxel writes.
     last_seen: u32,
     normal_count: u16,
     _reserved: u16,
-    rep_normals: [[i8; 3]; OCTANTS],
     sum: [f32; 3],
     sum_sq: [f32; 6],
     ring_sum: [f32; 3],
+    _spare1: [u32; 2],
+    // Line 2 (64 bytes): written when a representative changes or the voxel is evaluated.
+    rep_normals: [[i8; 3]; OCTANTS],
     /// `e_d` of the latest evaluation, oriented with the ring normal (or towards the sensor).
     normal: [f32; 3],
     /// Ascending covariance eigenvalues of the latest evaluation.
     eigenvalues: [f32; 3],
-    _spare: [u32; 6],
+    _spare2: [u32; 4],
 }
 
 impl Voxel {
@@ -135,13 +157,14 @@ impl Voxel {
         last_seen: 0,
         normal_count: 0,
         _reserved: 0,
-        rep_normals: [[0; 3]; OCTANTS],
         sum: [0.0; 3],
         sum_sq: [0.0; 6],
         ring_sum: [0.0; 3],
+        _spare1: [0; 2],
+        rep_normals: [[0; 3]; OCTANTS],
         normal: [0.0; 3],
         eigenvalues: [0.0; 3],
-        _spare: [0; 6],
+        _spare2: [0; 4],
     };
 }
 
@@ -1130,9 +1153,8 @@ impl<'a> VoxelMap<'a> {
                     hints[r][i] = slot.unwrap_or(NO_HINT);
                     if let Some(s) = slot {
                         let v = &self.pool[s as usize];
-                        prefetch(v);
-                        prefetch(&v.last_seen);
-                        prefetch(&v.ring_sum);
+                        prefetch(v); // line 0: key, state, representatives
+                        prefetch(&v.last_seen); // line 1: the sums
                     }
                 }
             }
@@ -2059,9 +2081,10 @@ mod tests {
         assert_eq!(Voxel::EMPTY, Voxel::default());
         assert_eq!(IndexSlot::EMPTY.0, 0);
         // Every field of EMPTY is an integer 0 or +0.0 and the layout has no implicit padding
-        // (the fields, `_spare` included, add up to the size), so its bytes are all zero: a
+        // (the fields, spares included, add up to the size), so its bytes are all zero: a
         // static pool goes to .bss.
-        assert_eq!(core::mem::offset_of!(Voxel, _spare) + 24, VOXEL_BYTES);
+        assert_eq!(core::mem::offset_of!(Voxel, rep_normals), 128, "line 1 holds what insertion writes");
+        assert_eq!(core::mem::offset_of!(Voxel, _spare2) + 16, VOXEL_BYTES);
         let e = Voxel::EMPTY;
         assert!(e.sum.iter().chain(&e.sum_sq).chain(&e.ring_sum).all(|x| x.to_bits() == 0));
         static STORAGE: MapStorage<4, 8> = MapStorage::new();
