@@ -132,7 +132,8 @@ pub struct Voxel {
     // Line 1 (64 bytes): what every insertion into an accumulating voxel writes.
     last_seen: u32,
     normal_count: u16,
-    _reserved: u16,
+    /// Points until the next evaluation (counts down from `eta`).
+    until_eval: u16,
     sum: [f32; 3],
     sum_sq: [f32; 6],
     ring_sum: [f32; 3],
@@ -156,7 +157,7 @@ impl Voxel {
         reps: [[0; OCTANTS]; 3],
         last_seen: 0,
         normal_count: 0,
-        _reserved: 0,
+        until_eval: 0,
         sum: [0.0; 3],
         sum_sq: [0.0; 6],
         ring_sum: [0.0; 3],
@@ -278,8 +279,9 @@ pub struct MapConfig {
     /// Voxels farther than this from the sensor are evicted, and points farther are not
     /// inserted, metres. Default 80 (VLP-32C) / 100 (OS1-16).
     pub evict_radius: f32,
-    /// Pool slots the eviction sweep checks per insert call. Default 8192 (the whole of a 2^18
-    /// pool every 32 scans, a few tens of microseconds per scan).
+    /// Pool slots the eviction sweep checks per insert call. Default 4096: the whole of a 2^18
+    /// pool every 64 scans (6.4 s at 10 Hz) for about 30 µs per scan; voxels left behind
+    /// meanwhile are also the first to go when the pool runs full.
     pub sweep_per_insert: u32,
     /// Voxels evicted at once when the pool is full; 0 means `capacity / 16`. Default 0.
     pub evict_batch: u32,
@@ -297,7 +299,7 @@ impl MapConfig {
         max_normal_angle_deg: 20.0,
         min_ring_coherence: 0.5,
         evict_radius: 80.0,
-        sweep_per_insert: 8192,
+        sweep_per_insert: 4096,
         evict_batch: 0,
         large: LargeSurfelConfig::DEFAULT,
     };
@@ -1120,6 +1122,7 @@ impl<'a> VoxelMap<'a> {
         // found are hints only, checked again at insertion (an eviction may have moved voxels).
         let mut it = points.into_iter();
         let mut pts = [[MapPoint::default(); CHUNK]; 3];
+        let mut keys = [[None; CHUNK]; 3];
         let mut hashes = [[NO_HINT; CHUNK]; 3];
         let mut hints = [[NO_HINT; CHUNK]; 3];
         let mut lens = [0usize; 3];
@@ -1132,10 +1135,12 @@ impl<'a> VoxelMap<'a> {
                 while n < CHUNK {
                     let Some(p) = it.next() else { break };
                     pts[r][n] = p;
-                    let h = self.key_of(p.xyz).map_or(NO_HINT, hash_key);
-                    if h != NO_HINT {
+                    let k = self.key_of(p.xyz);
+                    let h = k.map_or(0, hash_key);
+                    if k.is_some() {
                         prefetch(&self.index[h as usize & self.mask]);
                     }
+                    keys[r][n] = k;
                     hashes[r][n] = h;
                     n += 1;
                 }
@@ -1148,8 +1153,10 @@ impl<'a> VoxelMap<'a> {
                 let r = (g - 1) % 3;
                 for i in 0..lens[r] {
                     let h = hashes[r][i];
-                    let slot =
-                        if h == NO_HINT { None } else { index_first_with_hash(self.index, self.mask, h) };
+                    let slot = match keys[r][i] {
+                        Some(_) => index_first_with_hash(self.index, self.mask, h),
+                        None => None,
+                    };
                     hints[r][i] = slot.unwrap_or(NO_HINT);
                     if let Some(s) = slot {
                         let v = &self.pool[s as usize];
@@ -1162,7 +1169,8 @@ impl<'a> VoxelMap<'a> {
                 let r = (g - 2) % 3;
                 for i in 0..lens[r] {
                     st.points = st.points.saturating_add(1);
-                    self.insert_one(pts[r][i], hints[r][i], sensor, &mut st, &mut full_failed);
+                    let key = keys[r][i].map(|k| (k, hashes[r][i]));
+                    self.insert_one(pts[r][i], key, hints[r][i], sensor, &mut st, &mut full_failed);
                 }
             }
             if g >= 2 && g > chunks {
@@ -1186,15 +1194,17 @@ impl<'a> VoxelMap<'a> {
         self.insert(points.iter().copied(), sensor, stamp)
     }
 
+    /// Inserts one point; `key` is its voxel key and the key's hash (`None`: out of range).
     fn insert_one(
         &mut self,
         p: MapPoint,
+        key: Option<([i32; 3], u32)>,
         hint: u32,
         sensor: [f32; 3],
         st: &mut InsertStats,
         full_failed: &mut bool,
     ) {
-        let Some(k) = self.key_of(p.xyz) else {
+        let Some((k, h)) = key else {
             st.dropped_invalid += 1;
             return;
         };
@@ -1217,7 +1227,6 @@ impl<'a> VoxelMap<'a> {
                 }
             }
         };
-        let h = hash_key(k);
         // Keys of live voxels are unique, so a live slot holding `k` is the voxel.
         let slot = if (hint as usize) < self.len && self.pool[hint as usize].key == k {
             Some(hint)
@@ -1249,7 +1258,8 @@ impl<'a> VoxelMap<'a> {
                     self.counters.dropped_full += 1;
                     return;
                 }
-                self.pool[s] = Voxel { key: k, state: STATE_ACCUMULATING, ..Voxel::EMPTY };
+                self.pool[s] =
+                    Voxel { key: k, state: STATE_ACCUMULATING, until_eval: self.cfg.eta, ..Voxel::EMPTY };
                 self.len += 1;
                 st.new_voxels += 1;
                 self.counters.created += 1;
@@ -1285,7 +1295,9 @@ impl<'a> VoxelMap<'a> {
                 v.ring_sum[a] += n[a];
             }
         }
-        if v.count.is_multiple_of(cfg.eta) || v.count >= cfg.saturate_at {
+        v.until_eval = v.until_eval.saturating_sub(1);
+        if v.until_eval == 0 || v.count >= cfg.saturate_at {
+            v.until_eval = cfg.eta;
             let to_c = [sensor[0] - c[0], sensor[1] - c[1], sensor[2] - c[2]];
             match self.evaluate(slot, to_c) {
                 STATE_CONVERGED => st.converged += 1,
