@@ -15,9 +15,9 @@
 //! | Ring FALS normals | [`ring_fals`] |
 //! | wire formats (Velodyne, Ouster, IMU frames) | `sensor` |
 //! | IMU samples, initialisation and propagation | [`imu`] |
-//! | voxel map with incremental distributions | `voxel_map`, `surfel` |
+//! | voxel map with incremental distributions | [`voxel_map`], [`surfel`] |
 //! | data association | `association` |
-//! | iterated error-state Kalman filter | `eskf` |
+//! | iterated error-state Kalman filter | [`eskf`] |
 //! | the per-scan pipeline | `odometry` |
 #![no_std]
 #![cfg_attr(not(test), forbid(unsafe_code))]
@@ -34,6 +34,8 @@ pub mod ring_fals;
 pub mod scan;
 pub mod sensor;
 pub mod so3;
+pub mod surfel;
 #[cfg(test)]
 mod testutil;
 pub mod undistort;
+pub mod voxel_map;

@@ -1,0 +1,3260 @@
+//! The map: a fixed pool of voxels, each keeping the distribution of the points that fell into
+//! it, found through an open-addressing hash index (paper sections III-C, IV-D; reference notes
+//! B). Memory is the caller's and bounded; nothing here allocates, grows or panics.
+//!
+//! ## Storage
+//! The caller provides the voxel pool (`&mut [Voxel]`, [`Voxel::EMPTY`] is all-zero bytes so a
+//! firmware `static` lands in `.bss`) and the hash index (`&mut [IndexSlot]`, a power of two at
+//! least twice the pool, so the load factor never exceeds 1/2). [`MapStorage`] bundles both as
+//! const-generic arrays with a `const fn new()`. A [`Voxel`] is [`VOXEL_BYTES`] = 192 bytes (three
+//! cache lines; the first holds all a lookup or k-NN query reads), an index slot 8; per voxel of
+//! capacity that is 208 bytes with the index at twice the pool.
+//!
+//! Live voxels occupy `pool[..len]` densely: removing one moves the last into its place
+//! (swap-remove), so sweeps read memory sequentially and no free list is needed. A
+//! [`VoxelHandle`] is a pool position: valid until the next call that mutates the map.
+//!
+//! ## Per voxel
+//! - the true point count (separate from the state: the reference's `-9999` "converged" marker
+//!   corrupted merged surfels, reference notes C.2);
+//! - `Σ d` and `Σ d dᵀ` in `f32` with `d = p - c`, `c` the voxel centre. Offsets are at most half a
+//!   voxel, so the sums stay small and Eq. (4) does not cancel catastrophically anywhere in the
+//!   world (a test shows world-frame `f32` sums failing 10 km out where these pass);
+//! - the ring normal: the sum of the incoming Ring FALS normals (oriented towards the sensor by
+//!   the caller) and how many points had one (`normal_count`, separate from the count);
+//! - up to 8 representative points with their normals for nearest-neighbour search: **one per
+//!   octant** of the voxel. A point goes to its octant's slot; an occupied slot keeps whichever
+//!   point lies closer to the octant centre (ties keep the old one). Representatives are thus a
+//!   2x finer downsampling grid (the ikd-tree's rule, "closest to the box centre", one level
+//!   down): every point ever inserted has a representative in its own octant, within
+//!   `sqrt(3)/2` voxel of it, and they stay spread across the voxel. Positions are stored as
+//!   `i16` offsets from the centre (resolution `voxel_size / 32768`, 12 µm at 0.4 m) and normals
+//!   as `i8` triples (direction error under 0.5 degrees). Representatives keep updating after the
+//!   distribution is fixed (an `O(1)` compare per point); the distribution does not;
+//! - the state ([`VoxelState`]) and the stamp of the last scan that touched it (LRU).
+//!
+//! ## The state machine (paper section IV-A; reference notes B.2)
+//! `Accumulating` voxels add every point to their sums. The distribution is evaluated every
+//! `eta` points (and at `saturate_at`): the voxel becomes `Converged` when it is a surfel
+//! ([`SurfelCriteria`]: `rho > 0.6`, `gamma > 100` by default) **and** its mean ring normal agrees
+//! with the smallest-eigenvalue eigenvector within `max_normal_angle_deg` (20 degrees, the
+//! paper's test; in the reference code the angle does not gate convergence). Otherwise, once
+//! `saturate_at` (= 2 `eta`) points are in, it becomes `Saturated`. Converged and saturated
+//! voxels no longer change their distribution, count or ring normal.
+//!
+//! ## Bounded memory
+//! - Points farther than `evict_radius` from the sensor are not inserted (counted).
+//! - Each [`VoxelMap::insert`] first sweeps `sweep_per_insert` pool slots from a cursor that
+//!   wraps around the pool, evicting voxels farther than `evict_radius` from the sensor, so the
+//!   whole pool is checked every `capacity / sweep_per_insert` scans at a fixed cost per scan.
+//! - When a new voxel is needed and the pool is full, a batch of `evict_batch` voxels is evicted
+//!   at once (three sequential passes over the pool, amortised over the batch): the farthest from
+//!   the sensor first (distance in buckets of `evict_radius / 192`), least recently used first
+//!   within the threshold bucket, pool order last. Voxels touched by the current stamp are never
+//!   evicted; when nothing else is left, the new voxel's point is dropped (counted).
+//! - The index uses linear probing with backward-shift deletion (no tombstones), so lookups stay
+//!   short after any number of evictions; every probe loop is bounded by the index length.
+//!
+//! ## Queries (all `&self`, allocation-free, deterministic)
+//! - [`VoxelMap::knn`] / [`VoxelMap::knn_many`]: the k (<= [`KNN_MAX`]) nearest representatives
+//!   within a distance, from the query's voxel and its 26 neighbours, with their normals and
+//!   voxel handles, nearest first; optionally one per voxel (k distinct voxels, as the
+//!   reference's one-point-per-voxel ikd-tree gives). Exact against brute force for
+//!   `max_dist <= voxel_size`.
+//! - [`VoxelMap::large_surfel`]: distinct voxels merged by Eq. (5) with true counts, accepted
+//!   by the surfel criteria and the 0.15 m mean-to-plane test.
+//! - [`VoxelMap::small_surfel`] / [`VoxelMap::small_surfel_at`]: a converged voxel's surfel.
+//! - [`Neighbours::fit_plane`] ([`surfel::fit_plane`]): the point-to-plane fallback.
+//! - [`VoxelMap::voxel`], [`VoxelMap::find`]: mean, voxel normal, state and counts.
+//!
+//! ## Speed
+//! Insertion and queries are bound by memory latency (a voxel and its index entry are two
+//! cache misses), so: a voxel's first cache line holds everything a lookup or a k-NN reads;
+//! the hash keeps the 8 voxels of each 2x2x2 block in adjacent index slots (one index line
+//! serves a neighbourhood); and [`VoxelMap::insert`] and [`VoxelMap::knn_many`] run software
+//! pipelines that fetch the index lines, then the voxels, of the next points while the current
+//! ones are processed (prefetch hints on x86; elsewhere the same code without hints).
+// `!(x > t)` rejects NaN as well as small values, on purpose; indexed loops over the three
+// axes read like the maths.
+#![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
+
+use crate::surfel::{self, Moments, Shape, SurfelCriteria, SurfelReject};
+
+/// Representative points per voxel (one per octant).
+pub const OCTANTS: usize = 8;
+/// The largest `k` a k-NN query returns.
+pub const KNN_MAX: usize = 8;
+/// The most distinct voxels one large-surfel merge takes.
+pub const MERGE_MAX: usize = 27;
+/// Size of one [`Voxel`] in bytes.
+pub const VOXEL_BYTES: usize = core::mem::size_of::<Voxel>();
+/// Pool capacity suggested for the presets ([`MapConfig::VLP32C`], [`MapConfig::OS1_16`]):
+/// 2^18 voxels (48 MiB at 192 bytes), about twice the ground disc inside the eviction radius
+/// (`π R² / L²` ≈ 126,000 voxels for both), leaving room for walls and vegetation.
+pub const PRESET_POOL_VOXELS: usize = 1 << 18;
+/// Index slots for [`PRESET_POOL_VOXELS`] (2^19, 4 MiB).
+pub const PRESET_INDEX_SLOTS: usize = 1 << 19;
+
+/// Voxel coordinates beyond this (in voxels, per axis) are out of range: the point is dropped.
+/// 2^22 voxels is 1,677 km at 0.4 m; it keeps `key + 0.5` exact in `f32`.
+const KEY_LIMIT: f32 = 4_194_304.0;
+/// Quantisation of representative offsets: `q = offset * QUANT / voxel_size`.
+const QUANT: f32 = 32768.0;
+/// Distance buckets of the full-pool eviction per `evict_radius`.
+const DIST_BUCKETS_PER_RADIUS: f32 = 192.0;
+
+/// Points looked up together by [`VoxelMap::insert`].
+const CHUNK: usize = 32;
+const NO_HINT: u32 = u32::MAX;
+
+const STATE_FREE: u8 = 0;
+const STATE_ACCUMULATING: u8 = 1;
+const STATE_CONVERGED: u8 = 2;
+const STATE_SATURATED: u8 = 3;
+
+/// One voxel of the pool: 192 bytes, aligned to a 64-byte cache line, no implicit padding;
+/// [`Voxel::EMPTY`] is all zeros.
+///
+/// The first cache line holds everything a lookup and a k-NN query read (key, state, count,
+/// occupancy and the representative points), so a query touches one line per voxel.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[repr(C, align(64))]
+pub struct Voxel {
+    // Line 0 (64 bytes): lookups and k-NN.
+    key: [i32; 3],
+    state: u8,
+    occupied: u8,
+    count: u16,
+    /// Representative offsets, axis-major (`reps[axis][octant]`) so the 8 distances of a
+    /// voxel compute as vectors.
+    reps: [[i16; OCTANTS]; 3],
+    // Line 1 (64 bytes): what every insertion into an accumulating voxel writes.
+    last_seen: u32,
+    normal_count: u16,
+    /// Points until the next evaluation (counts down from `eta`).
+    until_eval: u16,
+    sum: [f32; 3],
+    sum_sq: [f32; 6],
+    ring_sum: [f32; 3],
+    _spare1: [u32; 2],
+    // Line 2 (64 bytes): written when a representative changes or the voxel is evaluated.
+    rep_normals: [[i8; 3]; OCTANTS],
+    /// `e_d` of the latest evaluation, oriented with the ring normal (or towards the sensor).
+    normal: [f32; 3],
+    /// Ascending covariance eigenvalues of the latest evaluation.
+    eigenvalues: [f32; 3],
+    _spare2: [u32; 4],
+}
+
+impl Voxel {
+    /// An unused slot (all-zero bytes).
+    pub const EMPTY: Voxel = Voxel {
+        key: [0; 3],
+        state: STATE_FREE,
+        occupied: 0,
+        count: 0,
+        reps: [[0; OCTANTS]; 3],
+        last_seen: 0,
+        normal_count: 0,
+        until_eval: 0,
+        sum: [0.0; 3],
+        sum_sq: [0.0; 6],
+        ring_sum: [0.0; 3],
+        _spare1: [0; 2],
+        rep_normals: [[0; 3]; OCTANTS],
+        normal: [0.0; 3],
+        eigenvalues: [0.0; 3],
+        _spare2: [0; 4],
+    };
+}
+
+impl Default for Voxel {
+    fn default() -> Self {
+        Self::EMPTY
+    }
+}
+
+/// One slot of the hash index: the key's 32-bit hash and the pool position + 1 (0 = empty).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[repr(transparent)]
+pub struct IndexSlot(u64);
+
+impl IndexSlot {
+    /// An empty slot (all-zero bytes).
+    pub const EMPTY: IndexSlot = IndexSlot(0);
+
+    #[inline]
+    fn new(hash: u32, slot: u32) -> Self {
+        Self((u64::from(hash) << 32) | u64::from(slot + 1))
+    }
+    #[inline]
+    fn is_empty(self) -> bool {
+        self.0 == 0
+    }
+    #[inline]
+    fn hash(self) -> u32 {
+        (self.0 >> 32) as u32
+    }
+    #[inline]
+    fn slot(self) -> u32 {
+        (self.0 as u32).wrapping_sub(1)
+    }
+}
+
+/// Caller-owned storage for a map of `V` voxels with an index of `I` slots (a power of two,
+/// `I >= 2 V`); `const fn new()` so it can be a `static` (all zeros: `.bss`).
+#[derive(Debug)]
+pub struct MapStorage<const V: usize, const I: usize> {
+    /// The voxel pool.
+    pub pool: [Voxel; V],
+    /// The hash index.
+    pub index: [IndexSlot; I],
+}
+
+impl<const V: usize, const I: usize> MapStorage<V, I> {
+    /// Empty storage.
+    pub const fn new() -> Self {
+        Self { pool: [Voxel::EMPTY; V], index: [IndexSlot::EMPTY; I] }
+    }
+
+    /// A map over this storage (see [`VoxelMap::new`]).
+    pub fn map(&mut self, config: MapConfig) -> Result<VoxelMap<'_>, MapError> {
+        VoxelMap::new(&mut self.pool, &mut self.index, config)
+    }
+}
+
+impl<const V: usize, const I: usize> Default for MapStorage<V, I> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// Large-surfel settings (paper section IV-B3; reference notes C.2).
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct LargeSurfelConfig {
+    /// Minimum total (true) point count of the merged voxels. Default 63: the reference's
+    /// `N >= eta * 5 * 0.5 = 62.5` for eta 25.
+    pub min_points: u32,
+    /// Minimum number of distinct voxels merged. Default 2 (one voxel is a small surfel).
+    pub min_voxels: u8,
+    /// Every merged voxel's mean must lie within this of the merged plane, metres. Default 0.15.
+    pub max_mean_distance: f32,
+    /// Apply the surfel criteria to the merged distribution (the paper does; the reference code
+    /// computes rho and gamma there but never tests them). Default true.
+    pub apply_criteria: bool,
+}
+
+impl LargeSurfelConfig {
+    /// The defaults documented on each field.
+    pub const DEFAULT: Self =
+        Self { min_points: 63, min_voxels: 2, max_mean_distance: 0.15, apply_criteria: true };
+}
+
+/// Map settings. Every threshold is here; [`MapConfig::VLP32C`] and [`MapConfig::OS1_16`] are the
+/// paper's two setups.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct MapConfig {
+    /// Voxel edge, metres: 0.4 (VLP-32C, M2DGR) or 0.5 (OS1-16, NTU VIRAL). The scan should be
+    /// downsampled on the same grid so each voxel gets at most one point per scan (paper V-A).
+    pub voxel_size: f32,
+    /// `eta`: the distribution is evaluated every `eta` points (default 25, the paper's value;
+    /// at least 3).
+    pub eta: u16,
+    /// A voxel that has not converged is fixed (saturated) at this many points. Default 50
+    /// (`2 eta`, the paper's rule). At least `eta`.
+    pub saturate_at: u16,
+    /// Surfel test for a voxel and for a merged (large) surfel.
+    pub criteria: SurfelCriteria,
+    /// Convergence also needs the mean ring normal within this angle of `e_d`, degrees.
+    /// Default 20 (the paper's value).
+    pub max_normal_angle_deg: f32,
+    /// The mean ring normal is used only if the incoming normals agree: the length of their
+    /// mean (1 when all are equal, near 0 when they point every way) must reach this. Default
+    /// 0.5.
+    pub min_ring_coherence: f32,
+    /// Voxels farther than this from the sensor are evicted, and points farther are not
+    /// inserted, metres. Default 80 (VLP-32C) / 100 (OS1-16).
+    pub evict_radius: f32,
+    /// Pool slots the eviction sweep checks per insert call. Default 4096: the whole of a 2^18
+    /// pool every 64 scans (6.4 s at 10 Hz) for about 30 µs per scan; voxels left behind
+    /// meanwhile are also the first to go when the pool runs full.
+    pub sweep_per_insert: u32,
+    /// Voxels evicted at once when the pool is full; 0 means `capacity / 16`. Default 0.
+    pub evict_batch: u32,
+    /// Large-surfel settings.
+    pub large: LargeSurfelConfig,
+}
+
+impl MapConfig {
+    /// Velodyne VLP-32C (M2DGR): 0.4 m voxels, 80 m eviction radius.
+    pub const VLP32C: Self = Self {
+        voxel_size: 0.4,
+        eta: 25,
+        saturate_at: 50,
+        criteria: SurfelCriteria::DEFAULT,
+        max_normal_angle_deg: 20.0,
+        min_ring_coherence: 0.5,
+        evict_radius: 80.0,
+        sweep_per_insert: 4096,
+        evict_batch: 0,
+        large: LargeSurfelConfig::DEFAULT,
+    };
+
+    /// Ouster OS1-16 (NTU VIRAL): 0.5 m voxels, 100 m eviction radius.
+    pub const OS1_16: Self = Self { voxel_size: 0.5, evict_radius: 100.0, ..Self::VLP32C };
+
+    fn validate(&self) -> Result<(), MapError> {
+        let bad = |field| Err(MapError::InvalidConfig { field });
+        if !(self.voxel_size.is_finite() && self.voxel_size >= 1e-3) {
+            return bad("voxel_size");
+        }
+        if self.eta < 3 {
+            return bad("eta");
+        }
+        if self.saturate_at < self.eta {
+            return bad("saturate_at");
+        }
+        let c = &self.criteria;
+        if !(c.planarity_min.is_finite() && c.gamma_min.is_finite() && c.gamma_min >= 0.0) {
+            return bad("criteria");
+        }
+        if !(self.max_normal_angle_deg >= 0.0 && self.max_normal_angle_deg <= 90.0) {
+            return bad("max_normal_angle_deg");
+        }
+        if !(self.min_ring_coherence >= 0.0 && self.min_ring_coherence <= 1.0) {
+            return bad("min_ring_coherence");
+        }
+        if !(self.evict_radius.is_finite() && self.evict_radius > 0.0) {
+            return bad("evict_radius");
+        }
+        if !(self.large.max_mean_distance >= 0.0 && self.large.max_mean_distance.is_finite()) {
+            return bad("large.max_mean_distance");
+        }
+        Ok(())
+    }
+}
+
+impl Default for MapConfig {
+    fn default() -> Self {
+        Self::VLP32C
+    }
+}
+
+/// Construction errors.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum MapError {
+    /// The pool has no slot.
+    PoolEmpty,
+    /// The pool has more than `u32::MAX - 1` slots.
+    PoolTooLarge,
+    /// The index length is not a power of two.
+    IndexNotPowerOfTwo,
+    /// The index must have at least `needed` slots (twice the pool, bounding the load at 1/2).
+    IndexTooSmall {
+        /// Slots needed.
+        needed: usize,
+    },
+    /// A configuration value is out of range.
+    InvalidConfig {
+        /// The offending field.
+        field: &'static str,
+    },
+}
+
+impl core::fmt::Display for MapError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::PoolEmpty => f.write_str("voxel pool is empty"),
+            Self::PoolTooLarge => f.write_str("voxel pool exceeds u32::MAX - 1 slots"),
+            Self::IndexNotPowerOfTwo => f.write_str("hash index length is not a power of two"),
+            Self::IndexTooSmall { needed } => {
+                write!(f, "hash index needs at least {needed} slots (twice the pool)")
+            }
+            Self::InvalidConfig { field } => write!(f, "invalid map config: {field}"),
+        }
+    }
+}
+
+impl core::error::Error for MapError {}
+
+/// Errors of [`VoxelMap::insert`]; nothing is inserted when one is returned.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum InsertError {
+    /// The sensor position has a NaN or infinite coordinate.
+    SensorNotFinite,
+    /// The stamp is smaller than the previous call's (stamps must not decrease).
+    StampWentBackwards {
+        /// The previous stamp.
+        last: u32,
+        /// The stamp passed.
+        got: u32,
+    },
+}
+
+impl core::fmt::Display for InsertError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::SensorNotFinite => f.write_str("sensor position is not finite"),
+            Self::StampWentBackwards { last, got } => {
+                write!(f, "map stamp went backwards ({got} after {last})")
+            }
+        }
+    }
+}
+
+impl core::error::Error for InsertError {}
+
+/// The state of a voxel's distribution.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum VoxelState {
+    /// Still adding points.
+    Accumulating,
+    /// A surfel whose ring normal agreed with `e_d`: fixed.
+    Converged,
+    /// Reached `saturate_at` points without converging: fixed.
+    Saturated,
+}
+
+/// A voxel's position in the pool. Valid until the next call that mutates the map.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct VoxelHandle(pub u32);
+
+impl VoxelHandle {
+    /// The pool position.
+    pub fn index(self) -> usize {
+        self.0 as usize
+    }
+}
+
+/// A point to insert: world frame, with its Ring FALS normal if it has one.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct MapPoint {
+    /// World-frame position, metres.
+    pub xyz: [f32; 3],
+    /// World-frame normal, oriented towards the sensor. Normals that are not finite or whose
+    /// length is outside `[0.5, 1.5]` count as missing ([`InsertStats::bad_normals`]); the rest
+    /// are normalised.
+    pub normal: Option<[f32; 3]>,
+}
+
+/// What one [`VoxelMap::insert`] did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct InsertStats {
+    /// Points offered.
+    pub points: u32,
+    /// Points that reached a voxel (including voxels whose distribution is fixed).
+    pub inserted: u32,
+    /// Points added to a distribution (their voxel was accumulating).
+    pub accumulated: u32,
+    /// Voxels created.
+    pub new_voxels: u32,
+    /// Voxels evicted by the distance sweep.
+    pub evicted_far: u32,
+    /// Voxels evicted to make room in a full pool.
+    pub evicted_full: u32,
+    /// Points dropped: pool full and nothing evictable (all touched by this stamp).
+    pub dropped_full: u32,
+    /// Points dropped: a coordinate not finite or out of range.
+    pub dropped_invalid: u32,
+    /// Points dropped: farther than `evict_radius` from the sensor.
+    pub dropped_far: u32,
+    /// Normals given but unusable (treated as missing).
+    pub bad_normals: u32,
+    /// Voxels that converged.
+    pub converged: u32,
+    /// Voxels that saturated.
+    pub saturated: u32,
+}
+
+/// Read access to one voxel (visibility and consistency checks).
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct VoxelInfo {
+    /// Integer voxel coordinates, `floor(p / voxel_size)`.
+    pub key: [i32; 3],
+    /// The distribution's state.
+    pub state: VoxelState,
+    /// Points in the distribution (true count).
+    pub count: u32,
+    /// How many of them brought a usable normal.
+    pub normal_count: u32,
+    /// Stamp of the last insert that touched the voxel.
+    pub last_seen: u32,
+    /// Mean of the distribution, world frame.
+    pub mean: [f32; 3],
+    /// The voxel normal for visibility and consistency checks: for a converged voxel the
+    /// normalised average of the mean ring normal and `e_d` (the paper's "replaced by the average
+    /// of their values"), otherwise the mean ring normal; `None` without usable normals.
+    pub normal: Option<[f32; 3]>,
+}
+
+/// The surfel of one converged voxel.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct SmallSurfel {
+    /// The voxel.
+    pub voxel: VoxelHandle,
+    /// Mean of its points, world frame.
+    pub mean: [f32; 3],
+    /// `e_d`, oriented with the voxel's ring normal.
+    pub normal: [f32; 3],
+    /// Ascending covariance eigenvalues, metres².
+    pub eigenvalues: [f32; 3],
+    /// Points in the distribution.
+    pub count: u32,
+}
+
+/// A large-scale surfel: distinct voxels' distributions merged by Eq. (5).
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct LargeSurfel {
+    /// Mean of the union, world frame.
+    pub mean: [f32; 3],
+    /// `e_d` of the union, oriented with the sum of the voxels' ring normals (or, without any,
+    /// as the eigen solver returned it).
+    pub normal: [f32; 3],
+    /// Ascending covariance eigenvalues of the union, metres².
+    pub eigenvalues: [f32; 3],
+    /// Total point count (true counts).
+    pub count: u32,
+    /// Distinct voxels merged.
+    pub voxels: u32,
+}
+
+/// Parameters of a k-NN query.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct KnnQuery {
+    /// How many neighbours (at most [`KNN_MAX`]). Default 5.
+    pub k: usize,
+    /// Only points within this distance, metres. Default: the voxel size (see [`VoxelMap::knn`]).
+    pub max_dist: f32,
+    /// Take at most one point (its nearest representative) per voxel, so the k results name k
+    /// distinct voxels, as the reference's ikd-tree (one point per voxel) gives. Default false.
+    pub one_per_voxel: bool,
+}
+
+impl KnnQuery {
+    /// `k` neighbours within `max_dist`, any number per voxel.
+    pub const fn new(k: usize, max_dist: f32) -> Self {
+        Self { k, max_dist, one_per_voxel: false }
+    }
+}
+
+/// One neighbour found by [`VoxelMap::knn`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Neighbour {
+    /// The map point, world frame.
+    pub point: [f32; 3],
+    /// Squared distance from the query, metres².
+    pub dist2: f32,
+    /// The voxel holding it.
+    pub voxel: VoxelHandle,
+    /// Its normal, quantised (see [`Self::normal`]).
+    normal_q: [i8; 3],
+}
+
+impl Neighbour {
+    const NONE: Neighbour =
+        Neighbour { point: [0.0; 3], dist2: 0.0, voxel: VoxelHandle(0), normal_q: [0; 3] };
+
+    /// The point's normal (unit, within 0.5 degrees of the one inserted), if it had one.
+    /// Computed on demand: the reference's association never reads per-point normals.
+    pub fn normal(&self) -> Option<[f32; 3]> {
+        rep_normal(self.normal_q)
+    }
+}
+
+/// Result buffer of [`VoxelMap::knn`]: up to [`KNN_MAX`] neighbours sorted by distance.
+#[derive(Clone, Copy, Debug)]
+pub struct Neighbours {
+    items: [Neighbour; KNN_MAX],
+    len: usize,
+}
+
+impl Neighbours {
+    /// Empty.
+    pub const fn new() -> Self {
+        Self { items: [Neighbour::NONE; KNN_MAX], len: 0 }
+    }
+    /// The neighbours, nearest first.
+    pub fn as_slice(&self) -> &[Neighbour] {
+        &self.items[..self.len]
+    }
+    /// How many were found.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+    /// Whether none was found.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+    /// The neighbours' points, for [`surfel::fit_plane`]; the array is filled up to `len()`.
+    pub fn points(&self) -> [[f32; 3]; KNN_MAX] {
+        let mut out = [[0.0; 3]; KNN_MAX];
+        for (o, n) in out.iter_mut().zip(self.as_slice()) {
+            *o = n.point;
+        }
+        out
+    }
+    /// The neighbours' voxel handles, for [`VoxelMap::large_surfel`]; filled up to `len()`.
+    pub fn voxels(&self) -> [VoxelHandle; KNN_MAX] {
+        let mut out = [VoxelHandle(0); KNN_MAX];
+        for (o, n) in out.iter_mut().zip(self.as_slice()) {
+            *o = n.voxel;
+        }
+        out
+    }
+    /// The point-to-plane fallback: a plane through the neighbours, accepted only if every one
+    /// lies within `max_dist` of it (reference: 0.1 m). See [`surfel::fit_plane`].
+    pub fn fit_plane(&self, max_dist: f32) -> Result<surfel::Plane, SurfelReject> {
+        let pts = self.points();
+        surfel::fit_plane(&pts[..self.len], max_dist)
+    }
+}
+
+impl Default for Neighbours {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// Values derived from the config once.
+#[derive(Clone, Copy, Debug)]
+struct Derived {
+    inv_size: f32,
+    half: f32,
+    quant: f32,
+    dequant: f32,
+    cos_max_angle: f32,
+    evict_r2: f32,
+    bucket_scale: f32,
+    /// Slack for box-distance pruning (points may sit a rounding error outside their box).
+    slack: f32,
+}
+
+/// Counters over the map's life.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct MapCounters {
+    /// Voxels created.
+    pub created: u64,
+    /// Voxels evicted by the distance sweep.
+    pub evicted_far: u64,
+    /// Voxels evicted from a full pool.
+    pub evicted_full: u64,
+    /// Points dropped because the pool was full.
+    pub dropped_full: u64,
+}
+
+/// The voxel map over caller-owned storage. See the module documentation.
+#[derive(Debug)]
+pub struct VoxelMap<'a> {
+    pool: &'a mut [Voxel],
+    index: &'a mut [IndexSlot],
+    len: usize,
+    mask: usize,
+    cfg: MapConfig,
+    d: Derived,
+    cursor: usize,
+    stamp: u32,
+    has_stamp: bool,
+    counters: MapCounters,
+}
+
+/// The query's octant: its own box, then the face, edge and corner neighbours on its side
+/// (multiplied per axis by the side, -1 or +1).
+const NEAR_ORDER: [[i32; 3]; 8] =
+    [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, 0, 1], [0, 1, 1], [1, 1, 1]];
+
+/// The order a k-NN search visits the 27 boxes, per side of the voxel centre the query lies on
+/// (index: bit `a` set when the query is on the + side of axis `a`): the octant's 8 boxes
+/// ([`NEAR_ORDER`]), then the other 19 in [`NEIGHBOURS`] order.
+const SIDE_ORDERS: [[[i32; 3]; 27]; 8] = side_orders();
+
+const fn side_orders() -> [[[i32; 3]; 27]; 8] {
+    let mut out = [[[0i32; 3]; 27]; 8];
+    let mut si = 0;
+    while si < 8 {
+        let side = [
+            if si & 1 != 0 { 1 } else { -1 },
+            if si & 2 != 0 { 1 } else { -1 },
+            if si & 4 != 0 { 1 } else { -1 },
+        ];
+        let mut n = 0;
+        let mut i = 0;
+        while i < 8 {
+            let b = NEAR_ORDER[i];
+            out[si][n] = [b[0] * side[0], b[1] * side[1], b[2] * side[2]];
+            n += 1;
+            i += 1;
+        }
+        let mut j = 0;
+        while j < 27 {
+            let off = NEIGHBOURS[j];
+            let in_octant = (off[0] == 0 || off[0] == side[0])
+                && (off[1] == 0 || off[1] == side[1])
+                && (off[2] == 0 || off[2] == side[2]);
+            if !in_octant {
+                out[si][n] = off;
+                n += 1;
+            }
+            j += 1;
+        }
+        si += 1;
+    }
+    out
+}
+
+/// The 27 voxel offsets of a neighbourhood, the centre first, then faces, edges and corners.
+const NEIGHBOURS: [[i32; 3]; 27] = neighbour_order();
+
+const fn neighbour_order() -> [[i32; 3]; 27] {
+    let mut out = [[0i32; 3]; 27];
+    let mut n = 0;
+    let mut ring = 0;
+    while ring <= 3 {
+        let mut i = 0i32;
+        while i < 27 {
+            let d = [i / 9 - 1, (i / 3) % 3 - 1, i % 3 - 1];
+            let m = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+            if m == ring {
+                out[n] = d;
+                n += 1;
+            }
+            i += 1;
+        }
+        ring += 1;
+    }
+    out
+}
+
+/// 32-bit hash of a voxel key; the index bucket is its low bits.
+///
+/// The voxel's 2x2x2 block (`key >> 1`) is hashed (multiply-xor, then a 64-bit finaliser) into
+/// the upper 29 bits and the voxel's position in the block fills the low 3, so the 8 voxels of a
+/// block have consecutive home buckets: their index entries share one cache line, and a query,
+/// which reads a voxel and its neighbours, touches a few index lines instead of one per voxel.
+#[inline]
+fn hash_key(k: [i32; 3]) -> u32 {
+    block_hash([k[0] >> 1, k[1] >> 1, k[2] >> 1]) << 3 | sub_block(k)
+}
+
+/// The 29-bit hash of a 2x2x2 block of voxels.
+#[inline]
+fn block_hash(b: [i32; 3]) -> u32 {
+    let h = u64::from(b[0] as u32).wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        ^ u64::from(b[1] as u32).wrapping_mul(0xC2B2_AE3D_27D4_EB4F)
+        ^ u64::from(b[2] as u32).wrapping_mul(0x1656_67B1_9E37_79F9);
+    let h = (h ^ (h >> 31)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    (h >> 35) as u32
+}
+
+/// A voxel's position in its 2x2x2 block, 0..8.
+#[inline]
+fn sub_block(k: [i32; 3]) -> u32 {
+    ((k[0] & 1) | (k[1] & 1) << 1 | (k[2] & 1) << 2) as u32
+}
+
+// ---- The open-addressing index (linear probing, backward-shift deletion) ----------------------
+
+/// Finds the index position of the entry for a key with hash `h`; `is_key(slot)` confirms a
+/// candidate. Stops at the first empty slot, and after `index.len()` probes at the latest.
+#[inline]
+fn index_find(
+    index: &[IndexSlot],
+    mask: usize,
+    h: u32,
+    mut is_key: impl FnMut(u32) -> bool,
+) -> Option<(usize, u32)> {
+    let mut pos = h as usize & mask;
+    for _ in 0..index.len() {
+        let e = index[pos];
+        if e.is_empty() {
+            return None;
+        }
+        if e.hash() == h && is_key(e.slot()) {
+            return Some((pos, e.slot()));
+        }
+        pos = (pos + 1) & mask;
+    }
+    None
+}
+
+/// The slot of the first entry with hash `h` (no key check, so no pool access: the caller
+/// checks the key and falls back to [`index_find`] on the rare 32-bit hash collision).
+#[inline]
+fn index_first_with_hash(index: &[IndexSlot], mask: usize, h: u32) -> Option<u32> {
+    let mut pos = h as usize & mask;
+    for _ in 0..index.len() {
+        let e = index[pos];
+        if e.is_empty() {
+            return None;
+        }
+        if e.hash() == h {
+            return Some(e.slot());
+        }
+        pos = (pos + 1) & mask;
+    }
+    None
+}
+
+/// Finds the index position that holds `slot` for a key with hash `h`.
+#[inline]
+fn index_find_slot(index: &[IndexSlot], mask: usize, h: u32, slot: u32) -> Option<usize> {
+    index_find(index, mask, h, |s| s == slot).map(|(pos, _)| pos)
+}
+
+/// Inserts an entry (the key must not be present). `false` if the index is full (cannot happen
+/// while the load is at most 1/2).
+#[inline]
+fn index_insert(index: &mut [IndexSlot], mask: usize, h: u32, slot: u32) -> bool {
+    let mut pos = h as usize & mask;
+    for _ in 0..index.len() {
+        if index[pos].is_empty() {
+            index[pos] = IndexSlot::new(h, slot);
+            return true;
+        }
+        pos = (pos + 1) & mask;
+    }
+    false
+}
+
+/// Removes the entry at `pos` and shifts the following cluster back so no lookup needs a
+/// tombstone: an entry moves into the hole if its home bucket is not cyclically inside
+/// `(hole, entry]`.
+fn index_remove_at(index: &mut [IndexSlot], mask: usize, mut hole: usize) {
+    index[hole] = IndexSlot::EMPTY;
+    let mut j = hole;
+    for _ in 0..index.len() {
+        j = (j + 1) & mask;
+        let e = index[j];
+        if e.is_empty() {
+            return;
+        }
+        let home = e.hash() as usize & mask;
+        // Distance from home to j and from hole to j, cyclically.
+        let d_home = j.wrapping_sub(home) & mask;
+        let d_hole = j.wrapping_sub(hole) & mask;
+        if d_home >= d_hole {
+            index[hole] = e;
+            index[j] = IndexSlot::EMPTY;
+            hole = j;
+        }
+    }
+}
+
+// ---- Small vector helpers ----------------------------------------------------------------------
+
+#[inline]
+fn d2f(a: [f32; 3], b: [f32; 3]) -> f32 {
+    let (x, y, z) = (a[0] - b[0], a[1] - b[1], a[2] - b[2]);
+    x * x + y * y + z * z
+}
+
+#[inline]
+fn to64(a: [f32; 3]) -> [f64; 3] {
+    [f64::from(a[0]), f64::from(a[1]), f64::from(a[2])]
+}
+
+#[inline]
+fn to32(a: [f64; 3]) -> [f32; 3] {
+    [a[0] as f32, a[1] as f32, a[2] as f32]
+}
+
+fn normalised(v: [f64; 3]) -> Option<[f64; 3]> {
+    let n = libm::sqrt(surfel::dot3(v, v));
+    if n > 0.0 && n.is_finite() { Some([v[0] / n, v[1] / n, v[2] / n]) } else { None }
+}
+
+impl<'a> VoxelMap<'a> {
+    /// A map over caller-provided storage. `index.len()` must be a power of two and at least
+    /// `2 * pool.len()`. The index is cleared (`O(index.len())`); the pool's contents are
+    /// ignored (slots are overwritten when used).
+    pub fn new(
+        pool: &'a mut [Voxel],
+        index: &'a mut [IndexSlot],
+        config: MapConfig,
+    ) -> Result<Self, MapError> {
+        config.validate()?;
+        if pool.is_empty() {
+            return Err(MapError::PoolEmpty);
+        }
+        if pool.len() as u64 >= u64::from(u32::MAX) {
+            return Err(MapError::PoolTooLarge);
+        }
+        if !index.len().is_power_of_two() {
+            return Err(MapError::IndexNotPowerOfTwo);
+        }
+        let needed = pool.len().saturating_mul(2);
+        if index.len() < needed {
+            return Err(MapError::IndexTooSmall { needed });
+        }
+        index.fill(IndexSlot::EMPTY);
+        let mask = index.len() - 1;
+        let d = Self::derive(&config);
+        Ok(Self {
+            pool,
+            index,
+            len: 0,
+            mask,
+            cfg: config,
+            d,
+            cursor: 0,
+            stamp: 0,
+            has_stamp: false,
+            counters: MapCounters::default(),
+        })
+    }
+
+    fn derive(c: &MapConfig) -> Derived {
+        let s = c.voxel_size;
+        Derived {
+            inv_size: 1.0 / s,
+            half: 0.5 * s,
+            quant: QUANT / s,
+            dequant: s / QUANT,
+            cos_max_angle: libm::cosf(c.max_normal_angle_deg.to_radians()),
+            evict_r2: c.evict_radius * c.evict_radius,
+            bucket_scale: DIST_BUCKETS_PER_RADIUS / c.evict_radius,
+            slack: s * 1e-3,
+        }
+    }
+
+    /// Removes every voxel (keeps the storage and config; resets the stamp).
+    pub fn clear(&mut self) {
+        self.index.fill(IndexSlot::EMPTY);
+        self.len = 0;
+        self.cursor = 0;
+        self.has_stamp = false;
+        self.stamp = 0;
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &MapConfig {
+        &self.cfg
+    }
+
+    /// Live voxels.
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    /// Whether the map holds no voxel.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Pool capacity (voxels).
+    pub fn capacity(&self) -> usize {
+        self.pool.len()
+    }
+
+    /// Lifetime counters.
+    pub fn counters(&self) -> MapCounters {
+        self.counters
+    }
+
+    /// Representative points held by the map (`O(len)`).
+    pub fn point_count(&self) -> usize {
+        self.pool[..self.len].iter().map(|v| v.occupied.count_ones() as usize).sum()
+    }
+
+    /// The voxel key of a world point, `floor(p / voxel_size)`; `None` if a coordinate is not
+    /// finite or out of range (more than 2^22 voxels from the origin).
+    #[inline]
+    pub fn key_of(&self, p: [f32; 3]) -> Option<[i32; 3]> {
+        let mut k = [0i32; 3];
+        for a in 0..3 {
+            let v = p[a] * self.d.inv_size;
+            if !(libm::fabsf(v) < KEY_LIMIT) {
+                return None;
+            }
+            k[a] = floor_i32(v);
+        }
+        Some(k)
+    }
+
+    /// The centre of a voxel, world frame (the origin of its sums and representatives).
+    #[inline]
+    pub fn centre(&self, k: [i32; 3]) -> [f32; 3] {
+        let s = self.cfg.voxel_size;
+        [(k[0] as f32 + 0.5) * s, (k[1] as f32 + 0.5) * s, (k[2] as f32 + 0.5) * s]
+    }
+
+    #[inline]
+    fn find_slot(&self, k: [i32; 3]) -> Option<u32> {
+        let pool = &*self.pool;
+        index_find(self.index, self.mask, hash_key(k), |s| pool[s as usize].key == k).map(|(_, s)| s)
+    }
+
+    /// The voxel with integer coordinates `key`.
+    pub fn find_key(&self, key: [i32; 3]) -> Option<VoxelHandle> {
+        self.find_slot(key).map(VoxelHandle)
+    }
+
+    /// The voxel holding world point `p`.
+    pub fn find(&self, p: [f32; 3]) -> Option<VoxelHandle> {
+        self.key_of(p).and_then(|k| self.find_key(k))
+    }
+
+    #[inline]
+    fn live(&self, h: VoxelHandle) -> Option<&Voxel> {
+        if h.index() < self.len { Some(&self.pool[h.index()]) } else { None }
+    }
+
+    /// A voxel's sums as `f64` moments about its centre.
+    fn moments(&self, v: &Voxel) -> Moments {
+        Moments {
+            n: u32::from(v.count),
+            origin: to64(self.centre(v.key)),
+            sum: to64(v.sum),
+            sum_sq: [
+                f64::from(v.sum_sq[0]),
+                f64::from(v.sum_sq[1]),
+                f64::from(v.sum_sq[2]),
+                f64::from(v.sum_sq[3]),
+                f64::from(v.sum_sq[4]),
+                f64::from(v.sum_sq[5]),
+            ],
+        }
+    }
+
+    /// The distribution of a voxel as `f64` moments (about its centre).
+    pub fn voxel_moments(&self, h: VoxelHandle) -> Option<Moments> {
+        self.live(h).map(|v| self.moments(v))
+    }
+
+    fn ring_dir(v: &Voxel) -> Option<([f64; 3], f64)> {
+        if v.normal_count == 0 {
+            return None;
+        }
+        let s = to64(v.ring_sum);
+        let len = libm::sqrt(surfel::dot3(s, s)) / f64::from(v.normal_count);
+        normalised(s).map(|d| (d, len))
+    }
+
+    /// Read access to a voxel (mean, voxel normal, state, counts).
+    pub fn voxel(&self, h: VoxelHandle) -> Option<VoxelInfo> {
+        let v = self.live(h)?;
+        let m = self.moments(v);
+        let mean = to32(m.mean().unwrap_or(m.origin));
+        let ring = Self::ring_dir(v);
+        let normal = match (v.state, ring) {
+            (STATE_CONVERGED, Some((r, _))) => {
+                let e = to64(v.normal);
+                normalised([r[0] + e[0], r[1] + e[1], r[2] + e[2]]).map(to32)
+            }
+            (_, Some((r, _))) => Some(to32(r)),
+            _ => None,
+        };
+        Some(VoxelInfo {
+            key: v.key,
+            state: state_of(v.state),
+            count: u32::from(v.count),
+            normal_count: u32::from(v.normal_count),
+            last_seen: v.last_seen,
+            mean,
+            normal,
+        })
+    }
+
+    /// Every live voxel with its handle, in pool order.
+    pub fn voxels(&self) -> impl Iterator<Item = (VoxelHandle, VoxelInfo)> + '_ {
+        (0..self.len as u32).filter_map(|i| self.voxel(VoxelHandle(i)).map(|v| (VoxelHandle(i), v)))
+    }
+
+    /// Calls `f(voxel, point, normal)` for every representative point of the map.
+    pub fn for_each_point(&self, mut f: impl FnMut(VoxelHandle, [f32; 3], Option<[f32; 3]>)) {
+        for (i, v) in self.pool[..self.len].iter().enumerate() {
+            let c = self.centre(v.key);
+            for o in 0..OCTANTS {
+                if v.occupied & (1 << o) != 0 {
+                    f(VoxelHandle(i as u32), self.rep_point(c, rep(v, o)), rep_normal(v.rep_normals[o]));
+                }
+            }
+        }
+    }
+
+    #[inline]
+    fn rep_point(&self, c: [f32; 3], q: [i16; 3]) -> [f32; 3] {
+        let s = self.d.dequant;
+        [c[0] + f32::from(q[0]) * s, c[1] + f32::from(q[1]) * s, c[2] + f32::from(q[2]) * s]
+    }
+
+    // ---- Insertion ------------------------------------------------------------------------------
+
+    /// Inserts one scan's points (world frame, downsampled on the voxel grid) seen from `sensor`
+    /// (world frame), stamped `stamp` (e.g. the scan index; must not decrease between calls,
+    /// equal stamps are fine). First sweeps part of the pool for voxels beyond `evict_radius`
+    /// (module docs), then inserts the points in order. Allocation-free, `O(points +
+    /// sweep_per_insert)` plus, when the pool is full, an `O(capacity)` eviction per
+    /// `evict_batch` new voxels.
+    pub fn insert<I>(&mut self, points: I, sensor: [f32; 3], stamp: u32) -> Result<InsertStats, InsertError>
+    where
+        I: IntoIterator<Item = MapPoint>,
+    {
+        if sensor.iter().any(|x| !x.is_finite()) {
+            return Err(InsertError::SensorNotFinite);
+        }
+        if self.has_stamp && stamp < self.stamp {
+            return Err(InsertError::StampWentBackwards { last: self.stamp, got: stamp });
+        }
+        self.stamp = stamp;
+        self.has_stamp = true;
+        let mut st = InsertStats::default();
+        self.sweep(sensor, &mut st);
+        let mut full_failed = false;
+        // A software pipeline over chunks of CHUNK points (insertion is bound by memory
+        // latency): while chunk g - 2 is inserted, the voxels of chunk g - 1 (whose index
+        // entries have arrived) and the index lines of chunk g are being fetched. The slots
+        // found are hints only, checked again at insertion (an eviction may have moved voxels).
+        let mut it = points.into_iter();
+        let mut pts = [[MapPoint::default(); CHUNK]; 3];
+        let mut keys = [[None; CHUNK]; 3];
+        let mut hashes = [[NO_HINT; CHUNK]; 3];
+        let mut hints = [[NO_HINT; CHUNK]; 3];
+        let mut lens = [0usize; 3];
+        let mut chunks = usize::MAX; // known once the input runs out
+        let mut g = 0usize;
+        loop {
+            if g < chunks {
+                let r = g % 3;
+                let mut n = 0;
+                while n < CHUNK {
+                    let Some(p) = it.next() else { break };
+                    pts[r][n] = p;
+                    let k = self.key_of(p.xyz);
+                    let h = k.map_or(0, hash_key);
+                    if k.is_some() {
+                        prefetch(&self.index[h as usize & self.mask]);
+                    }
+                    keys[r][n] = k;
+                    hashes[r][n] = h;
+                    n += 1;
+                }
+                lens[r] = n;
+                if n < CHUNK {
+                    chunks = if n > 0 { g + 1 } else { g };
+                }
+            }
+            if g >= 1 && g - 1 < chunks {
+                let r = (g - 1) % 3;
+                for i in 0..lens[r] {
+                    let h = hashes[r][i];
+                    let slot = match keys[r][i] {
+                        Some(_) => index_first_with_hash(self.index, self.mask, h),
+                        None => None,
+                    };
+                    hints[r][i] = slot.unwrap_or(NO_HINT);
+                    if let Some(s) = slot {
+                        let v = &self.pool[s as usize];
+                        prefetch(v); // line 0: key, state, representatives
+                        prefetch(&v.last_seen); // line 1: the sums
+                    }
+                }
+            }
+            if g >= 2 && g - 2 < chunks {
+                let r = (g - 2) % 3;
+                for i in 0..lens[r] {
+                    st.points = st.points.saturating_add(1);
+                    let key = keys[r][i].map(|k| (k, hashes[r][i]));
+                    self.insert_one(pts[r][i], key, hints[r][i], sensor, &mut st, &mut full_failed);
+                }
+            }
+            if g >= 2 && g > chunks {
+                break;
+            }
+            g += 1;
+        }
+        if st.dropped_full > 0 {
+            warn!("voxel map full: {} points dropped", st.dropped_full);
+        }
+        Ok(st)
+    }
+
+    /// [`Self::insert`] for a slice.
+    pub fn insert_slice(
+        &mut self,
+        points: &[MapPoint],
+        sensor: [f32; 3],
+        stamp: u32,
+    ) -> Result<InsertStats, InsertError> {
+        self.insert(points.iter().copied(), sensor, stamp)
+    }
+
+    /// Inserts one point; `key` is its voxel key and the key's hash (`None`: out of range).
+    fn insert_one(
+        &mut self,
+        p: MapPoint,
+        key: Option<([i32; 3], u32)>,
+        hint: u32,
+        sensor: [f32; 3],
+        st: &mut InsertStats,
+        full_failed: &mut bool,
+    ) {
+        let Some((k, h)) = key else {
+            st.dropped_invalid += 1;
+            return;
+        };
+        if d2f(p.xyz, sensor) > self.d.evict_r2 {
+            st.dropped_far += 1;
+            return;
+        }
+        let normal = match p.normal {
+            None => None,
+            Some(n) => {
+                let l2 = n[0] * n[0] + n[1] * n[1] + n[2] * n[2];
+                if (1.0 - 1e-5..=1.0 + 1e-5).contains(&l2) {
+                    Some(n) // already unit (the usual case): no square root
+                } else if l2.is_finite() && (0.25..=2.25).contains(&l2) {
+                    let inv = 1.0 / libm::sqrtf(l2);
+                    Some([n[0] * inv, n[1] * inv, n[2] * inv])
+                } else {
+                    st.bad_normals += 1;
+                    None
+                }
+            }
+        };
+        // Keys of live voxels are unique, so a live slot holding `k` is the voxel.
+        let slot = if (hint as usize) < self.len && self.pool[hint as usize].key == k {
+            Some(hint)
+        } else {
+            let pool = &*self.pool;
+            index_find(self.index, self.mask, h, |s| pool[s as usize].key == k).map(|(_, s)| s)
+        };
+        let slot = match slot {
+            Some(s) => s as usize,
+            None => {
+                if self.len == self.pool.len() {
+                    if !*full_failed {
+                        let n = self.make_room(sensor);
+                        st.evicted_full += n as u32;
+                        if n == 0 {
+                            *full_failed = true;
+                        }
+                    }
+                    if self.len == self.pool.len() {
+                        st.dropped_full += 1;
+                        self.counters.dropped_full += 1;
+                        return;
+                    }
+                }
+                let s = self.len;
+                if !index_insert(self.index, self.mask, h, s as u32) {
+                    // Unreachable while index.len() >= 2 * pool.len(); counted, never a panic.
+                    st.dropped_full += 1;
+                    self.counters.dropped_full += 1;
+                    return;
+                }
+                self.pool[s] =
+                    Voxel { key: k, state: STATE_ACCUMULATING, until_eval: self.cfg.eta, ..Voxel::EMPTY };
+                self.len += 1;
+                st.new_voxels += 1;
+                self.counters.created += 1;
+                s
+            }
+        };
+        st.inserted += 1;
+        let c = self.centre(k);
+        let off = [p.xyz[0] - c[0], p.xyz[1] - c[1], p.xyz[2] - c[2]];
+        let d = self.d;
+        let cfg = self.cfg;
+        let stamp = self.stamp;
+        let v = &mut self.pool[slot];
+        v.last_seen = stamp;
+        update_rep(v, off, normal, &d);
+        if v.state != STATE_ACCUMULATING {
+            return;
+        }
+        st.accumulated += 1;
+        v.count += 1;
+        for a in 0..3 {
+            v.sum[a] += off[a];
+        }
+        v.sum_sq[0] += off[0] * off[0];
+        v.sum_sq[1] += off[0] * off[1];
+        v.sum_sq[2] += off[0] * off[2];
+        v.sum_sq[3] += off[1] * off[1];
+        v.sum_sq[4] += off[1] * off[2];
+        v.sum_sq[5] += off[2] * off[2];
+        if let Some(n) = normal {
+            v.normal_count += 1;
+            for a in 0..3 {
+                v.ring_sum[a] += n[a];
+            }
+        }
+        v.until_eval = v.until_eval.saturating_sub(1);
+        if v.until_eval == 0 || v.count >= cfg.saturate_at {
+            v.until_eval = cfg.eta;
+            let to_c = [sensor[0] - c[0], sensor[1] - c[1], sensor[2] - c[2]];
+            match self.evaluate(slot, to_c) {
+                STATE_CONVERGED => st.converged += 1,
+                STATE_SATURATED => st.saturated += 1,
+                _ => {}
+            }
+        }
+    }
+
+    /// Eigen-analysis of an accumulating voxel; updates its state. `to_sensor` orients `e_d`
+    /// when there is no ring normal.
+    fn evaluate(&mut self, slot: usize, to_sensor: [f32; 3]) -> u8 {
+        let v = self.pool[slot];
+        let m = self.moments(&v);
+        let shape = Shape::of_covariance(&m.covariance());
+        let mut e = shape.normal();
+        let ring = Self::ring_dir(&v);
+        let reference = match ring {
+            Some((r, _)) => r,
+            None => to64(to_sensor),
+        };
+        if surfel::dot3(e, reference) < 0.0 {
+            e = [-e[0], -e[1], -e[2]];
+        }
+        let surfel_ok = self.cfg.criteria.check(&shape).is_ok();
+        let agrees = match ring {
+            Some((r, len)) => {
+                len >= f64::from(self.cfg.min_ring_coherence)
+                    && surfel::dot3(e, r) >= f64::from(self.d.cos_max_angle)
+            }
+            None => false,
+        };
+        let state = if surfel_ok && agrees {
+            STATE_CONVERGED
+        } else if v.count >= self.cfg.saturate_at {
+            STATE_SATURATED
+        } else {
+            STATE_ACCUMULATING
+        };
+        let w = &mut self.pool[slot];
+        w.normal = to32(e);
+        w.eigenvalues = to32(shape.eigenvalues);
+        w.state = state;
+        state
+    }
+
+    // ---- Eviction --------------------------------------------------------------------------------
+
+    /// Removes the voxel at pool position `slot`: deletes its index entry and moves the last live
+    /// voxel into its place.
+    fn remove_slot(&mut self, slot: usize) {
+        let k = self.pool[slot].key;
+        if let Some(pos) = index_find_slot(self.index, self.mask, hash_key(k), slot as u32) {
+            index_remove_at(self.index, self.mask, pos);
+        }
+        let last = self.len - 1;
+        if slot != last {
+            let moved = self.pool[last];
+            let hm = hash_key(moved.key);
+            if let Some(pos) = index_find_slot(self.index, self.mask, hm, last as u32) {
+                self.index[pos] = IndexSlot::new(hm, slot as u32);
+            }
+            self.pool[slot] = moved;
+        }
+        self.pool[last] = Voxel::EMPTY;
+        self.len = last;
+    }
+
+    /// The distance sweep: checks `sweep_per_insert` slots from the cursor.
+    fn sweep(&mut self, sensor: [f32; 3], st: &mut InsertStats) {
+        let budget = (self.cfg.sweep_per_insert as usize).min(self.len);
+        for _ in 0..budget {
+            if self.len == 0 {
+                break;
+            }
+            if self.cursor >= self.len {
+                self.cursor = 0;
+            }
+            let c = self.centre(self.pool[self.cursor].key);
+            if d2f(c, sensor) > self.d.evict_r2 {
+                self.remove_slot(self.cursor);
+                st.evicted_far += 1;
+                self.counters.evicted_far += 1;
+            } else {
+                self.cursor += 1;
+            }
+        }
+    }
+
+    #[inline]
+    fn dist_bucket(&self, v: &Voxel, sensor: [f32; 3]) -> usize {
+        let d = libm::sqrtf(d2f(self.centre(v.key), sensor)) * self.d.bucket_scale;
+        if d < 255.0 { d as usize } else { 255 }
+    }
+
+    #[inline]
+    fn age_bucket(&self, v: &Voxel) -> usize {
+        (self.stamp.saturating_sub(v.last_seen)).min(255) as usize
+    }
+
+    /// Evicts a batch from a full pool (module docs). Returns how many were evicted.
+    fn make_room(&mut self, sensor: [f32; 3]) -> usize {
+        let cap = self.pool.len();
+        let batch = match self.cfg.evict_batch {
+            0 => (cap / 16).max(1),
+            b => (b as usize).clamp(1, cap),
+        };
+        // Pass 1: distance histogram of the evictable voxels.
+        let mut hist = [0u32; 256];
+        let mut evictable = 0usize;
+        for v in &self.pool[..self.len] {
+            if v.last_seen != self.stamp {
+                hist[self.dist_bucket(v, sensor)] += 1;
+                evictable += 1;
+            }
+        }
+        if evictable == 0 {
+            return 0;
+        }
+        let target = batch.min(evictable);
+        let mut above = 0usize;
+        let mut b_thr = 0usize;
+        for b in (0..256).rev() {
+            if above + hist[b] as usize >= target {
+                b_thr = b;
+                break;
+            }
+            above += hist[b] as usize;
+        }
+        let mut need_b = target - above;
+        // Pass 2: age histogram inside the threshold bucket (LRU tie-break).
+        let mut a_thr = 0usize;
+        let mut need_a = 0usize;
+        let all_of_b = need_b >= hist[b_thr] as usize;
+        if !all_of_b {
+            let mut ages = [0u32; 256];
+            for v in &self.pool[..self.len] {
+                if v.last_seen != self.stamp && self.dist_bucket(v, sensor) == b_thr {
+                    ages[self.age_bucket(v)] += 1;
+                }
+            }
+            let mut older = 0usize;
+            for a in (0..256).rev() {
+                if older + ages[a] as usize >= need_b {
+                    a_thr = a;
+                    need_a = need_b - older;
+                    break;
+                }
+                older += ages[a] as usize;
+            }
+        }
+        // Pass 3: evict.
+        let mut evicted = 0usize;
+        let mut i = 0usize;
+        while i < self.len && evicted < target {
+            let v = &self.pool[i];
+            let mut go = false;
+            if v.last_seen != self.stamp {
+                let b = self.dist_bucket(v, sensor);
+                if b > b_thr {
+                    go = true;
+                } else if b == b_thr && need_b > 0 {
+                    if all_of_b {
+                        go = true;
+                    } else {
+                        let a = self.age_bucket(v);
+                        if a > a_thr {
+                            go = true;
+                        } else if a == a_thr && need_a > 0 {
+                            need_a -= 1;
+                            go = true;
+                        }
+                    }
+                    if go {
+                        need_b -= 1;
+                    }
+                }
+            }
+            if go {
+                self.remove_slot(i);
+                evicted += 1;
+            } else {
+                i += 1;
+            }
+        }
+        self.counters.evicted_full += evicted as u64;
+        debug!("voxel map full: evicted {} voxels (distance bucket >= {})", evicted, b_thr);
+        evicted
+    }
+
+    // ---- Queries ---------------------------------------------------------------------------------
+
+    /// The `k` nearest map points to `q` within `max_dist`, nearest first, written to `out`;
+    /// returns how many were found.
+    ///
+    /// The search covers the query's voxel and its 26 neighbours, nearest boxes first, skipping
+    /// boxes farther than the current k-th distance. Every map point within `voxel_size` of the
+    /// query lies in those 27 voxels, so with `max_dist <= voxel_size` the result is the exact
+    /// k-NN of the whole map (up to rounding at voxel faces); with a larger `max_dist` it is the
+    /// exact k-NN among the 27 voxels. Ties keep the first found (deterministic). A non-finite
+    /// query finds nothing.
+    pub fn knn(&self, q: [f32; 3], query: &KnnQuery, out: &mut Neighbours) -> usize {
+        out.len = 0;
+        let Some((k, bound2)) = Self::knn_params(query) else { return 0 };
+        let Some(mut pre) = self.prepare(q) else { return 0 };
+        // The query's own box and the 7 others on its side of each face (its octant) hold the
+        // nearest points almost always: their index entries are probed together, so their
+        // cache misses overlap (queries are bound by memory latency). The other boxes are
+        // probed only if the search gets to them.
+        for bits in NEAR_ORDER {
+            let off = [bits[0] * pre.side[0], bits[1] * pre.side[1], bits[2] * pre.side[2]];
+            if pre.box_d2(off) <= bound2 {
+                self.probe(&mut pre, off);
+            }
+        }
+        self.finish_knn(&mut pre, q, query.one_per_voxel, k, bound2, out)
+    }
+
+    /// [`Self::knn`] for many queries: `out[i]` receives the neighbours of `queries[i]` (for
+    /// `i < min(queries.len(), out.len())`); returns the total found. The results are exactly
+    /// those of [`Self::knn`] called on each query in turn, obtained faster: queries go in
+    /// groups of 8, and all the index lines, then all the voxels, of a group's neighbourhoods
+    /// are read before any member is searched, so the cache misses overlap instead of being paid
+    /// one after another. Give the queries in scan order (nearby points close together).
+    pub fn knn_many(&self, queries: &[[f32; 3]], query: &KnnQuery, out: &mut [Neighbours]) -> usize {
+        let m = queries.len().min(out.len());
+        for o in out[..m].iter_mut() {
+            o.len = 0;
+        }
+        let Some((k, bound2)) = Self::knn_params(query) else { return 0 };
+        // A software pipeline over groups of KNN_GROUP queries: while group g is searched, the
+        // voxels of group g + 1 (whose index entries arrived meanwhile) and the index lines of
+        // group g + 2 are being fetched.
+        let groups = m.div_ceil(KNN_GROUP);
+        let mut ring = [[None; KNN_GROUP]; 3];
+        let mut total = 0;
+        for g in 0..groups + 2 {
+            // Stage 1, group g: keys, block hashes, prefetch of the blocks' home index lines.
+            if g < groups {
+                let slot = &mut ring[g % 3];
+                for (i, pre) in slot.iter_mut().enumerate() {
+                    let qi = g * KNN_GROUP + i;
+                    *pre = if qi < m { self.prepare(queries[qi]) } else { None };
+                    if let Some(p) = pre {
+                        for bh in p.bh {
+                            prefetch(&self.index[(bh << 3) as usize & self.mask]);
+                        }
+                    }
+                }
+            }
+            // Stage 2, group g - 1: probe the octants, prefetch their voxels.
+            if g >= 1 && g - 1 < groups {
+                for p in ring[(g - 1) % 3].iter_mut().flatten() {
+                    for bits in NEAR_ORDER {
+                        let off = [bits[0] * p.side[0], bits[1] * p.side[1], bits[2] * p.side[2]];
+                        if p.box_d2(off) <= bound2 {
+                            let slot = self.probe(p, off);
+                            if slot != NO_HINT {
+                                let v = &self.pool[slot as usize];
+                                prefetch(v); // line 0: key and representatives
+                                prefetch(&v.rep_normals); // line 1: their normals
+                            }
+                        }
+                    }
+                }
+            }
+            // Stage 3, group g - 2: the searches.
+            if g >= 2 {
+                let gg = g - 2;
+                for (i, pre) in ring[gg % 3].iter_mut().enumerate() {
+                    let qi = gg * KNN_GROUP + i;
+                    if let Some(p) = pre {
+                        total +=
+                            self.finish_knn(p, queries[qi], query.one_per_voxel, k, bound2, &mut out[qi]);
+                    }
+                }
+            }
+        }
+        total
+    }
+
+    /// `(k, max_dist²)`, or `None` if the query asks for nothing.
+    fn knn_params(query: &KnnQuery) -> Option<(usize, f32)> {
+        let k = query.k.min(KNN_MAX);
+        if k == 0 || !(query.max_dist >= 0.0) {
+            return None;
+        }
+        Some((k, query.max_dist * query.max_dist))
+    }
+
+    /// The query's voxel, the distances to its neighbouring boxes and the hashes of the 8
+    /// blocks (2x2x2 voxels) the neighbourhood spans; no box probed yet. `None` out of range.
+    #[inline]
+    fn prepare(&self, q: [f32; 3]) -> Option<Prepared> {
+        let key = self.key_of(q)?;
+        let c0 = self.centre(key);
+        let mut gap2 = [[0.0f32; 3]; 3];
+        for a in 0..3 {
+            let rel = q[a] - c0[a];
+            let lo = (rel + self.d.half - self.d.slack).max(0.0);
+            let hi = (self.d.half - rel - self.d.slack).max(0.0);
+            gap2[a] = [lo * lo, 0.0, hi * hi];
+        }
+        let side = [
+            if q[0] < c0[0] { -1 } else { 1 },
+            if q[1] < c0[1] { -1 } else { 1 },
+            if q[2] < c0[2] { -1 } else { 1 },
+        ];
+        // keys k-1 .. k+1 span exactly two blocks per axis: (k-1)>>1 and the next.
+        let b0 = [(key[0] - 1) >> 1, (key[1] - 1) >> 1, (key[2] - 1) >> 1];
+        let mut bh = [0u32; 8];
+        for (i, h) in bh.iter_mut().enumerate() {
+            let i = i as i32;
+            *h = block_hash([b0[0] + (i & 1), b0[1] + (i >> 1 & 1), b0[2] + (i >> 2)]);
+        }
+        Some(Prepared { key, b0, gap2, side, bh, slots: [UNPROBED; 27] })
+    }
+
+    /// The slot of the first index entry with the hash of the box at `off` (not key-checked),
+    /// or `NO_HINT`; remembered in `pre`.
+    #[inline]
+    fn probe(&self, pre: &mut Prepared, off: [i32; 3]) -> u32 {
+        let li = lex(off);
+        if pre.slots[li] == UNPROBED {
+            let h = pre.hash(off);
+            pre.slots[li] = index_first_with_hash(self.index, self.mask, h).unwrap_or(NO_HINT);
+        }
+        pre.slots[li]
+    }
+
+    /// The search proper: the octant's boxes, then the other 19, each only if not already
+    /// farther than the k-th distance found.
+    fn finish_knn(
+        &self,
+        pre: &mut Prepared,
+        q: [f32; 3],
+        one_per_voxel: bool,
+        k: usize,
+        bound2: f32,
+        out: &mut Neighbours,
+    ) -> usize {
+        let mut cand = [(0.0f32, 0u32, 0u8); KNN_MAX];
+        let mut n = 0usize;
+        let si = usize::from(pre.side[0] > 0)
+            | usize::from(pre.side[1] > 0) << 1
+            | usize::from(pre.side[2] > 0) << 2;
+        for &off in &SIDE_ORDERS[si] {
+            if !box_within(pre.box_d2(off), &cand, n, k, bound2) {
+                continue;
+            }
+            let slot = self.probe(pre, off);
+            if slot == NO_HINT {
+                continue;
+            }
+            let key = pre.key;
+            let nk = [key[0] + off[0], key[1] + off[1], key[2] + off[2]];
+            let slot = if self.pool[slot as usize].key == nk {
+                slot
+            } else {
+                // Another key with the same 32-bit hash came first: look it up properly.
+                match self.find_slot(nk) {
+                    Some(s2) => s2,
+                    None => continue,
+                }
+            };
+            self.scan_voxel(slot, nk, q, one_per_voxel, &mut cand, &mut n, k, bound2);
+        }
+        for (i, &(d2, slot, o)) in cand[..n].iter().enumerate() {
+            let v = &self.pool[slot as usize];
+            let c = self.centre(v.key);
+            out.items[i] = Neighbour {
+                point: self.rep_point(c, rep(v, o as usize)),
+                normal_q: v.rep_normals[o as usize],
+                dist2: d2,
+                voxel: VoxelHandle(slot),
+            };
+        }
+        out.len = n;
+        n
+    }
+
+    /// Adds the representatives of the voxel at `slot` (key `nk`) to the candidates.
+    #[allow(clippy::too_many_arguments)]
+    #[inline]
+    fn scan_voxel(
+        &self,
+        slot: u32,
+        nk: [i32; 3],
+        q: [f32; 3],
+        one_per_voxel: bool,
+        cand: &mut [(f32, u32, u8); KNN_MAX],
+        n: &mut usize,
+        k: usize,
+        bound2: f32,
+    ) {
+        let v = &self.pool[slot as usize];
+        if v.occupied == 0 {
+            return;
+        }
+        let c = self.centre(nk);
+        let rq = [q[0] - c[0], q[1] - c[1], q[2] - c[2]];
+        let s = self.d.dequant;
+        // All 8 distances at once (vectorised; unoccupied octants are computed and ignored).
+        let mut d2s = [0.0f32; OCTANTS];
+        for o in 0..OCTANTS {
+            let dx = rq[0] - f32::from(v.reps[0][o]) * s;
+            let dy = rq[1] - f32::from(v.reps[1][o]) * s;
+            let dz = rq[2] - f32::from(v.reps[2][o]) * s;
+            d2s[o] = dx * dx + dy * dy + dz * dz;
+        }
+        let mut best = (f32::INFINITY, 0u8);
+        let mut bits = v.occupied;
+        while bits != 0 {
+            let o = bits.trailing_zeros() as usize;
+            bits &= bits - 1;
+            let d2 = d2s[o];
+            if one_per_voxel {
+                if d2 < best.0 {
+                    best = (d2, o as u8);
+                }
+            } else {
+                push_candidate(cand, n, k, bound2, (d2, slot, o as u8));
+            }
+        }
+        if one_per_voxel && best.0.is_finite() {
+            push_candidate(cand, n, k, bound2, (best.0, slot, best.1));
+        }
+    }
+
+    /// The small-scale surfel of a voxel: only if it has converged.
+    pub fn small_surfel(&self, h: VoxelHandle) -> Result<SmallSurfel, SurfelReject> {
+        let v = self.live(h).ok_or(SurfelReject::InvalidHandle)?;
+        if v.state != STATE_CONVERGED {
+            return Err(SurfelReject::NotConverged);
+        }
+        let m = self.moments(v);
+        Ok(SmallSurfel {
+            voxel: h,
+            mean: to32(m.mean().unwrap_or(m.origin)),
+            normal: v.normal,
+            eigenvalues: v.eigenvalues,
+            count: u32::from(v.count),
+        })
+    }
+
+    /// The small-scale surfel of the voxel holding world point `p` (paper IV-B3: "the voxel
+    /// where the point is located, which must already be fixed"): only if it has converged.
+    pub fn small_surfel_at(&self, p: [f32; 3]) -> Result<SmallSurfel, SurfelReject> {
+        let h = self.find(p).ok_or(SurfelReject::InvalidHandle)?;
+        self.small_surfel(h)
+    }
+
+    /// The large-scale surfel of some voxels (typically the k-NN's, [`Neighbours::voxels`]): each
+    /// distinct voxel with at least `eta` points is merged once, by Eq. (5) with its true count
+    /// (converged, saturated and accumulating alike). Accepted if the union has
+    /// `large.min_points` points from `large.min_voxels` voxels, meets the surfel criteria
+    /// (`large.apply_criteria`), and every merged voxel's mean lies within
+    /// `large.max_mean_distance` of the merged plane.
+    pub fn large_surfel(&self, voxels: &[VoxelHandle]) -> Result<LargeSurfel, SurfelReject> {
+        let mut distinct = [VoxelHandle(0); MERGE_MAX];
+        let mut nd = 0usize;
+        for &h in voxels {
+            if self.live(h).is_none() {
+                return Err(SurfelReject::InvalidHandle);
+            }
+            if distinct[..nd].contains(&h) {
+                continue;
+            }
+            if self.pool[h.index()].count < self.cfg.eta {
+                continue;
+            }
+            if nd == MERGE_MAX {
+                return Err(SurfelReject::TooManyVoxels);
+            }
+            distinct[nd] = h;
+            nd += 1;
+        }
+        let lc = &self.cfg.large;
+        if nd == 0 || nd < usize::from(lc.min_voxels) {
+            return Err(SurfelReject::TooFewVoxels);
+        }
+        let first = &self.pool[distinct[0].index()];
+        let mut merged = Moments::new(to64(self.centre(first.key)));
+        let mut ring = [0.0f64; 3];
+        for h in &distinct[..nd] {
+            let v = &self.pool[h.index()];
+            merged.merge(&self.moments(v));
+            for a in 0..3 {
+                ring[a] += f64::from(v.ring_sum[a]);
+            }
+        }
+        if merged.n < lc.min_points {
+            return Err(SurfelReject::TooFewPoints);
+        }
+        let shape = Shape::of_covariance(&merged.covariance());
+        let [l1, _, l3] = shape.eigenvalues;
+        if !(l3 > 0.0) || l3 == l1 {
+            return Err(SurfelReject::Degenerate);
+        }
+        if lc.apply_criteria {
+            self.cfg.criteria.check(&shape)?;
+        }
+        let mut nrm = shape.normal();
+        if surfel::dot3(nrm, ring) < 0.0 {
+            nrm = [-nrm[0], -nrm[1], -nrm[2]];
+        }
+        let mean = merged.mean().unwrap_or(merged.origin);
+        for h in &distinct[..nd] {
+            let m = self.moments(&self.pool[h.index()]);
+            let mi = m.mean().unwrap_or(m.origin);
+            let dist = surfel::dot3(nrm, surfel::sub3(mi, mean)).abs();
+            if !(dist <= f64::from(lc.max_mean_distance)) {
+                return Err(SurfelReject::OffPlane);
+            }
+        }
+        Ok(LargeSurfel {
+            mean: to32(mean),
+            normal: to32(nrm),
+            eigenvalues: to32(shape.eigenvalues),
+            count: merged.n,
+            voxels: nd as u32,
+        })
+    }
+}
+
+/// A cache prefetch hint (no effect on results; a no-op where the target has none in stable
+/// Rust without `unsafe`).
+#[inline(always)]
+fn prefetch<T>(r: &T) {
+    #[cfg(all(any(target_arch = "x86", target_arch = "x86_64"), target_feature = "sse"))]
+    safe_arch::prefetch_t0(r);
+    #[cfg(not(all(any(target_arch = "x86", target_arch = "x86_64"), target_feature = "sse")))]
+    let _ = r;
+}
+
+/// Queries prepared together by [`VoxelMap::knn_many`].
+const KNN_GROUP: usize = 8;
+
+/// Slot not probed yet.
+const UNPROBED: u32 = u32::MAX - 1;
+
+/// Lexicographic index 0..27 of a neighbour offset.
+#[inline]
+fn lex(off: [i32; 3]) -> usize {
+    ((off[0] + 1) * 9 + (off[1] + 1) * 3 + (off[2] + 1)) as usize
+}
+
+/// A k-NN query's voxel, box distances, block hashes and probed index slots.
+#[derive(Clone, Copy, Debug)]
+struct Prepared {
+    key: [i32; 3],
+    /// The lowest of the two blocks the neighbourhood spans per axis.
+    b0: [i32; 3],
+    /// Squared gaps from the query to the neighbouring boxes' faces, per axis: [-1, 0, +1].
+    gap2: [[f32; 3]; 3],
+    /// The query's side of its voxel centre per axis (-1 or +1).
+    side: [i32; 3],
+    /// Hashes of the 8 blocks, index `dx | dy << 1 | dz << 2` for block `b0 + (dx, dy, dz)`.
+    bh: [u32; 8],
+    /// Per neighbour ([`lex`]): `UNPROBED`, `NO_HINT` (absent) or the slot of the first index
+    /// entry with the neighbour's hash.
+    slots: [u32; 27],
+}
+
+impl Prepared {
+    #[inline]
+    fn box_d2(&self, off: [i32; 3]) -> f32 {
+        self.gap2[0][(off[0] + 1) as usize]
+            + self.gap2[1][(off[1] + 1) as usize]
+            + self.gap2[2][(off[2] + 1) as usize]
+    }
+
+    /// `hash_key(key + off)`, from the block hashes.
+    #[inline]
+    fn hash(&self, off: [i32; 3]) -> u32 {
+        let nk = [self.key[0] + off[0], self.key[1] + off[1], self.key[2] + off[2]];
+        let b = [(nk[0] >> 1) - self.b0[0], (nk[1] >> 1) - self.b0[1], (nk[2] >> 1) - self.b0[2]];
+        self.bh[(b[0] | b[1] << 1 | b[2] << 2) as usize] << 3 | sub_block(nk)
+    }
+}
+
+/// Whether a box at squared distance `bd2` may still hold a candidate.
+#[inline]
+fn box_within(bd2: f32, cand: &[(f32, u32, u8); KNN_MAX], n: usize, k: usize, bound2: f32) -> bool {
+    if n == k { bd2 < cand[k - 1].0 } else { bd2 <= bound2 }
+}
+
+/// Inserts a candidate into the sorted list (ascending distance; equal distances keep the
+/// earlier one first), keeping at most `k` within `bound2`.
+#[inline]
+fn push_candidate(
+    cand: &mut [(f32, u32, u8); KNN_MAX],
+    n: &mut usize,
+    k: usize,
+    bound2: f32,
+    c: (f32, u32, u8),
+) {
+    if !(c.0 <= bound2) {
+        return;
+    }
+    if *n == k {
+        if !(c.0 < cand[k - 1].0) {
+            return;
+        }
+        *n -= 1;
+    }
+    let mut i = *n;
+    while i > 0 && cand[i - 1].0 > c.0 {
+        cand[i] = cand[i - 1];
+        i -= 1;
+    }
+    cand[i] = c;
+    *n += 1;
+}
+
+fn state_of(s: u8) -> VoxelState {
+    match s {
+        STATE_CONVERGED => VoxelState::Converged,
+        STATE_SATURATED => VoxelState::Saturated,
+        _ => VoxelState::Accumulating,
+    }
+}
+
+/// A representative's quantised offset.
+#[inline]
+fn rep(v: &Voxel, o: usize) -> [i16; 3] {
+    [v.reps[0][o], v.reps[1][o], v.reps[2][o]]
+}
+
+/// A quantised normal as a unit vector; `None` for the "no normal" marker `[0, 0, 0]`.
+fn rep_normal(q: [i8; 3]) -> Option<[f32; 3]> {
+    if q == [0, 0, 0] {
+        return None;
+    }
+    let n = [f32::from(q[0]), f32::from(q[1]), f32::from(q[2])];
+    let inv = 1.0 / libm::sqrtf(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    Some([n[0] * inv, n[1] * inv, n[2] * inv])
+}
+
+/// The octant rule for representatives (module docs).
+#[inline]
+fn update_rep(v: &mut Voxel, off: [f32; 3], normal: Option<[f32; 3]>, d: &Derived) {
+    let o = usize::from(off[0] >= 0.0) | usize::from(off[1] >= 0.0) << 1 | usize::from(off[2] >= 0.0) << 2;
+    let quarter = 0.5 * d.half;
+    let oc = [
+        if off[0] >= 0.0 { quarter } else { -quarter },
+        if off[1] >= 0.0 { quarter } else { -quarter },
+        if off[2] >= 0.0 { quarter } else { -quarter },
+    ];
+    let bit = 1u8 << o;
+    if v.occupied & bit != 0 {
+        let r = rep(v, o);
+        let old = [f32::from(r[0]) * d.dequant, f32::from(r[1]) * d.dequant, f32::from(r[2]) * d.dequant];
+        if !(d2f(off, oc) < d2f(old, oc)) {
+            return;
+        }
+    }
+    let q = [quantise(off[0], d.quant), quantise(off[1], d.quant), quantise(off[2], d.quant)];
+    v.occupied |= bit;
+    for a in 0..3 {
+        v.reps[a][o] = q[a];
+    }
+    v.rep_normals[o] = match normal {
+        Some(n) => [quantise_unit(n[0]), quantise_unit(n[1]), quantise_unit(n[2])],
+        None => [0, 0, 0],
+    };
+}
+
+/// `floor(v)` for `|v| < 2^31` (callers check a smaller bound): truncation, minus one for
+/// negative non-integers. Exact, and cheaper than `libm::floorf` on targets without a rounding
+/// instruction in their baseline (x86-64 before SSE4.1, Cortex-M4F).
+#[inline]
+fn floor_i32(v: f32) -> i32 {
+    let t = v as i32;
+    if (t as f32) > v { t - 1 } else { t }
+}
+
+/// Rounds half away from zero (up to one unit in the last place at exact halves; either
+/// neighbour is an equally good quantisation) and saturates to `±limit`.
+#[inline]
+fn round_sat(x: f32, limit: f32) -> i32 {
+    let x = x.clamp(-limit, limit);
+    if x >= 0.0 { (x + 0.5) as i32 } else { (x - 0.5) as i32 }
+}
+
+#[inline]
+fn quantise(x: f32, scale: f32) -> i16 {
+    round_sat(x * scale, 32767.0) as i16
+}
+
+#[inline]
+fn quantise_unit(x: f32) -> i8 {
+    round_sat(x * 127.0, 127.0) as i8
+}
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+    use std::collections::HashMap;
+    use std::vec;
+    use std::vec::Vec;
+
+    use super::*;
+
+    /// SplitMix64: deterministic test data.
+    struct Rng(u64);
+    impl Rng {
+        fn next_u64(&mut self) -> u64 {
+            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            let mut z = self.0;
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            z ^ (z >> 31)
+        }
+        fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
+            lo + (hi - lo) * ((self.next_u64() >> 11) as f64 / (1u64 << 53) as f64)
+        }
+        fn gauss(&mut self) -> f64 {
+            // Sum of 12 uniforms: close enough to a unit normal for test noise.
+            (0..12).map(|_| self.uniform(0.0, 1.0)).sum::<f64>() - 6.0
+        }
+    }
+
+    fn storage(cap: usize) -> (Vec<Voxel>, Vec<IndexSlot>) {
+        (vec![Voxel::EMPTY; cap], vec![IndexSlot::EMPTY; (2 * cap).next_power_of_two()])
+    }
+
+    fn unit(v: [f64; 3]) -> [f64; 3] {
+        normalised(v).unwrap()
+    }
+
+    fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    }
+
+    fn angle_deg(a: [f64; 3], b: [f64; 3]) -> f64 {
+        let c = surfel::dot3(unit(a), unit(b)).clamp(-1.0, 1.0);
+        libm::acos(c).to_degrees()
+    }
+
+    fn p32(p: [f64; 3]) -> [f32; 3] {
+        to32(p)
+    }
+
+    fn mp(p: [f64; 3], n: Option<[f64; 3]>) -> MapPoint {
+        MapPoint { xyz: p32(p), normal: n.map(to32) }
+    }
+
+    /// A point of the plane through `c` with normal `n`, uniform over the plane's cut through
+    /// the voxel of edge `s` centred at `c` (rejection sampling), plus `noise` (std) along `n`.
+    fn plane_point(rng: &mut Rng, c: [f64; 3], n: [f64; 3], s: f64, noise: f64) -> [f64; 3] {
+        let t = if n[0].abs() < 0.9 { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] };
+        let u = unit(cross(n, t));
+        let v = cross(n, u);
+        loop {
+            let a = rng.uniform(-s, s);
+            let b = rng.uniform(-s, s);
+            let w = noise * rng.gauss();
+            let p = [
+                c[0] + a * u[0] + b * v[0] + w * n[0],
+                c[1] + a * u[1] + b * v[1] + w * n[1],
+                c[2] + a * u[2] + b * v[2] + w * n[2],
+            ];
+            if (0..3).all(|i| (p[i] - c[i]).abs() < 0.5 * s - 1e-4) {
+                return p;
+            }
+        }
+    }
+
+    /// A normal within about `deg` degrees of `n`.
+    fn jitter(rng: &mut Rng, n: [f64; 3], deg: f64) -> [f64; 3] {
+        let r = deg.to_radians();
+        unit([n[0] + r * rng.gauss() * 0.5, n[1] + r * rng.gauss() * 0.5, n[2] + r * rng.gauss() * 0.5])
+    }
+
+    /// The f64 batch moments of the points with key `k`.
+    fn batch(map: &VoxelMap, pts: &[[f32; 3]], k: [i32; 3]) -> Moments {
+        let mut m = Moments::new(to64(map.centre(k)));
+        for p in pts {
+            if map.key_of(*p) == Some(k) {
+                m.add(to64(*p));
+            }
+        }
+        m
+    }
+
+    #[test]
+    fn voxel_layout_is_small_and_empty_is_zero() {
+        assert_eq!(VOXEL_BYTES, 192);
+        assert_eq!(core::mem::align_of::<Voxel>(), 64);
+        assert_eq!(core::mem::offset_of!(Voxel, last_seen), 64, "line 0 holds the lookup and k-NN data");
+        assert_eq!(core::mem::size_of::<IndexSlot>(), 8);
+        assert_eq!(Voxel::EMPTY, Voxel::default());
+        assert_eq!(IndexSlot::EMPTY.0, 0);
+        // Every field of EMPTY is an integer 0 or +0.0 and the layout has no implicit padding
+        // (the fields, spares included, add up to the size), so its bytes are all zero: a
+        // static pool goes to .bss.
+        assert_eq!(core::mem::offset_of!(Voxel, rep_normals), 128, "line 1 holds what insertion writes");
+        assert_eq!(core::mem::offset_of!(Voxel, _spare2) + 16, VOXEL_BYTES);
+        let e = Voxel::EMPTY;
+        assert!(e.sum.iter().chain(&e.sum_sq).chain(&e.ring_sum).all(|x| x.to_bits() == 0));
+        static STORAGE: MapStorage<4, 8> = MapStorage::new();
+        assert!(STORAGE.pool.iter().all(|v| *v == Voxel::EMPTY));
+        let mut s = MapStorage::<4, 8>::new();
+        assert_eq!(s.map(MapConfig::VLP32C).unwrap().capacity(), 4);
+    }
+
+    #[test]
+    fn construction_checks_storage_and_config() {
+        let (mut pool, mut index) = storage(8);
+        assert_eq!(
+            VoxelMap::new(&mut pool[..0], &mut index, MapConfig::VLP32C).err(),
+            Some(MapError::PoolEmpty)
+        );
+        assert_eq!(
+            VoxelMap::new(&mut pool, &mut index[..12], MapConfig::VLP32C).err(),
+            Some(MapError::IndexNotPowerOfTwo)
+        );
+        assert_eq!(
+            VoxelMap::new(&mut pool, &mut index[..8], MapConfig::VLP32C).err(),
+            Some(MapError::IndexTooSmall { needed: 16 })
+        );
+        let bad: [(MapConfig, &str); 7] = [
+            (MapConfig { voxel_size: 0.0, ..MapConfig::VLP32C }, "voxel_size"),
+            (MapConfig { voxel_size: f32::NAN, ..MapConfig::VLP32C }, "voxel_size"),
+            (MapConfig { eta: 2, ..MapConfig::VLP32C }, "eta"),
+            (MapConfig { saturate_at: 24, ..MapConfig::VLP32C }, "saturate_at"),
+            (MapConfig { max_normal_angle_deg: 91.0, ..MapConfig::VLP32C }, "max_normal_angle_deg"),
+            (MapConfig { evict_radius: f32::INFINITY, ..MapConfig::VLP32C }, "evict_radius"),
+            (MapConfig { min_ring_coherence: 1.5, ..MapConfig::VLP32C }, "min_ring_coherence"),
+        ];
+        for (cfg, field) in bad {
+            assert_eq!(
+                VoxelMap::new(&mut pool, &mut index, cfg).err(),
+                Some(MapError::InvalidConfig { field })
+            );
+        }
+        let map = VoxelMap::new(&mut pool, &mut index, MapConfig::OS1_16).unwrap();
+        assert_eq!((map.len(), map.capacity(), map.config().voxel_size), (0, 8, 0.5));
+    }
+
+    #[test]
+    fn bad_input_is_counted_or_refused_never_panics() {
+        let (mut pool, mut index) = storage(64);
+        let mut map = VoxelMap::new(&mut pool, &mut index, MapConfig::VLP32C).unwrap();
+        let pts = [
+            MapPoint { xyz: [f32::NAN, 0.0, 0.0], normal: None },
+            MapPoint { xyz: [1e9, 0.0, 0.0], normal: None },
+            MapPoint { xyz: [f32::INFINITY, 0.0, 0.0], normal: None },
+            MapPoint { xyz: [81.0, 0.0, 0.0], normal: None },
+            MapPoint { xyz: [1.0, 1.0, 1.0], normal: Some([0.0, 0.0, 0.0]) },
+            MapPoint { xyz: [1.0, 1.0, 1.0], normal: Some([f32::NAN, 0.0, 1.0]) },
+            MapPoint { xyz: [1.0, 1.0, 1.0], normal: Some([0.0, 0.0, 3.0]) },
+            MapPoint { xyz: [1.0, 1.0, 1.0], normal: Some([0.0, 0.0, 1.2]) },
+        ];
+        let st = map.insert_slice(&pts, [0.0; 3], 5).unwrap();
+        assert_eq!(st.points, 8);
+        assert_eq!(st.dropped_invalid, 3);
+        assert_eq!(st.dropped_far, 1);
+        assert_eq!(st.bad_normals, 3);
+        assert_eq!((st.inserted, st.new_voxels), (4, 1));
+        let info = map.voxel(map.find([1.0, 1.0, 1.0]).unwrap()).unwrap();
+        assert_eq!((info.count, info.normal_count), (4, 1));
+        assert_eq!(info.normal, Some([0.0, 0.0, 1.0]));
+        assert_eq!(map.insert_slice(&pts, [f32::NAN, 0.0, 0.0], 6), Err(InsertError::SensorNotFinite));
+        assert_eq!(
+            map.insert_slice(&pts, [0.0; 3], 4),
+            Err(InsertError::StampWentBackwards { last: 5, got: 4 })
+        );
+        assert!(map.insert_slice(&pts, [0.0; 3], 5).is_ok()); // equal stamps are fine
+        // Queries with bad input find nothing.
+        let mut out = Neighbours::new();
+        assert_eq!(map.knn([f32::NAN, 0.0, 0.0], &KnnQuery::new(5, 0.4), &mut out), 0);
+        assert_eq!(map.knn([1.0, 1.0, 1.0], &KnnQuery::new(5, f32::NAN), &mut out), 0);
+        assert_eq!(map.knn([1.0, 1.0, 1.0], &KnnQuery::new(0, 0.4), &mut out), 0);
+        assert_eq!(map.knn([1.0, 1.0, 1.0], &KnnQuery::new(100, 0.4), &mut out), 1); // k clamped
+        assert_eq!(map.voxel(VoxelHandle(5)), None);
+        assert_eq!(map.small_surfel(VoxelHandle(9)), Err(SurfelReject::InvalidHandle));
+        assert_eq!(map.large_surfel(&[VoxelHandle(9)]), Err(SurfelReject::InvalidHandle));
+    }
+
+    #[test]
+    fn incremental_statistics_equal_batch_in_any_insert_order() {
+        // No voxel is fixed here (eta 1000), so every point reaches the sums.
+        let cfg = MapConfig { eta: 1000, saturate_at: 2000, ..MapConfig::VLP32C };
+        let mut rng = Rng(5);
+        // A box of exactly 3 x 3 x 2 voxels: x in [100.0, 101.2), y in [-50.8, -49.6), z in [2.0, 2.8).
+        let pts: Vec<MapPoint> = (0..900)
+            .map(|i| {
+                let p = [rng.uniform(100.01, 101.19), rng.uniform(-50.79, -49.61), rng.uniform(2.01, 2.79)];
+                let n = if i % 3 == 0 { None } else { Some(jitter(&mut rng, [0.0, 0.3, 1.0], 20.0)) };
+                mp(p, n)
+            })
+            .collect();
+        let xyz: Vec<[f32; 3]> = pts.iter().map(|p| p.xyz).collect();
+        let mut orders: Vec<Vec<usize>> = vec![(0..900).collect(), (0..900).rev().collect()];
+        let mut shuffled: Vec<usize> = (0..900).collect();
+        for i in (1..900).rev() {
+            shuffled.swap(i, (rng.next_u64() % (i as u64 + 1)) as usize);
+        }
+        orders.push(shuffled);
+        let mut results: Vec<Vec<([i32; 3], Moments, u32)>> = Vec::new();
+        for order in &orders {
+            let (mut pool, mut index) = storage(256);
+            let mut map = VoxelMap::new(&mut pool, &mut index, cfg).unwrap();
+            // In batches of 37 with increasing stamps.
+            for (stamp, chunk) in order.chunks(37).enumerate() {
+                let st =
+                    map.insert(chunk.iter().map(|&i| pts[i]), [100.0, -50.0, 2.0], stamp as u32).unwrap();
+                assert_eq!(st.accumulated as usize, chunk.len());
+            }
+            let mut per_voxel = Vec::new();
+            for (h, info) in map.voxels() {
+                let got = map.voxel_moments(h).unwrap();
+                let want = batch(&map, &xyz, info.key);
+                assert_eq!(got.n, want.n);
+                assert_eq!(info.count, want.n);
+                let (gm, wm) = (got.mean().unwrap(), want.mean().unwrap());
+                let (gc, wc) = (got.covariance(), want.covariance());
+                for a in 0..3 {
+                    assert!((gm[a] - wm[a]).abs() < 2e-6, "mean {gm:?} vs {wm:?}");
+                }
+                for i in 0..6 {
+                    assert!((gc[i] - wc[i]).abs() < 2e-6, "cov {gc:?} vs {wc:?}");
+                }
+                // The ring normal is the exact mean of the normals given.
+                let mut ns = [0.0f64; 3];
+                let mut nc = 0;
+                for p in &pts {
+                    if let (Some(n), true) = (p.normal, map.key_of(p.xyz) == Some(info.key)) {
+                        let n = unit(to64(n));
+                        ns = [ns[0] + n[0], ns[1] + n[1], ns[2] + n[2]];
+                        nc += 1;
+                    }
+                }
+                assert_eq!(info.normal_count, nc);
+                assert!(angle_deg(to64(info.normal.unwrap()), ns) < 0.01);
+                per_voxel.push((info.key, got, info.count));
+            }
+            per_voxel.sort_by_key(|x| x.0);
+            assert_eq!(per_voxel.len(), 3 * 3 * 2);
+            results.push(per_voxel);
+        }
+        // Different orders: the same voxels, the same counts, sums equal to f32 rounding.
+        for r in &results[1..] {
+            for (a, b) in r.iter().zip(&results[0]) {
+                assert_eq!((a.0, a.2), (b.0, b.2));
+                let (ca, cb) = (a.1.covariance(), b.1.covariance());
+                for i in 0..6 {
+                    assert!((ca[i] - cb[i]).abs() < 2e-6);
+                }
+            }
+        }
+    }
+
+    /// Inserts `pts` one per stamp (as downsampled scans would), returning the final state and
+    /// the state after each point.
+    fn feed(map: &mut VoxelMap, pts: &[MapPoint], stamp0: u32) -> Vec<VoxelState> {
+        let mut states = Vec::new();
+        for (i, p) in pts.iter().enumerate() {
+            map.insert_slice(core::slice::from_ref(p), [0.0, 0.0, 1.5], stamp0 + i as u32).unwrap();
+            states.push(map.voxel(map.find(p.xyz).unwrap()).unwrap().state);
+        }
+        states
+    }
+
+    #[test]
+    fn planes_converge_corners_poles_and_clouds_saturate() {
+        let (mut pool, mut index) = storage(256);
+        let mut map = VoxelMap::new(&mut pool, &mut index, MapConfig::VLP32C).unwrap();
+        let s = 0.4;
+        let mut rng = Rng(9);
+        let n = unit([0.2, -0.3, 1.0]);
+        let centre = |i: i32| [(i as f64 + 0.5) * s + 4.0, 0.5 * s + 2.8, 0.5 * s];
+        let mut stamp = 0;
+        let mut run = |map: &mut VoxelMap, pts: Vec<MapPoint>| {
+            let states = feed(map, &pts, stamp);
+            stamp += pts.len() as u32;
+            states
+        };
+        // 1. A plane with 2 mm noise and ring normals within ~3 degrees: converges at eta = 25.
+        let c = centre(0);
+        let pts: Vec<MapPoint> = (0..50)
+            .map(|_| mp(plane_point(&mut rng, c, n, s, 0.002), Some(jitter(&mut rng, n, 3.0))))
+            .collect();
+        let states = run(&mut map, pts.clone());
+        assert!(states[..24].iter().all(|s| *s == VoxelState::Accumulating));
+        assert!(states[24..].iter().all(|s| *s == VoxelState::Converged));
+        let h = map.find(pts[0].xyz).unwrap();
+        let info = map.voxel(h).unwrap();
+        assert_eq!(info.count, 25); // fixed at convergence
+        let sf = map.small_surfel(h).unwrap();
+        assert!(angle_deg(to64(sf.normal), n) < 1.0, "{:?}", sf.normal);
+        assert!(sf.eigenvalues[0] < 1e-5 && sf.eigenvalues[1] > 100.0 * sf.eigenvalues[0]);
+        // The voxel normal of a converged voxel: the average of ring normal and e_d.
+        assert!(angle_deg(to64(info.normal.unwrap()), n) < 2.0);
+
+        // 2. The same plane, ring normals 35 degrees off: never converges, saturates at 2 eta.
+        let c = centre(2);
+        let tilted = unit([n[0] + 0.7, n[1], n[2]]);
+        assert!((angle_deg(tilted, n) - 35.0).abs() < 5.0);
+        let pts: Vec<MapPoint> =
+            (0..60).map(|_| mp(plane_point(&mut rng, c, n, s, 0.002), Some(tilted))).collect();
+        let states = run(&mut map, pts.clone());
+        assert!(states[..49].iter().all(|s| *s == VoxelState::Accumulating));
+        assert!(states[49..].iter().all(|s| *s == VoxelState::Saturated));
+        let h = map.find(pts[0].xyz).unwrap();
+        assert_eq!(map.voxel(h).unwrap().count, 50);
+        assert_eq!(map.small_surfel(h), Err(SurfelReject::NotConverged));
+        // ... although the distribution itself is a surfel: convergence needs the ring normal.
+        let shape = Shape::of_covariance(&map.voxel_moments(h).unwrap().covariance());
+        assert_eq!(map.config().criteria.check(&shape), Ok(()));
+
+        // 3. No normals at all: saturates. 4. Incoherent normals (+n / -n alternating): saturates.
+        // 5. Normals all flipped (-n): converges, with e_d oriented along them.
+        for (case, want) in
+            [(3, VoxelState::Saturated), (4, VoxelState::Saturated), (5, VoxelState::Converged)]
+        {
+            let c = centre(2 * case);
+            let pts: Vec<MapPoint> = (0..50)
+                .map(|i| {
+                    let p = plane_point(&mut rng, c, n, s, 0.002);
+                    let nn = match case {
+                        3 => None,
+                        4 if i % 2 == 0 => Some(n),
+                        4 => Some([-n[0], -n[1], -n[2]]),
+                        _ => Some([-n[0], -n[1], -n[2]]),
+                    };
+                    mp(p, nn)
+                })
+                .collect();
+            let states = run(&mut map, pts.clone());
+            assert_eq!(*states.last().unwrap(), want, "case {case}");
+            if want == VoxelState::Converged {
+                let sf = map.small_surfel_at(pts[0].xyz).unwrap();
+                assert!(angle_deg(to64(sf.normal), [-n[0], -n[1], -n[2]]) < 1.0);
+            }
+        }
+
+        // 6. A corner: two perpendicular planes through the voxel centre.
+        let c = centre(12);
+        let m = unit([1.0, 0.0, 0.2]);
+        let pts: Vec<MapPoint> = (0..50)
+            .map(|i| {
+                let nn = if i % 2 == 0 { n } else { m };
+                mp(plane_point(&mut rng, c, nn, s, 0.002), Some(nn))
+            })
+            .collect();
+        let states = run(&mut map, pts.clone());
+        assert_eq!(*states.last().unwrap(), VoxelState::Saturated);
+        let shape =
+            Shape::of_covariance(&map.voxel_moments(map.find(pts[0].xyz).unwrap()).unwrap().covariance());
+        assert!(map.config().criteria.check(&shape).is_err());
+
+        // 7. A pole: a vertical cylinder of radius 5 cm, radial normals.
+        let c = centre(14);
+        let pts: Vec<MapPoint> = (0..50)
+            .map(|_| {
+                let a = rng.uniform(0.0, core::f64::consts::TAU);
+                let (sa, ca) = (libm::sin(a), libm::cos(a));
+                let z = rng.uniform(-0.19, 0.19);
+                mp([c[0] + 0.05 * ca, c[1] + 0.05 * sa, c[2] + z], Some([ca, sa, 0.0]))
+            })
+            .collect();
+        let states = run(&mut map, pts.clone());
+        assert_eq!(*states.last().unwrap(), VoxelState::Saturated);
+        let shape =
+            Shape::of_covariance(&map.voxel_moments(map.find(pts[0].xyz).unwrap()).unwrap().covariance());
+        assert_eq!(map.config().criteria.check(&shape), Err(SurfelReject::NotPlanar));
+
+        // 8. A random cloud filling the voxel (vegetation).
+        let c = centre(16);
+        let pts: Vec<MapPoint> = (0..50)
+            .map(|_| {
+                let p = [
+                    c[0] + rng.uniform(-0.19, 0.19),
+                    c[1] + rng.uniform(-0.19, 0.19),
+                    c[2] + rng.uniform(-0.19, 0.19),
+                ];
+                mp(p, Some(jitter(&mut rng, [0.0, 0.0, 1.0], 60.0)))
+            })
+            .collect();
+        let states = run(&mut map, pts.clone());
+        assert_eq!(*states.last().unwrap(), VoxelState::Saturated);
+
+        // 9. A plane with 3 cm noise (too thick for gamma > 100): saturates.
+        let c = centre(18);
+        let pts: Vec<MapPoint> = (0..50).map(|_| mp(plane_point(&mut rng, c, n, s, 0.03), Some(n))).collect();
+        let states = run(&mut map, pts.clone());
+        assert_eq!(*states.last().unwrap(), VoxelState::Saturated);
+        let shape =
+            Shape::of_covariance(&map.voxel_moments(map.find(pts[0].xyz).unwrap()).unwrap().covariance());
+        assert_eq!(map.config().criteria.check(&shape), Err(SurfelReject::NotThin));
+    }
+
+    #[test]
+    fn fixed_voxels_keep_their_distribution_but_refresh_stamp_and_representatives() {
+        let (mut pool, mut index) = storage(16);
+        let mut map = VoxelMap::new(&mut pool, &mut index, MapConfig::VLP32C).unwrap();
+        let mut rng = Rng(21);
+        let c = [2.2, 2.2, 0.2];
+        let n = [0.0, 0.0, 1.0];
+        let pts: Vec<MapPoint> =
+            (0..25).map(|_| mp(plane_point(&mut rng, c, n, 0.4, 0.0), Some(n))).collect();
+        feed(&mut map, &pts, 0);
+        let h = map.find(pts[0].xyz).unwrap();
+        let before = map.voxel_moments(h).unwrap();
+        let info = map.voxel(h).unwrap();
+        assert_eq!(info.state, VoxelState::Converged);
+        // The plane z = 0.2 runs through the centre: its points have z offset 0 and fill the
+        // upper four octants (offset >= 0); two points below fill two of the lower ones.
+        let extra = [mp([2.3, 2.3, 0.1], Some(n)), mp([2.1, 2.1, 0.1], Some(n))];
+        let reps_before = map.pool[h.index()].occupied;
+        let st = map.insert_slice(&extra, [0.0; 3], 100).unwrap();
+        assert_eq!((st.inserted, st.accumulated), (2, 0));
+        assert_eq!(map.voxel_moments(h).unwrap(), before);
+        let after = map.voxel(h).unwrap();
+        assert_eq!((after.count, after.last_seen, after.state), (25, 100, VoxelState::Converged));
+        assert_eq!(map.pool[h.index()].occupied.count_ones(), reps_before.count_ones() + 2);
+    }
+
+    #[test]
+    fn far_from_origin_voxel_sums_hold_where_world_frame_f32_sums_fail() {
+        let (mut pool, mut index) = storage(16);
+        let mut map = VoxelMap::new(&mut pool, &mut index, MapConfig::VLP32C).unwrap();
+        let mut rng = Rng(33);
+        // A tilted plane 10 km from the origin; the sensor nearby.
+        let c = [10_000.2, -10_000.2, 30.2];
+        let n = unit([0.3, 0.1, 1.0]);
+        let pts: Vec<MapPoint> =
+            (0..25).map(|_| mp(plane_point(&mut rng, c, n, 0.4, 0.001), Some(n))).collect();
+        for (i, p) in pts.iter().enumerate() {
+            map.insert_slice(core::slice::from_ref(p), [10_000.0, -10_000.0, 31.0], i as u32).unwrap();
+        }
+        let sf = map.small_surfel_at(pts[0].xyz).unwrap();
+        assert!(angle_deg(to64(sf.normal), n) < 1.0, "normal {:?}", sf.normal);
+        let want = Moments::from_points(c, &pts.iter().map(|p| to64(p.xyz)).collect::<Vec<_>>());
+        let wm = want.mean().unwrap();
+        for a in 0..3 {
+            assert!((f64::from(sf.mean[a]) - wm[a]).abs() < 2e-3);
+        }
+        // The reference's scheme: world-frame f32 sums of p and p pᵀ, covariance S/n - mean meanᵀ.
+        let mut s = [0.0f32; 6];
+        let mut sum = [0.0f32; 3];
+        for p in &pts {
+            let x = p.xyz;
+            sum = [sum[0] + x[0], sum[1] + x[1], sum[2] + x[2]];
+            let o = [x[0] * x[0], x[0] * x[1], x[0] * x[2], x[1] * x[1], x[1] * x[2], x[2] * x[2]];
+            for i in 0..6 {
+                s[i] += o[i];
+            }
+        }
+        let k = pts.len() as f32;
+        let m = [sum[0] / k, sum[1] / k, sum[2] / k];
+        let mm = [m[0] * m[0], m[0] * m[1], m[0] * m[2], m[1] * m[1], m[1] * m[2], m[2] * m[2]];
+        let naive: surfel::Sym3 = core::array::from_fn(|i| f64::from(s[i] / k - mm[i]));
+        let shape = Shape::of_covariance(&naive);
+        let normal_err = angle_deg(shape.normal(), n).min(180.0 - angle_deg(shape.normal(), n));
+        // Points inside a 0.4 m cube have no variance above 3 * 0.2^2 = 0.12 m²; the naive
+        // covariance is off by orders of magnitude (12.5 m² here) and its normal is garbage.
+        assert!(shape.eigenvalues[2] > 0.12, "world-frame f32 sums unexpectedly fine: {shape:?}");
+        assert!(
+            SurfelCriteria::DEFAULT.check(&shape).is_err() || normal_err > 10.0,
+            "world-frame f32 sums unexpectedly fine: {shape:?}"
+        );
+    }
+
+    /// Fills a grid of `nx x ny` voxels (keys `k0 + (i, j, 0)`) with points of planes with
+    /// normal `normal` through the voxel centres (raised by `lift(i, j)` metres): one point per
+    /// voxel per scan, `per_voxel` scans stamped from `stamp0`. Points are stratified over a
+    /// 5 x 5 grid of the patch (scan `t` takes cell `t mod 25`, as a moving sensor spreads its
+    /// samples) so 25 points cover the patch evenly: with 25 uniform random points a flat
+    /// square fails `rho > 0.6` 7 % of the time. Returns every point inserted.
+    #[allow(clippy::too_many_arguments)]
+    fn plane_grid(
+        map: &mut VoxelMap,
+        rng: &mut Rng,
+        k0: [i32; 3],
+        nx: i32,
+        ny: i32,
+        per_voxel: usize,
+        normal: [f64; 3],
+        lift: impl Fn(i32, i32) -> f64,
+        stamp0: u32,
+    ) -> Vec<[f32; 3]> {
+        let s = f64::from(map.config().voxel_size);
+        let t = if normal[0].abs() < 0.9 { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] };
+        let u = unit(cross(normal, t));
+        let v = cross(normal, u);
+        let half = 0.35 * s; // the patch stays inside the voxel however it is rotated
+        let mut all = Vec::new();
+        for scan in 0..per_voxel {
+            let cell = (stamp0 as usize + scan) % 25;
+            let mut batch = Vec::new();
+            for i in 0..nx {
+                for j in 0..ny {
+                    let c = [
+                        (f64::from(k0[0] + i) + 0.5) * s,
+                        (f64::from(k0[1] + j) + 0.5) * s,
+                        (f64::from(k0[2]) + 0.5) * s + lift(i, j),
+                    ];
+                    let a = half * (2.0 * ((cell % 5) as f64 + rng.uniform(0.0, 1.0)) / 5.0 - 1.0);
+                    let b = half * (2.0 * ((cell / 5) as f64 + rng.uniform(0.0, 1.0)) / 5.0 - 1.0);
+                    let w = 0.001 * rng.gauss();
+                    let p: [f64; 3] = core::array::from_fn(|x| c[x] + a * u[x] + b * v[x] + w * normal[x]);
+                    let k = [k0[0] + i, k0[1] + j, k0[2] + libm::floor(lift(i, j) / s + 0.5) as i32];
+                    assert_eq!(map.key_of(p32(p)), Some(k), "test point left its voxel");
+                    batch.push(mp(p, Some(jitter(rng, normal, 2.0))));
+                }
+            }
+            let sensor = p32([(f64::from(k0[0]) + 0.5) * s, (f64::from(k0[1]) + 0.5) * s, 2.0]);
+            map.insert_slice(&batch, sensor, stamp0 + scan as u32).unwrap();
+            all.extend(batch.iter().map(|p| p.xyz));
+        }
+        all
+    }
+
+    fn handles(map: &VoxelMap, k0: [i32; 3], nx: i32, ny: i32) -> Vec<VoxelHandle> {
+        let mut out = Vec::new();
+        for i in 0..nx {
+            for j in 0..ny {
+                out.push(map.find_key([k0[0] + i, k0[1] + j, k0[2]]).unwrap());
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn large_surfel_equals_the_union_and_rejects_non_coplanar_neighbourhoods() {
+        let (mut pool, mut index) = storage(256);
+        // Voxels 10 km apart stay in the map: no distance eviction here.
+        let cfg = MapConfig { evict_radius: 1e5, ..MapConfig::VLP32C };
+        let mut map = VoxelMap::new(&mut pool, &mut index, cfg).unwrap();
+        let mut rng = Rng(77);
+        // A horizontal floor of 3 x 3 voxels, 25 points each: all converge, all points counted.
+        // Near the origin and 10 km out.
+        for (k0, stamp0) in [([10, 10, 0], 0), ([25_000, -25_000, 10], 50)] {
+            let n = [0.0, 0.0, 1.0];
+            let pts = plane_grid(&mut map, &mut rng, k0, 3, 3, 25, n, |_, _| 0.0, stamp0);
+            let hs = handles(&map, k0, 3, 3);
+            assert!(hs.iter().all(|h| map.voxel(*h).unwrap().state == VoxelState::Converged));
+            let ls = map.large_surfel(&hs).unwrap();
+            let want = Moments::from_points(to64(pts[0]), &pts.iter().map(|p| to64(*p)).collect::<Vec<_>>());
+            let wshape = Shape::of_covariance(&want.covariance());
+            assert_eq!((ls.count, ls.voxels), (225, 9));
+            let wm = want.mean().unwrap();
+            for a in 0..3 {
+                // f32 output; 10 km out the f32 mean itself is quantised to 1 mm.
+                assert!((f64::from(ls.mean[a]) - wm[a]).abs() < 1e-3, "{:?} vs {wm:?}", ls.mean);
+                assert!((f64::from(ls.eigenvalues[a]) - wshape.eigenvalues[a]).abs() < 1e-6);
+            }
+            assert!(angle_deg(to64(ls.normal), n) < 0.5, "{:?}", ls.normal); // oriented with the ring normals
+            // The merged covariance equals the union's entry by entry (f32 sums: 1e-6 m²).
+            let mut merged = Moments::new(to64(pts[0]));
+            for h in &hs {
+                merged.merge(&map.voxel_moments(*h).unwrap());
+            }
+            let (mc, wc) = (merged.covariance(), want.covariance());
+            for i in 0..6 {
+                assert!((mc[i] - wc[i]).abs() < 1e-6, "{mc:?} vs {wc:?}");
+            }
+            // Duplicates count once.
+            let mut dup = hs.clone();
+            dup.extend_from_slice(&hs[..4]);
+            assert_eq!(map.large_surfel(&dup), Ok(ls));
+        }
+        let hs = handles(&map, [10, 10, 0], 3, 3);
+        // Too few points (2 voxels x 25 < 63) and too few voxels.
+        assert_eq!(map.large_surfel(&hs[..2]), Err(SurfelReject::TooFewPoints));
+        assert_eq!(map.large_surfel(&hs[..1]), Err(SurfelReject::TooFewVoxels));
+        assert_eq!(map.large_surfel(&[]), Err(SurfelReject::TooFewVoxels));
+
+        // A crease: a floor beside a wall (vertical plane) is no surfel.
+        let kf = [40, 10, 0];
+        plane_grid(&mut map, &mut rng, kf, 2, 3, 25, [0.0, 0.0, 1.0], |_, _| 0.0, 100);
+        let kw = [42, 10, 1];
+        plane_grid(&mut map, &mut rng, kw, 1, 3, 25, [1.0, 0.0, 0.0], |_, _| 0.0, 200);
+        let mut mix = handles(&map, kf, 2, 3);
+        mix.extend(handles(&map, kw, 1, 3));
+        let r = map.large_surfel(&mix);
+        assert!(matches!(r, Err(SurfelReject::NotPlanar | SurfelReject::NotThin)), "{r:?}");
+
+        // A step: one column of the 3 x 3 floor raised by 18 cm (same voxel layer). The merged
+        // plane tilts to follow the step and is too thick for gamma > 100.
+        let ks = [60, 10, 0];
+        plane_grid(
+            &mut map,
+            &mut rng,
+            ks,
+            3,
+            3,
+            25,
+            [0.0, 0.0, 1.0],
+            |i, _| if i == 2 { 0.18 } else { 0.0 },
+            300,
+        );
+        let hs = handles(&map, ks, 3, 3);
+        assert_eq!(map.large_surfel(&hs), Err(SurfelReject::NotThin));
+        // Without the criteria, the mean-distance test decides: the column means lie about
+        // 6 cm from the tilted plane, so it fails at 5 cm and passes at the default 15 cm.
+        map.cfg.large.apply_criteria = false;
+        map.cfg.large.max_mean_distance = 0.05;
+        assert_eq!(map.large_surfel(&hs), Err(SurfelReject::OffPlane));
+        map.cfg.large.max_mean_distance = 0.15;
+        assert!(map.large_surfel(&hs).is_ok());
+        // A 12 cm step is NOT rejected by the default criteria (gamma ~ 126, the plane tilts
+        // 8 degrees to follow it): a limit of the paper's test worth knowing downstream.
+        map.cfg.large = LargeSurfelConfig::DEFAULT;
+        let ks = [70, 10, 0];
+        plane_grid(
+            &mut map,
+            &mut rng,
+            ks,
+            3,
+            3,
+            25,
+            [0.0, 0.0, 1.0],
+            |i, _| if i == 2 { 0.12 } else { 0.0 },
+            400,
+        );
+        let ls = map.large_surfel(&handles(&map, ks, 3, 3)).unwrap();
+        assert!(angle_deg(to64(ls.normal), [0.0, 0.0, 1.0]) > 5.0);
+
+        // Voxels below eta do not take part.
+        let kl = [80, 10, 0];
+        plane_grid(&mut map, &mut rng, kl, 3, 3, 10, [0.0, 0.0, 1.0], |_, _| 0.0, 500);
+        let mut with_small = handles(&map, [10, 10, 0], 3, 3);
+        with_small.extend(handles(&map, kl, 3, 3));
+        assert_eq!(map.large_surfel(&with_small).unwrap().voxels, 9);
+        assert_eq!(map.large_surfel(&handles(&map, kl, 3, 3)), Err(SurfelReject::TooFewVoxels));
+    }
+
+    #[test]
+    fn small_surfel_only_for_converged_voxels() {
+        let (mut pool, mut index) = storage(64);
+        let mut map = VoxelMap::new(&mut pool, &mut index, MapConfig::VLP32C).unwrap();
+        let mut rng = Rng(3);
+        plane_grid(&mut map, &mut rng, [0, 0, 0], 1, 1, 24, [0.0, 0.0, 1.0], |_, _| 0.0, 0);
+        let p = [0.2, 0.2, 0.2];
+        assert_eq!(map.small_surfel_at(p), Err(SurfelReject::NotConverged));
+        assert_eq!(map.small_surfel_at([5.0, 5.0, 5.0]), Err(SurfelReject::InvalidHandle));
+        plane_grid(&mut map, &mut rng, [0, 0, 0], 1, 1, 1, [0.0, 0.0, 1.0], |_, _| 0.0, 24);
+        let sf = map.small_surfel_at(p).unwrap();
+        assert_eq!(sf.count, 25);
+        assert!((sf.mean[2] - 0.2).abs() < 2e-3);
+        assert!(sf.normal[2] > 0.999);
+        assert_eq!(sf.voxel, map.find(p).unwrap());
+    }
+
+    /// Brute-force k-NN over every representative point of the map.
+    fn brute_knn(
+        map: &VoxelMap,
+        q: [f32; 3],
+        k: usize,
+        max_dist: f32,
+        one_per_voxel: bool,
+        block_only: bool,
+    ) -> Vec<(f64, VoxelHandle, [f32; 3])> {
+        let qk = map.key_of(q).unwrap();
+        let mut all: Vec<(f64, VoxelHandle, [f32; 3])> = Vec::new();
+        map.for_each_point(|h, p, _| {
+            let key = map.voxel(h).unwrap().key;
+            if block_only && (0..3).any(|a| (key[a] - qk[a]).abs() > 1) {
+                return;
+            }
+            let d = surfel::sub3(to64(p), to64(q));
+            let d2 = surfel::dot3(d, d);
+            if d2 <= f64::from(max_dist) * f64::from(max_dist) {
+                all.push((d2, h, p));
+            }
+        });
+        all.sort_by(|a, b| a.0.partial_cmp(&b.0).unwrap());
+        if one_per_voxel {
+            let mut seen = Vec::new();
+            all.retain(|x| {
+                if seen.contains(&x.1) {
+                    false
+                } else {
+                    seen.push(x.1);
+                    true
+                }
+            });
+        }
+        all.truncate(k);
+        all
+    }
+
+    #[test]
+    fn knn_equals_brute_force_on_random_data() {
+        let (mut pool, mut index) = storage(2048);
+        let mut map = VoxelMap::new(&mut pool, &mut index, MapConfig::VLP32C).unwrap();
+        let mut rng = Rng(123);
+        // Random points in a 3 x 3 x 2 m box, clustered unevenly (some voxels dense, some sparse,
+        // many empty), with and without normals, inserted in 20 scans.
+        for scan in 0..20u32 {
+            let batch: Vec<MapPoint> = (0..400)
+                .map(|i| {
+                    let p = if i % 2 == 0 {
+                        [rng.uniform(-1.5, 1.5), rng.uniform(-1.5, 1.5), rng.uniform(0.0, 2.0)]
+                    } else {
+                        [rng.uniform(-0.3, 0.5), rng.uniform(0.1, 0.9), rng.uniform(0.5, 0.7)]
+                    };
+                    mp(p, if i % 4 == 0 { None } else { Some(jitter(&mut rng, [0.0, 0.0, 1.0], 30.0)) })
+                })
+                .collect();
+            map.insert_slice(&batch, [0.0, 0.0, 1.0], scan).unwrap();
+        }
+        assert!(map.point_count() > 1500, "{}", map.point_count());
+        let mut out = Neighbours::new();
+        let mut checked = 0;
+        for qi in 0..400 {
+            let q = p32([rng.uniform(-1.7, 1.7), rng.uniform(-1.7, 1.7), rng.uniform(-0.2, 2.2)]);
+            for (k, max_dist, one, block_only) in [
+                (5, 0.4, false, false),
+                (1, 0.4, false, false),
+                (8, 0.3, false, false),
+                (5, 0.4, true, false),
+                (8, 0.25, true, false),
+                (5, 1.0, false, true), // beyond one voxel: exact within the 27-voxel block
+                (5, 1.0, true, true),
+            ] {
+                let n = map.knn(q, &KnnQuery { k, max_dist, one_per_voxel: one }, &mut out);
+                let want = brute_knn(&map, q, k, max_dist, one, block_only);
+                assert_eq!(n, want.len(), "query {qi} {q:?} k {k} r {max_dist} one {one}");
+                assert_eq!(out.len(), n);
+                for (i, (got, w)) in out.as_slice().iter().zip(&want).enumerate() {
+                    assert!((f64::from(got.dist2) - w.0).abs() < 1e-5, "query {qi} #{i}: {got:?} vs {w:?}");
+                    // The point is a real map point of the voxel named, at the distance given.
+                    let d = surfel::sub3(to64(got.point), to64(q));
+                    assert!((surfel::dot3(d, d) - f64::from(got.dist2)).abs() < 1e-5);
+                    assert_eq!(map.key_of(got.point), Some(map.voxel(got.voxel).unwrap().key));
+                    if i > 0 {
+                        assert!(got.dist2 >= out.as_slice()[i - 1].dist2);
+                    }
+                }
+                if one {
+                    let vs = out.voxels();
+                    for i in 0..n {
+                        assert!(!vs[..i].contains(&vs[i]), "voxel repeated");
+                    }
+                }
+                checked += n;
+            }
+        }
+        assert!(checked > 5000, "too few neighbours exercised: {checked}");
+        // knn_many gives exactly what knn gives, query by query (groups of 8 and a remainder).
+        let queries: Vec<[f32; 3]> = (0..203)
+            .map(|_| p32([rng.uniform(-1.7, 1.7), rng.uniform(-1.7, 1.7), rng.uniform(-0.2, 2.2)]))
+            .collect();
+        for query in [KnnQuery::new(5, 0.4), KnnQuery { k: 8, max_dist: 1.0, one_per_voxel: true }] {
+            let mut many = vec![Neighbours::new(); queries.len() + 3];
+            let total = map.knn_many(&queries, &query, &mut many);
+            let mut sum = 0;
+            for (q, m) in queries.iter().zip(&many) {
+                sum += map.knn(*q, &query, &mut out);
+                assert_eq!(m.as_slice(), out.as_slice());
+            }
+            assert_eq!(total, sum);
+            assert!(many[queries.len()..].iter().all(|m| m.is_empty()));
+        }
+    }
+
+    #[test]
+    fn knn_normals_plane_fit_and_large_surfel_work_together() {
+        let (mut pool, mut index) = storage(64);
+        let mut map = VoxelMap::new(&mut pool, &mut index, MapConfig::VLP32C).unwrap();
+        let mut rng = Rng(8);
+        // One voxel holding a tilted plane through its centre.
+        let n = unit([0.1, 0.2, 1.0]);
+        plane_grid(&mut map, &mut rng, [0, 0, 0], 1, 1, 25, n, |_, _| 0.0, 0);
+        let mut out = Neighbours::new();
+        let q = [0.2, 0.2, 0.2];
+        let found = map.knn(q, &KnnQuery::new(5, 0.4), &mut out);
+        assert!(found >= 4, "{found}");
+        for nb in out.as_slice() {
+            // i8-quantised normals: within 0.5 degrees of the input (itself jittered ~2 degrees).
+            assert!(angle_deg(to64(nb.normal().unwrap()), n) < 6.0);
+        }
+        let plane = out.fit_plane(0.1).unwrap();
+        let err = angle_deg(to64(plane.normal), n);
+        assert!(err.min(180.0 - err) < 1.0, "{err}");
+        // A floor of 3 x 3 voxels: 5-NN one per voxel name 5 distinct voxels whose merge is a
+        // large surfel.
+        plane_grid(&mut map, &mut rng, [5, 0, 0], 3, 3, 25, [0.0, 0.0, 1.0], |_, _| 0.0, 100);
+        let q = [2.6, 0.6, 0.21];
+        let query = KnnQuery { k: 5, max_dist: 0.4, one_per_voxel: true };
+        assert_eq!(map.knn(q, &query, &mut out), 5);
+        let ls = map.large_surfel(&out.voxels()[..out.len()]).unwrap();
+        assert_eq!((ls.voxels, ls.count), (5, 125));
+        assert!(ls.normal[2] > 0.999);
+    }
+
+    /// Checks the linear-probing invariants: every entry is reachable from its home bucket
+    /// without crossing an empty slot, entries name distinct live slots whose keys hash to the
+    /// entry's hash, and there is exactly one entry per live voxel.
+    fn check_index(map: &VoxelMap) {
+        let mask = map.mask;
+        let mut seen = vec![false; map.len];
+        let mut entries = 0;
+        for pos in 0..map.index.len() {
+            let e = map.index[pos];
+            if e.is_empty() {
+                continue;
+            }
+            entries += 1;
+            let slot = e.slot() as usize;
+            assert!(slot < map.len, "entry names a dead slot");
+            assert!(!seen[slot], "two entries for one slot");
+            seen[slot] = true;
+            assert_eq!(hash_key(map.pool[slot].key), e.hash());
+            let mut p = e.hash() as usize & mask;
+            while p != pos {
+                assert!(!map.index[p].is_empty(), "hole between home and entry");
+                p = (p + 1) & mask;
+            }
+        }
+        assert_eq!(entries, map.len);
+    }
+
+    const COLLIDING: [u32; 12] = [14, 15, 15, 0, 14, 1, 15, 0, 14, 2, 3, 15];
+
+    proptest::proptest! {
+        /// The raw index against a HashMap, with hashes chosen to collide (equal full hashes,
+        /// equal buckets, clusters wrapping around the end of a 16-slot table).
+        #[test]
+        fn index_with_colliding_hashes_matches_a_hashmap(
+            ops in proptest::collection::vec((0u8..3, 0u32..12), 1..300)
+        ) {
+            let mut index = [IndexSlot::EMPTY; 16];
+            let mask = 15;
+            let mut model: std::collections::HashMap<u32, usize> = std::collections::HashMap::new();
+            for (op, id) in ops {
+                let h = COLLIDING[id as usize];
+                let found = index_find(&index, mask, h, |s| s == id);
+                proptest::prop_assert_eq!(found.is_some(), model.contains_key(&id));
+                match op {
+                    0 if found.is_none() && model.len() < 8 => {
+                        proptest::prop_assert!(index_insert(&mut index, mask, h, id));
+                        model.insert(id, 0);
+                    }
+                    1 => {
+                        if let Some((pos, _)) = found {
+                            index_remove_at(&mut index, mask, pos);
+                            model.remove(&id);
+                        }
+                    }
+                    _ => {}
+                }
+                // Every id: found iff in the model; the cluster invariant holds.
+                for other in 0..12u32 {
+                    let f = index_find(&index, mask, COLLIDING[other as usize], |s| s == other);
+                    proptest::prop_assert_eq!(f.map(|x| x.1), model.get(&other).map(|_| other));
+                }
+                for pos in 0..16 {
+                    let e = index[pos];
+                    if e.is_empty() { continue; }
+                    let mut p = e.hash() as usize & mask;
+                    while p != pos {
+                        proptest::prop_assert!(!index[p].is_empty());
+                        p = (p + 1) & mask;
+                    }
+                }
+                proptest::prop_assert_eq!(index.iter().filter(|e| !e.is_empty()).count(), model.len());
+            }
+        }
+
+        /// The map against a model (key -> count) through inserts into a 16-voxel pool with
+        /// full-pool evictions: counts exact, nothing lost but the evicted voxel, and the evicted
+        /// voxel is always the farthest (then least recently used) one.
+        #[test]
+        fn map_insert_lookup_evict_matches_a_model(
+            ops in proptest::collection::vec(((-4i32..4, -4i32..4, -1i32..2), (-3i32..4, -3i32..4)), 1..250)
+        ) {
+            let cfg = MapConfig {
+                eta: 1000,
+                saturate_at: 2000,
+                evict_radius: 4.0,
+                sweep_per_insert: 0,
+                evict_batch: 1,
+                ..MapConfig::VLP32C
+            };
+            let (mut pool, mut index) = storage(16);
+            let mut map = VoxelMap::new(&mut pool, &mut index, cfg).unwrap();
+            let mut model: std::collections::HashMap<[i32; 3], u32> = std::collections::HashMap::new();
+            for (stamp, (k, sxy)) in ops.into_iter().enumerate() {
+                let stamp = stamp as u32 + 1;
+                let key = [k.0, k.1, k.2];
+                let p = [(k.0 as f32 + 0.3) * 0.4, (k.1 as f32 + 0.6) * 0.4, (k.2 as f32 + 0.5) * 0.4];
+                let sensor = [sxy.0 as f32 * 0.5, sxy.1 as f32 * 0.5, 0.0];
+                // Priorities before the insert: (distance bucket, age) of every voxel.
+                let prio: std::collections::HashMap<[i32; 3], (usize, u32)> = map
+                    .voxels()
+                    .map(|(h, v)| {
+                        let vx = &map.pool[h.index()];
+                        (v.key, (map.dist_bucket(vx, sensor), stamp - v.last_seen))
+                    })
+                    .collect();
+                let st = map.insert_slice(&[MapPoint { xyz: p, normal: None }], sensor, stamp).unwrap();
+                if st.dropped_far == 1 {
+                    proptest::prop_assert!(d2f(p, sensor) > 16.0);
+                } else {
+                    proptest::prop_assert_eq!(st.inserted, 1);
+                    if st.evicted_full == 1 {
+                        let gone: Vec<[i32; 3]> =
+                            model.keys().copied().filter(|k| map.find_key(*k).is_none()).collect();
+                        proptest::prop_assert_eq!(gone.len(), 1);
+                        let worst = prio.values().max().unwrap();
+                        proptest::prop_assert_eq!(prio[&gone[0]], *worst);
+                        model.remove(&gone[0]);
+                    } else {
+                        proptest::prop_assert_eq!(st.evicted_full, 0);
+                    }
+                    *model.entry(key).or_insert(0) += 1;
+                }
+                proptest::prop_assert!(map.len() <= 16);
+                proptest::prop_assert_eq!(map.len(), model.len());
+                for (k, c) in &model {
+                    let h = map.find_key(*k);
+                    proptest::prop_assert!(h.is_some());
+                    let v = map.voxel(h.unwrap()).unwrap();
+                    proptest::prop_assert_eq!((v.key, v.count), (*k, *c));
+                }
+                check_index(&map);
+            }
+        }
+    }
+
+    #[test]
+    fn full_pool_evicts_farthest_then_least_recently_used_and_never_the_current_scan() {
+        let cfg = MapConfig { evict_radius: 50.0, sweep_per_insert: 0, evict_batch: 1, ..MapConfig::VLP32C };
+        let (mut pool, mut index) = storage(8);
+        let mut map = VoxelMap::new(&mut pool, &mut index, cfg).unwrap();
+        let at = |x: f32, y: f32| MapPoint { xyz: [x, y, 0.1], normal: None };
+        // One scan with 12 voxels for 8 slots: the first 8 are kept, 4 points dropped (nothing
+        // of this scan may be evicted to make room for the rest of it).
+        let scan: Vec<MapPoint> = (0..12).map(|i| at(1.1 + i as f32, 0.1)).collect();
+        let st = map.insert_slice(&scan, [0.0; 3], 1).unwrap();
+        assert_eq!((st.new_voxels, st.dropped_full, st.evicted_full), (8, 4, 0));
+        assert_eq!(map.len(), 8);
+        for (i, p) in scan.iter().enumerate() {
+            assert_eq!(map.find(p.xyz).is_some(), i < 8);
+        }
+        // Next scan, sensor at the origin: two new voxels evict the two farthest (x = 8.1, 7.1).
+        let st = map.insert_slice(&[at(-1.1, 0.1), at(-2.1, 0.1)], [0.0; 3], 2).unwrap();
+        assert_eq!((st.new_voxels, st.evicted_full, st.dropped_full), (2, 2, 0));
+        assert!(map.find([8.1, 0.1, 0.1]).is_none() && map.find([7.1, 0.1, 0.1]).is_none());
+        assert!(map.find([6.1, 0.1, 0.1]).is_some());
+        // Distance comes before recency: x = 6.1, refreshed just now, is still the farthest and
+        // goes first.
+        map.insert_slice(&[at(6.1, 0.1)], [0.0; 3], 3).unwrap();
+        map.insert_slice(&[at(0.1, 3.1)], [0.0; 3], 4).unwrap();
+        assert!(map.find([6.1, 0.1, 0.1]).is_none(), "farthest goes first even if recent");
+        assert!(map.find([5.1, 0.1, 0.1]).is_some());
+        // Two voxels at exactly the same distance (mirror images), different ages.
+        let (mut pool, mut index) = storage(4);
+        let mut map = VoxelMap::new(&mut pool, &mut index, cfg).unwrap();
+        map.insert_slice(&[at(3.1, 0.1)], [0.0; 3], 1).unwrap(); // older
+        map.insert_slice(&[at(-3.1, 0.1)], [0.0; 3], 2).unwrap();
+        map.insert_slice(&[at(0.1, 0.1)], [0.0; 3], 3).unwrap();
+        map.insert_slice(&[at(0.5, 0.1)], [0.0; 3], 4).unwrap();
+        assert_eq!(map.len(), 4);
+        map.insert_slice(&[at(0.1, 1.1)], [0.0; 3], 5).unwrap();
+        assert!(map.find([3.1, 0.1, 0.1]).is_none(), "older of two equidistant voxels evicted");
+        assert!(map.find([-3.1, 0.1, 0.1]).is_some());
+        // Batches: evict_batch 3 frees three at once, then the next two creations need none.
+        let cfg3 = MapConfig { evict_batch: 3, ..cfg };
+        let (mut pool, mut index) = storage(6);
+        let mut map = VoxelMap::new(&mut pool, &mut index, cfg3).unwrap();
+        let six: Vec<MapPoint> = (0..6).map(|i| at(1.1 + i as f32, 0.1)).collect();
+        map.insert_slice(&six, [0.0; 3], 1).unwrap();
+        let st = map.insert_slice(&[at(0.1, 1.1), at(0.1, 2.1), at(0.1, 3.1)], [0.0; 3], 2).unwrap();
+        assert_eq!((st.evicted_full, st.new_voxels), (3, 3));
+        assert_eq!(map.counters().evicted_full, 3);
+        check_index(&map);
+    }
+
+    #[test]
+    fn distance_sweep_evicts_voxels_behind_a_moving_sensor_at_a_bounded_rate() {
+        let cfg = MapConfig { evict_radius: 5.0, sweep_per_insert: 8, ..MapConfig::VLP32C };
+        let (mut pool, mut index) = storage(64);
+        let mut map = VoxelMap::new(&mut pool, &mut index, cfg).unwrap();
+        let pts: Vec<MapPoint> = (0..40)
+            .map(|i| MapPoint {
+                xyz: [(i % 8) as f32 * 0.4 + 0.1, (i / 8) as f32 * 0.4 + 0.1, 0.1],
+                normal: None,
+            })
+            .collect();
+        map.insert_slice(&pts, [0.0; 3], 1).unwrap();
+        assert_eq!(map.len(), 40);
+        // The sensor stays: nothing is evicted.
+        let st = map.insert_slice(&[], [0.0; 3], 2).unwrap();
+        assert_eq!(st.evicted_far, 0);
+        // The sensor leaves: at most 8 slots are checked per call, so the 40 (plus the new
+        // voxel near the sensor, which is checked and kept) are swept within ceil(41 / 8) = 6
+        // calls; the voxel near the new position stays.
+        let near = MapPoint { xyz: [100.1, 0.1, 0.1], normal: None };
+        let mut total = 0;
+        let mut calls = 0;
+        while map.len() > 1 {
+            let st = map.insert_slice(&[near], [100.0, 0.0, 0.0], 3 + calls).unwrap();
+            assert!(st.evicted_far <= 8);
+            total += st.evicted_far;
+            calls += 1;
+            check_index(&map);
+            assert!(calls <= 6, "sweep too slow");
+        }
+        assert_eq!(total, 40);
+        assert_eq!(map.voxel(map.find(near.xyz).unwrap()).unwrap().count, calls);
+        assert_eq!(map.counters().evicted_far, 40);
+        // Points beyond the radius are not inserted.
+        let st = map.insert_slice(&pts, [100.0, 0.0, 0.0], 20).unwrap();
+        assert_eq!((st.dropped_far, st.inserted), (40, 0));
+    }
+
+    /// A deterministic number in [0, 1) from integers.
+    fn hash01(a: i64, b: i64, c: i64) -> f64 {
+        let mut r = Rng((a as u64).wrapping_mul(0x9E37_79B9)
+            ^ (b as u64).wrapping_mul(0x85EB_CA6B)
+            ^ (c as u64) << 40);
+        r.uniform(0.0, 1.0)
+    }
+
+    /// The sensor position (2-D) at scan `t`: 2 km along +x, a 270 degree left turn of radius
+    /// 30 m, then 200 m along -y, crossing the first leg (whose voxels were evicted long ago).
+    fn trajectory(t: usize) -> [f64; 2] {
+        let arc = 141; // 30 m * 3 pi / 2
+        if t <= 2000 {
+            [t as f64, 0.0]
+        } else if t <= 2000 + arc {
+            let a = -core::f64::consts::FRAC_PI_2 + (t - 2000) as f64 / 30.0;
+            [2000.0 + 30.0 * libm::cos(a), 30.0 + 30.0 * libm::sin(a)]
+        } else {
+            let end = -core::f64::consts::FRAC_PI_2 + arc as f64 / 30.0;
+            let p = [2000.0 + 30.0 * libm::cos(end), 30.0 + 30.0 * libm::sin(end)];
+            [p[0], p[1] - (t - 2000 - arc) as f64]
+        }
+    }
+
+    /// One downsampled scan at scan `t`: a point in every ground voxel within 12 m (2-D) of the
+    /// sensor, and the surface points of poles (every 25 m along x at y = 6, 3 m tall) in range.
+    fn scene_scan(t: usize, s: f64) -> Vec<MapPoint> {
+        let [sx, sy] = trajectory(t);
+        let r = 12.0;
+        let mut out = Vec::new();
+        let (x0, x1) = (libm::floor((sx - r) / s) as i64, libm::ceil((sx + r) / s) as i64);
+        let (y0, y1) = (libm::floor((sy - r) / s) as i64, libm::ceil((sy + r) / s) as i64);
+        for ix in x0..=x1 {
+            for iy in y0..=y1 {
+                let (cx, cy) = ((ix as f64 + 0.5) * s, (iy as f64 + 0.5) * s);
+                if (cx - sx) * (cx - sx) + (cy - sy) * (cy - sy) > r * r {
+                    continue;
+                }
+                let u = 0.05 + 0.9 * hash01(ix, iy, t as i64);
+                let v = 0.05 + 0.9 * hash01(iy, ix, 3 * t as i64 + 1);
+                let w = hash01(ix ^ iy, t as i64, 7) - 0.5;
+                out.push(mp(
+                    [(ix as f64 + u) * s, (iy as f64 + v) * s, 0.1 + 0.004 * w],
+                    Some([0.0, 0.0, 1.0]),
+                ));
+            }
+        }
+        let mut px = libm::floor((sx - r) / 25.0) * 25.0;
+        while px <= sx + r {
+            if (px - sx) * (px - sx) + (6.0 - sy) * (6.0 - sy) <= r * r {
+                for j in 0..6 {
+                    let a = core::f64::consts::TAU * hash01(px as i64, j, t as i64);
+                    let (ca, sa) = (libm::cos(a), libm::sin(a));
+                    out.push(mp([px + 0.1 * ca, 6.0 + 0.1 * sa, 0.5 + 0.5 * j as f64], Some([ca, sa, 0.0])));
+                }
+            }
+            px += 25.0;
+        }
+        out
+    }
+
+    #[test]
+    fn long_trajectory_keeps_the_sensor_neighbourhood_intact_in_a_fixed_pool() {
+        // 0.5 m voxels, 30 m eviction radius. A pool of 3072 voxels cannot hold the voxels the
+        // scans leave within 30 m of the sensor (about 3,600): it runs full and evicts the
+        // farthest. A pool of 8192 can: the distance sweep alone keeps it bounded.
+        let full = run_trajectory(3072);
+        assert!(full.evicted_full > 0, "the pool never ran full: {full:?}");
+        let swept = run_trajectory(8192);
+        assert!(swept.evicted_far > 100_000 && swept.evicted_full == 0, "{swept:?}");
+    }
+
+    /// Drives the map along [`trajectory`] with a pool of `cap` voxels, checking after every
+    /// scan that no voxel within 20 m of the sensor was lost and that counts (every scan) and
+    /// distributions (every 100 scans) equal a reference built from the points inserted.
+    fn run_trajectory(cap: usize) -> MapCounters {
+        let cfg = MapConfig { evict_radius: 30.0, sweep_per_insert: 512, ..MapConfig::OS1_16 };
+        let s = f64::from(cfg.voxel_size);
+        let (mut pool, mut index) = storage(cap);
+        let mut map = VoxelMap::new(&mut pool, &mut index, cfg).unwrap();
+        // The reference: per key, the points since the voxel was (re)created (the first 50 kept).
+        struct Ref {
+            count: u32,
+            pts: Vec<[f64; 3]>,
+        }
+        let mut model: HashMap<[i32; 3], Ref> = HashMap::new();
+        let intact_radius = 20.0; // every voxel within this of the sensor must survive
+        let steps = 2000 + 141 + 200;
+        let mut max_len = 0;
+        for t in 0..=steps {
+            let [sx, sy] = trajectory(t);
+            let sensor = p32([sx, sy, 1.5]);
+            let scan = scene_scan(t, s);
+            let st = map.insert_slice(&scan, sensor, t as u32).unwrap();
+            assert_eq!((st.dropped_full, st.dropped_invalid, st.dropped_far), (0, 0, 0), "scan {t}");
+            assert_eq!(st.inserted as usize, scan.len());
+            assert!(map.len() <= cap);
+            max_len = max_len.max(map.len());
+            // Voxels gone from the map must have been far from the sensor.
+            model.retain(|k, _| {
+                if map.find_key(*k).is_some() {
+                    return true;
+                }
+                let c = to64(map.centre(*k));
+                let d = libm::sqrt(
+                    (c[0] - sx) * (c[0] - sx) + (c[1] - sy) * (c[1] - sy) + (c[2] - 1.5) * (c[2] - 1.5),
+                );
+                assert!(d > intact_radius, "scan {t}: voxel {k:?} {d:.1} m from the sensor was evicted");
+                false
+            });
+            for p in &scan {
+                let k = map.key_of(p.xyz).unwrap();
+                let e = model.entry(k).or_insert(Ref { count: 0, pts: Vec::new() });
+                e.count += 1;
+                if e.pts.len() < 50 {
+                    e.pts.push(to64(p.xyz));
+                }
+            }
+            // Every voxel the model knows: present, with the count its history implies.
+            for (k, r) in &model {
+                let h = map.find_key(*k).unwrap_or_else(|| panic!("scan {t}: voxel {k:?} lost"));
+                let v = map.voxel(h).unwrap();
+                match v.state {
+                    VoxelState::Accumulating => assert_eq!(v.count, r.count, "scan {t} {k:?}"),
+                    _ => assert!(v.count <= r.count && (v.count == 25 || v.count == 50), "scan {t} {k:?}"),
+                }
+            }
+            // Now and then, the distributions themselves near the sensor.
+            if t % 100 == 0 {
+                let mut checked = 0;
+                for (k, r) in &model {
+                    let c = to64(map.centre(*k));
+                    if (c[0] - sx).hypot(c[1] - sy) > intact_radius {
+                        continue;
+                    }
+                    let h = map.find_key(*k).unwrap();
+                    let got = map.voxel_moments(h).unwrap();
+                    let want = Moments::from_points(c, &r.pts[..got.n as usize]);
+                    let (gm, wm) = (got.mean().unwrap(), want.mean().unwrap());
+                    let (gc, wc) = (got.covariance(), want.covariance());
+                    for a in 0..3 {
+                        assert!((gm[a] - wm[a]).abs() < 1e-4, "scan {t} {k:?}: {gm:?} vs {wm:?}");
+                    }
+                    for i in 0..6 {
+                        assert!((gc[i] - wc[i]).abs() < 1e-6, "scan {t} {k:?}: {gc:?} vs {wc:?}");
+                    }
+                    checked += 1;
+                }
+                assert!(checked > 1500, "scan {t}: only {checked} voxels near the sensor");
+            }
+            if t % 200 == 0 {
+                check_index(&map);
+            }
+        }
+        let c = map.counters();
+        assert!(c.created > 10 * cap as u64, "the pool was not cycled: {c:?}");
+        assert!(max_len <= cap);
+        assert_eq!(c.dropped_full, 0);
+        std::println!("trajectory with {cap} voxels: {c:?}, at most {max_len} live");
+        c
+    }
+
+    #[test]
+    fn floor_and_round_helpers_match_libm() {
+        let mut rng = Rng(4);
+        for i in 0..100_000 {
+            let v = match i % 4 {
+                0 => rng.uniform(-4e6, 4e6) as f32,
+                1 => rng.uniform(-3.0, 3.0) as f32,
+                2 => (rng.next_u64() % 2001) as f32 * 0.5 - 500.0, // integers and halves
+                _ => f32::from_bits(rng.next_u64() as u32 & 0x4A7F_FFFF), // any value below 2^22
+            };
+            assert_eq!(floor_i32(v), libm::floorf(v) as i32, "{v}");
+            let r = round_sat(v, 32767.0);
+            let c = v.clamp(-32767.0, 32767.0);
+            assert!((r as f32 - c).abs() <= 0.5 + 2.0 * f32::EPSILON * c.abs(), "{v} {r}");
+        }
+        assert_eq!(floor_i32(-0.0), 0);
+        assert_eq!(floor_i32(-1e-30), -1);
+        assert_eq!(round_sat(1e9, 127.0), 127);
+        assert_eq!(round_sat(-1e9, 127.0), -127);
+        assert_eq!(round_sat(f32::NAN, 127.0), 0);
+    }
+
+    #[test]
+    fn full_32_bit_hash_collisions_are_resolved_by_the_key() {
+        // Birthday search for two keys with the same 32-bit hash.
+        let mut seen: HashMap<u32, [i32; 3]> = HashMap::new();
+        let mut pair = None;
+        'search: for x in -200..200 {
+            for y in -200..200 {
+                for z in -20..20 {
+                    let k = [x, y, z];
+                    if let Some(other) = seen.insert(hash_key(k), k) {
+                        pair = Some((other, k));
+                        break 'search;
+                    }
+                }
+            }
+        }
+        let (a, b) = pair.expect("no collision among 6.4 million keys");
+        assert_ne!(a, b);
+        assert_eq!(hash_key(a), hash_key(b));
+        let cfg = MapConfig { evict_radius: 1e4, ..MapConfig::VLP32C };
+        let (mut pool, mut index) = storage(8);
+        let mut map = VoxelMap::new(&mut pool, &mut index, cfg).unwrap();
+        let inside =
+            |k: [i32; 3]| [(k[0] as f32 + 0.3) * 0.4, (k[1] as f32 + 0.6) * 0.4, (k[2] as f32 + 0.5) * 0.4];
+        // `a` first, so a probe for `b`'s hash meets `a`'s entry before `b`'s.
+        for (i, k) in [a, b].into_iter().enumerate() {
+            map.insert_slice(&[MapPoint { xyz: inside(k), normal: None }], [0.0; 3], i as u32).unwrap();
+        }
+        assert_eq!(map.len(), 2);
+        assert_eq!(map.voxel(map.find_key(a).unwrap()).unwrap().key, a);
+        assert_eq!(map.voxel(map.find_key(b).unwrap()).unwrap().key, b);
+        let mut out = Neighbours::new();
+        assert_eq!(map.knn(inside(b), &KnnQuery::new(5, 0.4), &mut out), 1);
+        assert_eq!(out.as_slice()[0].voxel, map.find_key(b).unwrap());
+        // Removing `a` leaves `b` reachable.
+        let sa = map.find_key(a).unwrap().index();
+        map.remove_slot(sa);
+        check_index(&map);
+        assert!(map.find_key(a).is_none());
+        assert_eq!(map.knn(inside(b), &KnnQuery::new(5, 0.4), &mut out), 1);
+    }
+
+    #[test]
+    fn block_hashes_derive_every_neighbour_hash() {
+        let mut rng = Rng(17);
+        for _ in 0..2000 {
+            let q = p32([rng.uniform(-1e4, 1e4), rng.uniform(-1e4, 1e4), rng.uniform(-50.0, 50.0)]);
+            let (mut pool, mut index) = storage(1);
+            let map = VoxelMap::new(&mut pool, &mut index, MapConfig::VLP32C).unwrap();
+            let pre = map.prepare(q).unwrap();
+            for off in NEIGHBOURS {
+                let k = pre.key;
+                assert_eq!(pre.hash(off), hash_key([k[0] + off[0], k[1] + off[1], k[2] + off[2]]));
+            }
+        }
+        // The 8 voxels of a block have consecutive home buckets.
+        let base = hash_key([4, -6, 10]) & !7;
+        for i in 0..8 {
+            assert_eq!(hash_key([4 + (i & 1), -6 + (i >> 1 & 1), 10 + (i >> 2)]), base | i as u32);
+        }
+    }
+}
