@@ -20,11 +20,12 @@
 //! None of these can corrupt a scan: every delivered scan holds points of one revolution, in
 //! time order, with `t >= 0`, and says whether it is complete.
 //!
-//! Memory: the assembler owns two [`ScanBuffer`]s (the scan being built and the last completed
-//! one), so `N` points each; with `N = 300_000` that is 14.4 MB, so box it on the host or put it
-//! in a `static` on firmware.
+//! Memory: the caller lends the assembler two point slices (the scan being built and the last
+//! completed one), smoltcp style: `static` arrays on firmware, two `vec![ScanPoint::default(); n]`
+//! on the host (24 bytes a point: 2 x 300 000 points = 14.4 MB). A scan longer than its slice
+//! keeps the first points and counts the rest in [`ScanInfo::overflow`].
 
-use crate::scan::{ScanBuffer, ScanPoint};
+use crate::scan::{ScanPoint, ScanView};
 
 /// A point as a decoder delivers it, before it is placed in a scan.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -181,17 +182,49 @@ struct Building {
     end_ns: u64,
 }
 
-/// Builds scans from packets into two caller-sized buffers of `N` points.
 #[derive(Debug)]
-pub struct ScanAssembler<const N: usize> {
+struct Buf<'a> {
+    pts: &'a mut [ScanPoint],
+    len: usize,
+    start_ns: u64,
+    overflow: u32,
+}
+
+impl Buf<'_> {
+    fn clear(&mut self, start_ns: u64) {
+        self.len = 0;
+        self.overflow = 0;
+        self.start_ns = start_ns;
+    }
+
+    fn push(&mut self, p: ScanPoint) -> bool {
+        match self.pts.get_mut(self.len) {
+            Some(slot) => {
+                *slot = p;
+                self.len += 1;
+                true
+            }
+            None => {
+                self.overflow = self.overflow.saturating_add(1);
+                false
+            }
+        }
+    }
+}
+
+/// Builds scans from packets into two caller-lent point slices.
+#[derive(Debug)]
+pub struct ScanAssembler<'a> {
     config: AssemblerConfig,
-    bufs: [ScanBuffer<N>; 2],
+    bufs: [Buf<'a>; 2],
     building: usize,
     cur: Building,
     last_seq: Option<PacketSeq>,
     prev_rel: Option<u32>,
     /// Set when a scan completed during the current packet.
     pending: Option<ScanInfo>,
+    /// Points of the current packet placed in the scan being built.
+    packet_points: u32,
     last_completed: Option<ScanInfo>,
     /// What was accepted, dropped and delivered.
     pub stats: AssemblyStats,
@@ -199,17 +232,22 @@ pub struct ScanAssembler<const N: usize> {
 
 const HALF_TURN: u32 = 1 << 31;
 
-impl<const N: usize> ScanAssembler<N> {
-    /// An empty assembler; `const` so it can initialise a `static`.
-    pub const fn new(config: AssemblerConfig) -> Self {
+impl<'a> ScanAssembler<'a> {
+    /// An empty assembler building scans in `a` and `b` (each holds one scan: size them for the
+    /// most points a revolution can have).
+    pub fn new(config: AssemblerConfig, a: &'a mut [ScanPoint], b: &'a mut [ScanPoint]) -> Self {
         Self {
             config,
-            bufs: [ScanBuffer::new(), ScanBuffer::new()],
+            bufs: [
+                Buf { pts: a, len: 0, start_ns: 0, overflow: 0 },
+                Buf { pts: b, len: 0, start_ns: 0, overflow: 0 },
+            ],
             building: 0,
             cur: Building { packets: 0, missing: 0, started_at_cut: false, start_ns: None, end_ns: 0 },
             last_seq: None,
             prev_rel: None,
             pending: None,
+            packet_points: 0,
             last_completed: None,
             stats: AssemblyStats {
                 packets: 0,
@@ -232,8 +270,15 @@ impl<const N: usize> ScanAssembler<N> {
     }
 
     /// The last completed scan (valid until the next call that completes one).
-    pub fn scan(&self) -> &ScanBuffer<N> {
-        &self.bufs[1 - self.building]
+    pub fn scan(&self) -> ScanView<'_> {
+        let b = &self.bufs[1 - self.building];
+        ScanView { start_ns: b.start_ns, points: &b.pts[..b.len] }
+    }
+
+    /// The last completed scan's points, mutable (to undistort them in place).
+    pub fn scan_mut(&mut self) -> &mut [ScanPoint] {
+        let b = &mut self.bufs[1 - self.building];
+        &mut b.pts[..b.len]
     }
 
     /// Facts of the last completed scan, if any.
@@ -243,7 +288,7 @@ impl<const N: usize> ScanAssembler<N> {
 
     /// Points in the scan being built.
     pub fn building_len(&self) -> usize {
-        self.bufs[self.building].len()
+        self.bufs[self.building].len
     }
 
     /// Feeds one packet: `meta` first, then its points through the sink `emit` is given.
@@ -251,7 +296,9 @@ impl<const N: usize> ScanAssembler<N> {
     ///
     /// ```
     /// # use loglio_core::scan_assembly::*;
-    /// let mut asm = ScanAssembler::<64>::new(AssemblerConfig::cut_at_degrees(0.0));
+    /// # use loglio_core::scan::ScanPoint;
+    /// let (mut a, mut b) = ([ScanPoint::default(); 64], [ScanPoint::default(); 64]);
+    /// let mut asm = ScanAssembler::new(AssemblerConfig::cut_at_degrees(0.0), &mut a, &mut b);
     /// let meta = PacketMeta { time_ns: 1_000, seq: PacketSeq { counter: 0, modulus: 0, step: 1.0 } };
     /// let done = asm.push_packet(meta, |sink| sink(RawPoint { sweep: 1 << 30, ..Default::default() }));
     /// assert_eq!(done, Ok(None));
@@ -265,6 +312,7 @@ impl<const N: usize> ScanAssembler<N> {
         self.check_sequence(&meta.seq)?;
         self.stats.packets += 1;
         self.cur.packets += 1;
+        self.packet_points = 0;
         {
             let mut sink = |p: RawPoint| self.push_point(meta.time_ns, p);
             emit(&mut sink);
@@ -352,16 +400,17 @@ impl<const N: usize> ScanAssembler<N> {
             ret: p.ret,
             flags: 0,
         };
-        if buf.push(sp).is_err() {
+        if !buf.push(sp) {
             self.stats.overflow_points += 1;
         }
+        self.packet_points += 1;
     }
 
     /// Closes the scan being built. `at_cut`: it ended because the sweep crossed the cut.
     fn finish(&mut self, at_cut: bool) {
         let cur = core::mem::take(&mut self.cur);
         let buf = &self.bufs[self.building];
-        if cur.start_ns.is_none() || buf.is_empty() || self.pending.is_some() {
+        if cur.start_ns.is_none() || buf.len == 0 || self.pending.is_some() {
             // Nothing in it, or a second scan within one packet (after a restart): too short.
             if cur.start_ns.is_some() || cur.packets > 0 {
                 self.stats.discarded_scans += 1;
@@ -370,13 +419,16 @@ impl<const N: usize> ScanAssembler<N> {
             return;
         }
         let complete = at_cut && cur.started_at_cut && cur.missing == 0;
+        // The packet that crossed the cut belongs to this scan only if some of its points did.
+        let packets =
+            if at_cut && self.packet_points == 0 { cur.packets.saturating_sub(1) } else { cur.packets };
         let info = ScanInfo {
             index: self.stats.scans,
             start_ns: buf.start_ns,
             end_ns: cur.end_ns,
-            points: buf.len() as u32,
+            points: buf.len as u32,
             overflow: buf.overflow,
-            packets: cur.packets,
+            packets,
             missing_packets: cur.missing,
             complete,
         };
@@ -388,6 +440,7 @@ impl<const N: usize> ScanAssembler<N> {
         self.bufs[self.building].clear(0);
         // The packet that crossed the cut also starts the next scan.
         self.cur.packets = if at_cut { 1 } else { 0 };
+        self.packet_points = 0;
         self.pending = Some(info);
         self.last_completed = Some(info);
     }
@@ -413,7 +466,7 @@ mod tests {
 
     /// A synthetic sensor: `per_packet` firings per packet, `per_turn` firings per turn, one
     /// point per firing; packet k starts at firing k * per_packet.
-    fn feed(asm: &mut ScanAssembler<4096>, k: u64, out: &mut Vec<ScanInfo>) -> Result<(), PacketRejected> {
+    fn feed(asm: &mut ScanAssembler<'_>, k: u64, out: &mut Vec<ScanInfo>) -> Result<(), PacketRejected> {
         let per_packet = 8u64;
         let per_turn = 96u64;
         let meta = PacketMeta {
@@ -439,7 +492,8 @@ mod tests {
 
     #[test]
     fn cuts_at_the_configured_angle_with_monotonic_times() {
-        let mut asm = ScanAssembler::<4096>::new(AssemblerConfig::cut_at_degrees(90.0));
+        let (mut a, mut b) = ([ScanPoint::default(); 256], [ScanPoint::default(); 256]);
+        let mut asm = ScanAssembler::new(AssemblerConfig::cut_at_degrees(90.0), &mut a, &mut b);
         let mut out = Vec::new();
         for k in 0..40 {
             feed(&mut asm, k, &mut out).unwrap();
@@ -452,8 +506,8 @@ mod tests {
         assert!(out[1].complete && out[2].complete && out[3].complete);
         assert_eq!(out[1].points, 96);
         assert_eq!(out[1].start_ns, 1_000_000 + 24 * 1000);
-        assert_eq!(asm.scan().len(), 96);
-        let pts = asm.scan().points();
+        assert_eq!(asm.scan().points.len(), 96);
+        let pts = asm.scan().points;
         assert_eq!(pts[0].col, 24);
         assert!(pts.windows(2).all(|w| w[1].t >= w[0].t) && pts[0].t == 0.0);
         assert!((pts[95].t - 95e-6).abs() < 1e-9);
@@ -466,7 +520,8 @@ mod tests {
 
     #[test]
     fn duplicates_out_of_order_and_gaps_are_counted_not_corrupting() {
-        let mut asm = ScanAssembler::<4096>::new(AssemblerConfig::cut_at_degrees(0.0));
+        let (mut a, mut b) = ([ScanPoint::default(); 256], [ScanPoint::default(); 256]);
+        let mut asm = ScanAssembler::new(AssemblerConfig::cut_at_degrees(0.0), &mut a, &mut b);
         let mut out = Vec::new();
         let order = [
             0u64, 1, 2, 2, 3, 5, 4, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18, 19, 20, 21, 22, 23, 24,
@@ -490,7 +545,7 @@ mod tests {
         assert_eq!(out[0].points, 11 * 8);
         assert!(out[1].complete);
         assert_eq!(out[1].points, 96);
-        let pts = asm.scan().points();
+        let pts = asm.scan().points;
         assert!(pts.windows(2).all(|w| w[1].t >= w[0].t));
     }
 
@@ -498,7 +553,8 @@ mod tests {
     fn big_jumps_restart_and_overflow_is_counted() {
         let mut cfg = AssemblerConfig::cut_at_degrees(0.0);
         cfg.reset_gap_packets = 5;
-        let mut asm = ScanAssembler::<4096>::new(cfg);
+        let (mut a, mut b) = ([ScanPoint::default(); 256], [ScanPoint::default(); 256]);
+        let mut asm = ScanAssembler::new(cfg, &mut a, &mut b);
         let mut out = Vec::new();
         for k in 0..30 {
             feed(&mut asm, k, &mut out).unwrap();
@@ -514,7 +570,8 @@ mod tests {
         assert_eq!(out.len(), 5);
         assert_eq!(out.iter().filter(|s| s.complete).count(), 2);
 
-        let mut small = ScanAssembler::<10>::new(AssemblerConfig::cut_at_degrees(0.0));
+        let (mut a, mut b) = ([ScanPoint::default(); 10], [ScanPoint::default(); 10]);
+        let mut small = ScanAssembler::new(AssemblerConfig::cut_at_degrees(0.0), &mut a, &mut b);
         let meta = PacketMeta { time_ns: 0, seq: PacketSeq { counter: 0, modulus: 0, step: 1.0 } };
         small
             .push_packet(meta, |sink| {

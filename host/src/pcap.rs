@@ -123,6 +123,8 @@ pub struct PcapStats {
     pub malformed: u64,
     /// Frames cut by the capture's snapshot length (their UDP payload is incomplete: skipped).
     pub snapped: u64,
+    /// Frames whose IPv4 total length exceeds the frame (read by their UDP length).
+    pub ip_length_mismatch: u64,
     /// IPv4 fragments seen.
     pub fragments: u64,
     /// Datagrams reassembled from fragments.
@@ -463,14 +465,19 @@ impl<R: Read> PcapReader<R> {
             self.stats.malformed += 1;
             return None;
         }
-        if ip.len() < total {
+        let total = if ip.len() < total {
             if snapped {
                 self.stats.snapped += 1;
-            } else {
-                self.stats.malformed += 1;
+                return None;
             }
-            return None;
-        }
+            // The IPv4 length claims more than the frame holds. Velodyne position packets do
+            // this (their IP header carries the data packets' length); the UDP length below
+            // still has to fit in what was captured.
+            self.stats.ip_length_mismatch += 1;
+            ip.len()
+        } else {
+            total
+        };
         let ip = &ip[..total];
         if ip[9] != 17 {
             self.stats.non_udp += 1;

@@ -7,6 +7,10 @@
 //!   packets when a GPS is connected, otherwise from the host (capture) date and hour. Ouster
 //!   packets carry nanoseconds (since boot with the internal oscillator, TAI/UTC with PTP or
 //!   GPS), used as they are; Ouster IMU packets share that clock.
+//!   Without GPS (no `$GPRMC`, PPS absent) a Velodyne's clock free-runs from power-on: its
+//!   "hour" is arbitrary, the resolved time can be up to 30 min from the host's, and only time
+//!   differences are meaningful. Use `Capture` (or an offset) there unless the IMU shares that
+//!   clock.
 //! - `Capture`: the host's receive time (or the pcap record time).
 //!
 //! Either way a configurable offset (ns, signed) is added, for an IMU on another clock.

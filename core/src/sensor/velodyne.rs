@@ -78,7 +78,7 @@ pub enum Error {
     TooLong,
     /// A block does not start with 0xFFEE (garbage, or not a data packet).
     BadBlockFlag,
-    /// A block azimuth is 36000 or more.
+    /// A block azimuth is more than 36000 (360 deg).
     BadAzimuth,
 }
 
@@ -88,7 +88,7 @@ impl core::fmt::Display for Error {
             Self::Truncated => "velodyne data packet shorter than 1206 bytes",
             Self::TooLong => "velodyne data packet longer than 1206 bytes",
             Self::BadBlockFlag => "velodyne data block without the 0xFFEE flag",
-            Self::BadAzimuth => "velodyne block azimuth out of range (>= 360 deg)",
+            Self::BadAzimuth => "velodyne block azimuth out of range (> 360 deg)",
         })
     }
 }
@@ -245,7 +245,8 @@ impl<T: AsRef<[u8]>> Packet<T> {
             if self.block_flag(i) != BLOCK_FLAG {
                 return Err(Error::BadBlockFlag);
             }
-            if self.azimuth(i) >= 36_000 {
+            // Real sensors send exactly 36000 now and then (= 0 deg); more is garbage.
+            if self.azimuth(i) > 36_000 {
                 return Err(Error::BadAzimuth);
             }
         }
@@ -1006,8 +1007,12 @@ mod tests {
         bad[500] = 0x12; // inside block 5's flag
         assert_eq!(Packet::new_checked(&bad[..]).unwrap_err(), Error::BadBlockFlag);
         let mut bad = good;
-        bad[302..304].copy_from_slice(&36_000u16.to_le_bytes());
+        bad[302..304].copy_from_slice(&36_001u16.to_le_bytes());
         assert_eq!(Packet::new_checked(&bad[..]).unwrap_err(), Error::BadAzimuth);
+        // Exactly 360 deg happens on real sensors: accepted as 0.
+        let mut edge = good;
+        edge[302..304].copy_from_slice(&36_000u16.to_le_bytes());
+        assert!(Packet::new_checked(&edge[..]).is_ok());
         let garbage = [0xA5u8; DATA_PACKET_LEN];
         assert_eq!(Packet::new_checked(&garbage[..]).unwrap_err(), Error::BadBlockFlag);
         let mut dec = Decoder::new(Config::new(Model::Vlp16)).unwrap();
