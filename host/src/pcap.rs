@@ -14,13 +14,32 @@
 //!   after it within 16 MiB are errors.
 //! - Frames that are not IPv4/UDP, or whose headers are malformed, are skipped and counted.
 //!
+//! A whole replay: pcap -> Velodyne decoder -> scan assembler (the same as in the README):
+//!
 //! ```no_run
-//! let mut r = loglio_host::pcap::PcapReader::open("capture.pcap")?;
-//! while let Some(pkt) = r.next_udp()? {
-//!     println!("{} bytes to port {} at {} ns", pkt.payload.len(), pkt.dst_port, pkt.ts_ns);
+//! use loglio_core::scan::ScanPoint;
+//! use loglio_core::scan_assembly::{AssemblerConfig, ScanAssembler};
+//! use loglio_core::sensor::velodyne::{Config, Decoder, Model};
+//! use loglio_host::{pcap::PcapReader, time_align::VelodyneClock};
+//!
+//! let mut dec = Decoder::new(Config::new(Model::Vlp16))?; // layout: dec.layout() (for Ring FALS)
+//! let (mut a, mut b) = (vec![ScanPoint::default(); 40_000], vec![ScanPoint::default(); 40_000]);
+//! let mut asm = ScanAssembler::new(AssemblerConfig::cut_at_degrees(0.0), &mut a, &mut b);
+//! let clock = VelodyneClock::new();
+//! let mut pcap = PcapReader::open("drive.pcap")?;
+//! while let Some(udp) = pcap.next_udp()? {
+//!     if udp.dst_port != 2368 {
+//!         continue; // 8308: position packets
+//!     }
+//!     let Ok((pkt, repr)) = dec.parse(udp.payload) else { continue }; // counted in dec.stats
+//!     let t = clock.resolve(repr.timestamp_us, udp.ts_ns); // or udp.ts_ns (capture time)
+//!     if let Ok(Some(info)) = asm.push_packet(dec.meta(&repr, t), |sink| dec.points(&pkt, sink)) {
+//!         let scan = asm.scan(); // ScanView: start_ns + points with t, row, col
+//!         println!("scan {}: {} points, complete: {}", info.index, scan.points.len(), info.complete);
+//!     }
 //! }
-//! println!("{:?}", r.stats);
-//! # Ok::<(), loglio_host::pcap::PcapError>(())
+//! println!("{:?} {:?} {:?}", pcap.stats, dec.stats, asm.stats);
+//! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
 use std::fs::File;
