@@ -12,7 +12,7 @@ fuzz_target!(|data: &[u8]| {
     let mut dec = Decoder::new(Config::new([Model::Vlp16, Model::Vlp32c, Model::Hdl32e][sel as usize % 3])).unwrap();
     let mut cfg = AssemblerConfig::cut_at_degrees(sel as f32 * 1.5);
     cfg.reset_gap_packets = 1 + (sel as u32 >> 3);
-    let (mut a, mut b) = (vec![ScanPoint::default(); 1000], vec![ScanPoint::default(); 1000]);
+    let (mut a, mut b) = ([ScanPoint::default(); 512], [ScanPoint::default(); 512]);
     let mut asm = ScanAssembler::new(cfg, &mut a, &mut b);
     let mut time = 0u64;
     for rec in data.chunks(8 + 1206) {
@@ -37,7 +37,7 @@ fuzz_target!(|data: &[u8]| {
         if let Ok(Some(info)) = asm.push_packet(meta, |sink| dec.points(&p, sink)) {
             let scan = asm.scan();
             assert_eq!(scan.points.len(), info.points as usize);
-            assert!(scan.points.len() <= 1000);
+            assert!(scan.points.len() <= 512);
             assert!(scan.points.iter().all(|q| q.t >= 0.0 && q.t.is_finite() && q.xyz.iter().all(|v| v.is_finite())));
         }
     }

@@ -440,6 +440,11 @@ struct Beam {
     sin_a: f32,
     shift: i32,
     row: u16,
+    /// Sensor-frame direction = `ce * dir_c + se * dir_s + dir_0` (m per mm of range), with
+    /// (ce, se) the encoder angle's cosine and sine: the rotation folded in once.
+    dir_c: [f32; 3],
+    dir_s: [f32; 3],
+    dir_0: [f32; 3],
 }
 
 /// Decodes lidar packets of one sensor. About 21 KB of fixed tables.
@@ -450,8 +455,11 @@ pub struct Decoder {
     /// cos, sin of the encoder angle of each measurement id.
     encoder: [[f32; 2]; MAX_COLUMNS],
     rot: [[f32; 3]; 3],
-    trans_mm: [f32; 3],
     beam_dist_mm: f32,
+    /// Sensor-frame beam-origin offset = `ce * off_c + se * off_s + off_0`, metres.
+    off_c: [f32; 3],
+    off_s: [f32; 3],
+    off_0: [f32; 3],
     yaw_sweep: u32,
     layout: RangeImageLayout,
     /// What was decoded and dropped.
@@ -465,6 +473,12 @@ impl Decoder {
         let h = intr.pixels_per_column as usize;
         let w = intr.columns_per_frame as usize;
         let d2r = core::f64::consts::PI / 180.0;
+        let t = &intr.lidar_to_sensor;
+        let r64 = |i: usize, j: usize| t[4 * i + j] as f64;
+        // R * v for a lidar-frame vector, scaled mm -> m.
+        let rot_m = |v: [f64; 3]| -> [f32; 3] {
+            core::array::from_fn(|i| ((r64(i, 0) * v[0] + r64(i, 1) * v[1] + r64(i, 2) * v[2]) * 1e-3) as f32)
+        };
         // Rows: beams by altitude, highest first (ties keep beam order).
         let mut beams = [Beam::default(); MAX_BEAMS];
         for (u, beam) in beams.iter_mut().enumerate().take(h) {
@@ -476,13 +490,19 @@ impl Decoder {
                     ak > intr.beam_altitude_deg[u] || (ak == intr.beam_altitude_deg[u] && k < u)
                 })
                 .count();
+            let (cp, sp, ca, sa) = (libm::cos(alt), libm::sin(alt), libm::cos(az), libm::sin(az));
+            // d = (cos(E+A) cos P, sin(E+A) cos P, sin P)
+            //   = cos E (cos A cos P, sin A cos P, 0) + sin E (-sin A cos P, cos A cos P, 0) + (0, 0, sin P)
             *beam = Beam {
-                cos_p: libm::cos(alt) as f32,
-                sin_p: libm::sin(alt) as f32,
-                cos_a: libm::cos(az) as f32,
-                sin_a: libm::sin(az) as f32,
-                shift: intr.pixel_shift_by_row[u] as i32,
+                cos_p: cp as f32,
+                sin_p: sp as f32,
+                cos_a: ca as f32,
+                sin_a: sa as f32,
+                shift: (intr.pixel_shift_by_row[u] as i32).rem_euclid(w as i32),
                 row: higher as u16,
+                dir_c: rot_m([ca * cp, sa * cp, 0.0]),
+                dir_s: rot_m([-sa * cp, ca * cp, 0.0]),
+                dir_0: rot_m([0.0, 0.0, sp]),
             };
         }
         let mut encoder = [[0.0f32; 2]; MAX_COLUMNS];
@@ -490,11 +510,15 @@ impl Decoder {
             let ang = core::f64::consts::TAU * (1.0 - m as f64 / w as f64);
             *e = [libm::cos(ang) as f32, libm::sin(ang) as f32];
         }
-        let t = &intr.lidar_to_sensor;
         let rot = [[t[0], t[1], t[2]], [t[4], t[5], t[6]], [t[8], t[9], t[10]]];
-        let trans_mm = [t[3], t[7], t[11]];
         let [bx, bz] = intr.beam_origin_mm;
         let beam_dist_mm = if bz != 0.0 { libm::sqrtf(bx * bx + bz * bz) } else { bx };
+        // Offset o = (bx cos E, bx sin E, bz) in the lidar frame, then R o + t.
+        let (bx64, bz64) = (bx as f64, bz as f64);
+        let off_c = rot_m([bx64, 0.0, 0.0]);
+        let off_s = rot_m([0.0, bx64, 0.0]);
+        let oz = rot_m([0.0, 0.0, bz64]);
+        let off_0: [f32; 3] = core::array::from_fn(|i| oz[i] + (t[4 * i + 3] as f64 * 1e-3) as f32);
         let yaw = libm::atan2(rot[1][0] as f64, rot[0][0] as f64);
         let yaw_turns = yaw / core::f64::consts::TAU;
         let yaw_sweep =
@@ -504,8 +528,10 @@ impl Decoder {
             beams,
             encoder,
             rot,
-            trans_mm,
             beam_dist_mm,
+            off_c,
+            off_s,
+            off_0,
             yaw_sweep,
             layout: RangeImageLayout::empty(),
             stats: DecoderStats::default(),
@@ -622,17 +648,30 @@ impl Decoder {
             let mid = p.measurement_id(c) as usize;
             let sweep = self.sweep_of(mid);
             let [ce, se] = self.encoder[mid];
+            let off: [f32; 3] =
+                core::array::from_fn(|i| ce * self.off_c[i] + se * self.off_s[i] + self.off_0[i]);
+            let n = self.beam_dist_mm;
             for u in 0..h {
                 let (ranges, refl) = p.pixel(c, u);
+                if ranges == [0, 0] {
+                    continue;
+                }
                 let b = &self.beams[u];
-                let col = (mid as i32 + b.shift).rem_euclid(w) as u16;
+                // `shift` is kept in 0..W, so one fold suffices.
+                let mut col = mid as i32 + b.shift;
+                if col >= w {
+                    col -= w;
+                }
+                let col = col as u16;
+                let d: [f32; 3] = core::array::from_fn(|i| ce * b.dir_c[i] + se * b.dir_s[i] + b.dir_0[i]);
                 for (k, &r) in ranges.iter().enumerate().take(if dual { 2 } else { 1 }) {
                     if r == 0 {
                         continue;
                     }
                     points += 1;
+                    let rr = r as f32 - n;
                     emit(RawPoint {
-                        xyz: self.xyz(b, ce, se, r),
+                        xyz: [d[0] * rr + off[0], d[1] * rr + off[1], d[2] * rr + off[2]],
                         dt_ns: dt,
                         sweep,
                         row: b.row,
@@ -644,20 +683,6 @@ impl Decoder {
             }
         }
         self.stats.points += points;
-    }
-
-    /// Sensor-frame point of a range (mm) along a beam at encoder angle (ce, se), metres.
-    #[inline]
-    fn xyz(&self, b: &Beam, ce: f32, se: f32, range_mm: u32) -> [f32; 3] {
-        let c = ce * b.cos_a - se * b.sin_a;
-        let s = se * b.cos_a + ce * b.sin_a;
-        let d = [c * b.cos_p, s * b.cos_p, b.sin_p];
-        let bx = self.intr.beam_origin_mm[0];
-        let bz = self.intr.beam_origin_mm[1];
-        let r = range_mm as f32 - self.beam_dist_mm;
-        let l = [d[0] * r + ce * bx, d[1] * r + se * bx, d[2] * r + bz];
-        let p = self.rotate(l);
-        [(p[0] + self.trans_mm[0]) * 1e-3, (p[1] + self.trans_mm[1]) * 1e-3, (p[2] + self.trans_mm[2]) * 1e-3]
     }
 
     /// Decodes an IMU packet (counted).
