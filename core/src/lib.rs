@@ -13,7 +13,8 @@
 //! | points of a scan, their time and pixel | [`scan`] |
 //! | range-image geometry of a spinning LiDAR | [`range_image`] |
 //! | Ring FALS normals | [`ring_fals`] |
-//! | wire formats (Velodyne, Ouster, IMU frames) | `sensor` |
+//! | wire formats (Velodyne, Ouster, IMU frames) | [`sensor`] |
+//! | packets to whole scans (cut angle, drops, duplicates) | [`scan_assembly`] |
 //! | IMU samples, initialisation and propagation | [`imu`] |
 //! | voxel map with incremental distributions | [`voxel_map`], [`surfel`] |
 //! | data association | `association` |
@@ -32,6 +33,7 @@ pub mod output;
 pub mod range_image;
 pub mod ring_fals;
 pub mod scan;
+pub mod scan_assembly;
 pub mod sensor;
 pub mod so3;
 pub mod surfel;

@@ -2,3 +2,6 @@
 //! representations (after smoltcp's `wire` module).
 
 pub mod imu_frame;
+pub mod ouster;
+pub mod velodyne;
+pub mod velodyne_position;
