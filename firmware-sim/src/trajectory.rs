@@ -74,6 +74,8 @@ impl Kinematics {
 }
 
 /// The kind of motion.
+// One trajectory exists per scenario and this module is no_std without a heap: no boxing.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug, PartialEq)]
 pub enum Trajectory {
     /// A car on a looping road through the town, following the ground's height and slope.
