@@ -8,6 +8,11 @@
 #![cfg_attr(target_os = "none", no_std)]
 
 pub mod jet;
+pub mod lidar;
+#[cfg(not(target_os = "none"))]
+pub mod raycast;
 pub mod rng;
 pub mod terrain;
 pub mod trajectory;
+#[cfg(not(target_os = "none"))]
+pub mod world;

@@ -1,0 +1,1 @@
+//! Ouster (placeholder, filled in next).
