@@ -7,6 +7,8 @@
 //! caster, scenarios, files and live streaming need `std` and are gated on a hosted target.
 #![cfg_attr(target_os = "none", no_std)]
 
+pub mod imu_board;
+pub mod imu_chip;
 pub mod jet;
 pub mod lidar;
 #[cfg(not(target_os = "none"))]
