@@ -195,7 +195,7 @@ pub struct Icm42688 {
 impl Icm42688 {
     /// A chip after power-on, with turn-on biases drawn from `seed`.
     pub fn new(noise: ImuNoise, seed: u64) -> Self {
-        let mut rng = SplitMix64::new(seed, 0x1C42_688);
+        let mut rng = SplitMix64::new(seed, 0x01C4_2688);
         let gyro_bias = core::array::from_fn(|_| rng.gauss() * noise.gyro_bias_init);
         let accel_bias = core::array::from_fn(|_| rng.gauss() * noise.accel_bias_init);
         let mut c = Self { regs: [0; 128], ptr: 0, noise, rng, gyro_bias, accel_bias, samples: 0 };

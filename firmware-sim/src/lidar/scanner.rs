@@ -163,6 +163,7 @@ pub struct SimScan {
 
 /// The firmware model behind a direct scanner.
 #[derive(Clone, Debug)]
+#[allow(clippy::large_enum_variant)] // one per scenario
 pub enum Firmware {
     /// A Velodyne.
     Velodyne(Velodyne),
