@@ -30,8 +30,6 @@
 //! gyroscope outputs, read in one burst (the address auto-increments). Sensors that are off
 //! read -32768.
 
-use core::cell::RefCell;
-
 use embedded_hal::i2c::{ErrorKind, ErrorType, I2c, NoAcknowledgeSource, Operation, SevenBitAddress};
 
 use crate::rng::SplitMix64;
@@ -322,33 +320,45 @@ impl embedded_hal::i2c::Error for BusError {
 }
 
 /// An I2C bus with one ICM-42688-P on it. Writes set the register pointer (first byte) and
-/// write registers; reads return registers from the pointer on, auto-incrementing.
-#[derive(Debug)]
-pub struct MockI2c<'a> {
-    chip: &'a RefCell<Icm42688>,
+/// write registers; reads return registers from the pointer on, auto-incrementing. The bus owns
+/// the chip; the simulation reaches it through [`MockI2c::chip_mut`] to latch samples (what the
+/// chip's own clock does on real hardware).
+#[derive(Clone, Debug)]
+pub struct MockI2c {
+    chip: Icm42688,
     address: u8,
     /// Transactions served.
     pub transactions: u64,
 }
 
-impl<'a> MockI2c<'a> {
+impl MockI2c {
     /// A bus with `chip` at `address`.
-    pub fn new(chip: &'a RefCell<Icm42688>, address: u8) -> Self {
+    pub fn new(chip: Icm42688, address: u8) -> Self {
         Self { chip, address, transactions: 0 }
+    }
+
+    /// The chip.
+    pub fn chip(&self) -> &Icm42688 {
+        &self.chip
+    }
+
+    /// The chip, to latch samples.
+    pub fn chip_mut(&mut self) -> &mut Icm42688 {
+        &mut self.chip
     }
 }
 
-impl ErrorType for MockI2c<'_> {
+impl ErrorType for MockI2c {
     type Error = BusError;
 }
 
-impl I2c<SevenBitAddress> for MockI2c<'_> {
+impl I2c<SevenBitAddress> for MockI2c {
     fn transaction(&mut self, address: u8, operations: &mut [Operation<'_>]) -> Result<(), Self::Error> {
         if address != self.address {
             return Err(BusError::NoDevice);
         }
         self.transactions += 1;
-        let mut chip = self.chip.borrow_mut();
+        let chip = &mut self.chip;
         for op in operations {
             match op {
                 Operation::Write(bytes) => {
@@ -380,14 +390,13 @@ mod tests {
 
     #[test]
     fn registers_identity_config_and_burst() {
-        let chip = RefCell::new(Icm42688::new(ImuNoise::none(), 1));
-        let mut bus = MockI2c::new(&chip, I2C_ADDRESS);
+        let mut bus = MockI2c::new(Icm42688::new(ImuNoise::none(), 1), I2C_ADDRESS);
         let mut id = [0u8];
         bus.write_read(I2C_ADDRESS, &[reg::WHO_AM_I], &mut id).unwrap();
         assert_eq!(id[0], WHO_AM_I);
         assert_eq!(bus.write_read(0x69, &[reg::WHO_AM_I], &mut id), Err(BusError::NoDevice));
         // Sensors off: outputs read -32768.
-        chip.borrow_mut().sample([0.1, 0.0, 0.0], [0.0, 0.0, 9.8]);
+        bus.chip_mut().sample([0.1, 0.0, 0.0], [0.0, 0.0, 9.8]);
         let mut burst = [0u8; 14];
         bus.write_read(I2C_ADDRESS, &[reg::TEMP_DATA1], &mut burst).unwrap();
         assert_eq!(i16::from_be_bytes([burst[2], burst[3]]), i16::MIN);
@@ -395,8 +404,8 @@ mod tests {
         bus.write(I2C_ADDRESS, &[reg::GYRO_CONFIG0, (GyroFs::Dps500 as u8) << 5 | Odr::Hz200 as u8]).unwrap();
         bus.write(I2C_ADDRESS, &[reg::ACCEL_CONFIG0, (AccelFs::G4 as u8) << 5 | Odr::Hz200 as u8]).unwrap();
         bus.write(I2C_ADDRESS, &[reg::PWR_MGMT0, 0x0F]).unwrap();
-        assert_eq!(chip.borrow().odr_hz(), Some(200));
-        let (g, a) = chip.borrow_mut().sample([0.1, -0.2, 3.0], [1.0, -2.0, 9.80665]);
+        assert_eq!(bus.chip().odr_hz(), Some(200));
+        let (g, a) = bus.chip_mut().sample([0.1, -0.2, 3.0], [1.0, -2.0, 9.80665]);
         let mut st = [0u8];
         bus.write_read(I2C_ADDRESS, &[reg::INT_STATUS], &mut st).unwrap();
         assert_eq!(st[0] & DATA_RDY, DATA_RDY);
@@ -411,7 +420,7 @@ mod tests {
         assert_eq!(g[2], libm::round(3.0 / glsb) as i16);
         assert_eq!(a[2], libm::round(9.80665 / (4.0 / 32768.0 * 9.80665)) as i16);
         // Saturation: 600 deg/s clips at +32767.
-        let (g, _) = chip.borrow_mut().sample([10.5, -10.5, 0.0], [0.0; 3]);
+        let (g, _) = bus.chip_mut().sample([10.5, -10.5, 0.0], [0.0; 3]);
         assert_eq!((g[0], g[1]), (32767, -32768));
     }
 

@@ -14,6 +14,8 @@ pub mod lidar;
 #[cfg(not(target_os = "none"))]
 pub mod raycast;
 pub mod rng;
+#[cfg(not(target_os = "none"))]
+pub mod scenario;
 pub mod terrain;
 pub mod trajectory;
 #[cfg(not(target_os = "none"))]

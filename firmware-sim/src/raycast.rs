@@ -113,6 +113,41 @@ impl Shape {
         }
     }
 
+    /// Whether the shape's footprint touches the axis-aligned square [c0, c0 + size] (with a
+    /// millimetre of slack), by separating axes for boxes and nearest-point distance for round
+    /// shapes.
+    pub fn touches_square(&self, c0: [f64; 2], size: f64) -> bool {
+        let eps = 1e-3;
+        let h = size * 0.5;
+        let sc = [c0[0] + h, c0[1] + h];
+        match *self {
+            Shape::Box { c, h: bh, cos, sin } => {
+                let d = [c[0] - sc[0], c[1] - sc[1]];
+                // Axes of the square (x, y) and of the box.
+                let ex = bh[0] * cos.abs() + bh[1] * sin.abs();
+                let ey = bh[0] * sin.abs() + bh[1] * cos.abs();
+                if d[0].abs() > h + ex + eps || d[1].abs() > h + ey + eps {
+                    return false;
+                }
+                for ax in [[cos, sin], [-sin, cos]] {
+                    let r_sq = h * (ax[0].abs() + ax[1].abs());
+                    let r_box = if ax == [cos, sin] { bh[0] } else { bh[1] };
+                    if (d[0] * ax[0] + d[1] * ax[1]).abs() > r_sq + r_box + eps {
+                        return false;
+                    }
+                }
+                true
+            }
+            Shape::Cylinder { c: [x, y], r, .. } | Shape::Crown { c: [x, y, _], r, .. } => {
+                let c = [x, y];
+                let qx = (c[0] - sc[0]).abs() - h;
+                let qy = (c[1] - sc[1]).abs() - h;
+                let (qx, qy) = (qx.max(0.0), qy.max(0.0));
+                qx * qx + qy * qy <= (r + eps) * (r + eps)
+            }
+        }
+    }
+
     /// Distance in the xy plane from a point to the shape's footprint (0 inside).
     pub fn xy_distance(&self, p: [f64; 2]) -> f64 {
         match *self {
@@ -362,6 +397,9 @@ fn face(n: [f64; 3], d: [f64; 3]) -> [f64; 3] {
     if n[0] * d[0] + n[1] * d[1] + n[2] * d[2] > 0.0 { [-n[0], -n[1], -n[2]] } else { n }
 }
 
+/// A primitive whose bounds cover more cells than this is tested once per ray instead.
+const GLOBAL_CELLS: usize = 64;
+
 /// The geometry of a world: primitives, optional ground, and the acceleration grid.
 #[derive(Clone, Debug)]
 pub struct Scene {
@@ -376,6 +414,9 @@ pub struct Scene {
     ny: usize,
     cell_start: Vec<u32>,
     items: Vec<u32>,
+    /// Primitives covering many cells (floors, ceilings, long walls): tested once per ray,
+    /// before the walk, so that their hit bounds it.
+    global: Vec<u32>,
     /// Per cell: z range of its primitives (empty cells: [inf, -inf]).
     obj_z: Vec<[f32; 2]>,
     /// Per cell: z range of the ground under it (no ground: [inf, -inf]).
@@ -399,17 +440,23 @@ impl Scene {
         let mut lists: Vec<Vec<u32>> = vec![Vec::new(); nx * ny];
         let mut obj_z = vec![[f32::INFINITY, f32::NEG_INFINITY]; nx * ny];
         let (mut zmin, mut zmax) = (f64::INFINITY, f64::NEG_INFINITY);
+        let mut global = Vec::new();
         for (k, p) in prims.iter().enumerate() {
             let (bl, bh) = p.shape.bounds();
             zmin = zmin.min(bl[2]);
             zmax = zmax.max(bh[2]);
             let ci = |x: f64, n: usize| (((x - lo[0]) / cell).floor().max(0.0) as usize).min(n - 1);
             let cj = |y: f64, n: usize| (((y - lo[1]) / cell).floor().max(0.0) as usize).min(n - 1);
+            let covered = (cj(bh[1], ny) - cj(bl[1], ny) + 1) * (ci(bh[0], nx) - ci(bl[0], nx) + 1);
+            if covered > GLOBAL_CELLS {
+                global.push(k as u32);
+                continue;
+            }
             for j in cj(bl[1], ny)..=cj(bh[1], ny) {
                 for i in ci(bl[0], nx)..=ci(bh[0], nx) {
                     // Skip cells the footprint does not touch (rotated boxes, round shapes).
-                    let centre = [lo[0] + (i as f64 + 0.5) * cell, lo[1] + (j as f64 + 0.5) * cell];
-                    if p.shape.xy_distance(centre) > cell * core::f64::consts::FRAC_1_SQRT_2 + 1e-9 {
+                    let c0 = [lo[0] + i as f64 * cell, lo[1] + j as f64 * cell];
+                    if !p.shape.touches_square(c0, cell) {
                         continue;
                     }
                     lists[j * nx + i].push(k as u32);
@@ -450,6 +497,7 @@ impl Scene {
             ny,
             cell_start,
             items,
+            global,
             obj_z,
             gnd_z,
             zmin,
@@ -507,6 +555,12 @@ impl Scene {
         let mut tny = if dy != 0.0 { (by - oy) / dy } else { f64::INFINITY };
         let mut t_enter = t0;
         let mut best = t1;
+        for &k in &self.global {
+            self.test_prim(k, ray, 0.0, &mut best, &mut res, key);
+        }
+        // Primitives already tested by this ray (they span several cells).
+        let mut mailbox = [u32::MAX; 8];
+        let mut mb = 0usize;
         loop {
             let c = j as usize * self.nx + i as usize;
             let t_exit = tnx.min(tny).min(t1);
@@ -516,6 +570,11 @@ impl Scene {
             if zl <= oz_c[1] as f64 && zh >= oz_c[0] as f64 {
                 let (s, e) = (self.cell_start[c] as usize, self.cell_start[c + 1] as usize);
                 for &k in &self.items[s..e] {
+                    if mailbox.contains(&k) {
+                        continue;
+                    }
+                    mailbox[mb & 7] = k;
+                    mb += 1;
                     self.test_prim(k, ray, 0.0, &mut best, &mut res, key);
                 }
             }

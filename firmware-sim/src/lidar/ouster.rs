@@ -192,6 +192,10 @@ pub struct Ouster {
     beams: usize,
     altitude: [f64; 64],
     azimuth: [f64; 64],
+    cos_az: [f64; 64],
+    sin_az: [f64; 64],
+    cos_alt: [f64; 64],
+    sin_alt: [f64; 64],
 }
 
 impl Ouster {
@@ -202,12 +206,25 @@ impl Ouster {
             SensorModel::Os1_64 => 64,
             _ => return Err(ConfigError::NotOuster),
         };
-        let mut o = Self { cfg, start_ns, beams, altitude: [0.0; 64], azimuth: [0.0; 64] };
+        let mut o = Self {
+            cfg,
+            start_ns,
+            beams,
+            altitude: [0.0; 64],
+            azimuth: [0.0; 64],
+            cos_az: [0.0; 64],
+            sin_az: [0.0; 64],
+            cos_alt: [0.0; 64],
+            sin_alt: [0.0; 64],
+        };
         // The simulated unit's calibration: the OS1's 33.2 degree field of view, uniform beam
         // spacing, and the four emitter columns' azimuth offsets (one column for the OS1-16).
         for i in 0..beams {
             o.altitude[i] = 16.6 - 33.2 * i as f64 / (beams - 1) as f64;
             o.azimuth[i] = if beams == 64 { [3.1, 0.9, -1.2, -3.3][i % 4] } else { -3.1 };
+            let (a, p) = (o.azimuth[i].to_radians(), o.altitude[i].to_radians());
+            (o.cos_az[i], o.sin_az[i], o.cos_alt[i], o.sin_alt[i]) =
+                (libm::cos(a), libm::sin(a), libm::cos(p), libm::sin(p));
         }
         Ok(o)
     }
@@ -254,19 +271,31 @@ impl Ouster {
 
     /// The firing of `beam` in global column `g`, sensor frame.
     pub fn firing(&self, g: u64, beam: usize) -> Firing {
+        let (ct, st) = self.encoder_cos_sin(g);
+        self.firing_at(g, beam, ct, st)
+    }
+
+    /// cos/sin of the encoder angle te = 2 pi (1 - m / W) of global column `g`.
+    pub fn encoder_cos_sin(&self, g: u64) -> (f64, f64) {
         let w = self.columns() as u64;
-        let m = g % w;
-        let te = core::f64::consts::TAU * (1.0 - m as f64 / w as f64);
-        let th = te - self.azimuth[beam].to_radians();
-        let p = self.altitude[beam].to_radians();
-        let (cp, sp) = (libm::cos(p), libm::sin(p));
+        let te = core::f64::consts::TAU * (1.0 - (g % w) as f64 / w as f64);
+        (libm::cos(te), libm::sin(te))
+    }
+
+    /// The firing of `beam` in column `g` given cos/sin of the column's encoder angle.
+    #[inline]
+    pub fn firing_at(&self, g: u64, beam: usize, ct: f64, st: f64) -> Firing {
+        // th = te - azimuth.
+        let (ca, sa) = (self.cos_az[beam], self.sin_az[beam]);
+        let (cth, sth) = (ct * ca + st * sa, st * ca - ct * sa);
+        let (cp, sp) = (self.cos_alt[beam], self.sin_alt[beam]);
         Firing {
             t_ns: self.column_time_ns(g),
             key: (g << 8) | beam as u64,
             beam: beam as u16,
             // Lidar frame turned by pi about z: (x, y) -> (-x, -y).
-            origin: [-BEAM_ORIGIN_M * libm::cos(te), -BEAM_ORIGIN_M * libm::sin(te), LIDAR_TO_SENSOR_Z],
-            dir: [-libm::cos(th) * cp, -libm::sin(th) * cp, sp],
+            origin: [-BEAM_ORIGIN_M * ct, -BEAM_ORIGIN_M * st, LIDAR_TO_SENSOR_Z],
+            dir: [-cth * cp, -sth * cp, sp],
         }
     }
 
@@ -313,8 +342,9 @@ impl Ouster {
                 col[10..12].copy_from_slice(&1u16.to_le_bytes());
                 12
             };
+            let (ct, st) = self.encoder_cos_sin(g);
             for b in 0..self.beams {
-                let f = self.firing(g, b);
+                let f = self.firing_at(g, b, ct, st);
                 let e = src.measure(&f).strongest();
                 let px = &mut col[px0 + 12 * b..px0 + 12 * b + 12];
                 let nir = 80 + (rng::unit(0x0057_E200, f.key, 0) * 40.0) as u16;

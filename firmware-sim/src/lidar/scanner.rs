@@ -83,12 +83,13 @@ impl<'a> WorldEchoes<'a> {
     fn echo(&self, h: &Hit, d: [f64; 3], key: u64, stream: u64) -> Option<Echo> {
         let cos = (h.n[0] * d[0] + h.n[1] * d[1] + h.n[2] * d[2]).abs();
         let m = &self.range;
+        // One hash per echo; its independent derivatives drive dropout, noise and scatter.
+        let hsh = rng::hash3(self.seed, key, stream);
         let mut p_drop = m.dropout;
         if cos < 0.1 {
             p_drop += 0.7 * (0.1 - cos) / 0.1;
         }
-        let u = rng::unit(self.seed, key, S_DROP ^ (stream << 8));
-        if u < p_drop {
+        if rng::to_unit(rng::mix64(hsh ^ S_DROP)) < p_drop {
             return None;
         }
         let refl_cos = (h.refl as f64 * cos * h.fraction as f64).max(1.0);
@@ -96,13 +97,13 @@ impl<'a> WorldEchoes<'a> {
         if h.t > max {
             return None;
         }
-        let range = h.t + m.sigma * rng::gauss(self.seed, key, stream);
+        let range = h.t + m.sigma * rng::gauss_from(hsh);
         if range < m.min_range {
             return None;
         }
         // Calibrated reflectivity: the surface's, with a little measurement scatter (retro-
         // reflectors keep their >100 values).
-        let jitter = (rng::unit(self.seed, key, S_REFL ^ stream) - 0.5) * 6.0;
+        let jitter = (rng::to_unit(rng::mix64(hsh ^ S_REFL)) - 0.5) * 6.0;
         let refl = if h.refl > 100 {
             h.refl
         } else {
@@ -133,12 +134,15 @@ impl EchoSource for WorldEchoes<'_> {
         }
         self.rays += 1;
         let dt = (f.t_ns as f64 - self.t0 as f64) * 1e-9;
+        // Rotate by exp([w dt]) to second order, then by the sequence's rotation.
         let th = self.w * dt;
-        let k = th.cross_matrix();
-        let r = self.r * (Matrix3::identity() + k + 0.5 * k * k);
+        let turn = |v: Vector3<f64>| {
+            let c = th.cross(&v);
+            v + c + 0.5 * th.cross(&c)
+        };
         let p = self.p + self.v * dt + 0.5 * dt * dt * self.a;
-        let o = r * Vector3::from(f.origin) + p;
-        let d = (r * Vector3::from(f.dir)).normalize();
+        let o = self.r * turn(Vector3::from(f.origin)) + p;
+        let d = (self.r * turn(Vector3::from(f.dir))).normalize();
         let ray = Ray { o: [o.x, o.y, o.z], d: [d.x, d.y, d.z] };
         let res = self.scene.cast(&ray, self.range.max_range, f.key);
         Echoes {
@@ -340,8 +344,9 @@ impl DirectScanner {
                 Firmware::Velodyne(v) => {
                     src.begin_sequence(v.sequence_time_ns(u));
                     let mode = v.config().return_mode;
-                    for l in 0..v.lasers() {
-                        let f = v.firing(u, l);
+                    let mut seq = [Firing { t_ns: 0, key: 0, beam: 0, origin: [0.0; 3], dir: [0.0; 3] }; 32];
+                    v.sequence_firings(u, &mut seq);
+                    for (l, &f) in seq.iter().enumerate().take(v.lasers()) {
                         let e = src.measure(&f);
                         let row = self.rows[l];
                         let az = libm::atan2(f.dir[1], f.dir[0]);
@@ -370,8 +375,9 @@ impl DirectScanner {
                     let t = o.column_time_ns(u);
                     src.begin_sequence(t);
                     let col = (u % o.columns() as u64) as u16;
+                    let (ct, st) = o.encoder_cos_sin(u);
                     for beam in 0..o.beams() {
-                        let f = o.firing(u, beam);
+                        let f = o.firing_at(u, beam, ct, st);
                         let Some(e) = src.measure(&f).strongest() else { continue };
                         let r_mm = libm::round((e.range + super::ouster::BEAM_ORIGIN_M) * 1000.0);
                         if !(1.0..=524_287.0).contains(&r_mm) {

@@ -153,6 +153,10 @@ pub struct Velodyne {
     vertical: [f64; 32],
     cos_el: [f64; 32],
     sin_el: [f64; 32],
+    /// cos/sin of each laser's azimuth lead over its sequence's start: head turn during its
+    /// firing offset plus its azimuth offset.
+    cos_lead: [f64; 32],
+    sin_lead: [f64; 32],
 }
 
 impl Velodyne {
@@ -173,6 +177,8 @@ impl Velodyne {
             vertical: [0.0; 32],
             cos_el: [0.0; 32],
             sin_el: [0.0; 32],
+            cos_lead: [0.0; 32],
+            sin_lead: [0.0; 32],
         };
         for l in 0..v.lasers {
             let (el, az, vo) = match cfg.model {
@@ -185,6 +191,9 @@ impl Velodyne {
             v.vertical[l] = vo;
             v.cos_el[l] = libm::cos(el.to_radians());
             v.sin_el[l] = libm::sin(el.to_radians());
+            let lead = (6.0 * cfg.rpm * v.firing_offset_ns(l) as f64 * 1e-9 + az).to_radians();
+            v.cos_lead[l] = libm::cos(lead);
+            v.sin_lead[l] = libm::sin(lead);
         }
         Ok(v)
     }
@@ -298,16 +307,33 @@ impl Velodyne {
 
     /// The firing of `laser` in sequence `n`, with its ray in the sensor frame.
     pub fn firing(&self, n: u64, laser: usize) -> Firing {
+        let a = self.head_azimuth_deg(self.sequence_time_ns(n)).to_radians();
+        self.firing_at(n, laser, libm::cos(a), libm::sin(a))
+    }
+
+    /// All firings of sequence `n` (the first [`Self::lasers`] entries of `out`).
+    pub fn sequence_firings(&self, n: u64, out: &mut [Firing; 32]) {
+        let a = self.head_azimuth_deg(self.sequence_time_ns(n)).to_radians();
+        let (ca, sa) = (libm::cos(a), libm::sin(a));
+        for (l, f) in out.iter_mut().enumerate().take(self.lasers) {
+            *f = self.firing_at(n, l, ca, sa);
+        }
+    }
+
+    /// The firing of `laser` in sequence `n` given cos/sin of the sequence's head azimuth.
+    #[inline]
+    fn firing_at(&self, n: u64, laser: usize, ca: f64, sa: f64) -> Firing {
         let t_ns = self.sequence_time_ns(n) + self.firing_offset_ns(laser);
-        let az = (self.head_azimuth_deg(t_ns) + self.azimuth_offset[laser]).to_radians();
-        let (sa, ca) = (libm::sin(az), libm::cos(az));
+        // Clockwise azimuth of the beam: head + lead; rotate (cos, sin) by the lead.
+        let (cl, sl) = (self.cos_lead[laser], self.sin_lead[laser]);
+        let (c, s) = (ca * cl - sa * sl, sa * cl + ca * sl);
         let (ce, se) = (self.cos_el[laser], self.sin_el[laser]);
         Firing {
             t_ns,
             key: (n << 8) | laser as u64,
             beam: laser as u16,
             origin: [0.0, 0.0, self.vertical[laser]],
-            dir: [ce * ca, -ce * sa, se],
+            dir: [ce * c, -ce * s, se],
         }
     }
 
@@ -340,10 +366,12 @@ impl Velodyne {
             let mut firings = [Firing { t_ns: 0, key: 0, beam: 0, origin: [0.0; 3], dir: [0.0; 3] }; 32];
             for s in 0..spb {
                 src.begin_sequence(self.sequence_time_ns(seq0 + s));
-                for l in 0..self.lasers {
+                let mut seq = [Firing { t_ns: 0, key: 0, beam: 0, origin: [0.0; 3], dir: [0.0; 3] }; 32];
+                self.sequence_firings(seq0 + s, &mut seq);
+                for (l, f) in seq.iter().enumerate().take(self.lasers) {
                     let ch = s as usize * self.lasers + l;
-                    firings[ch] = self.firing(seq0 + s, l);
-                    echoes[ch] = src.measure(&firings[ch]);
+                    firings[ch] = *f;
+                    echoes[ch] = src.measure(f);
                 }
             }
             let az = self.head_azimuth_deg(self.sequence_time_ns(seq0));
