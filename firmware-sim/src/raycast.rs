@@ -397,6 +397,25 @@ fn face(n: [f64; 3], d: [f64; 3]) -> [f64; 3] {
     if n[0] * d[0] + n[1] * d[1] + n[2] * d[2] > 0.0 { [-n[0], -n[1], -n[2]] } else { n }
 }
 
+/// One grid cell.
+#[derive(Clone, Copy, Debug)]
+struct Cell {
+    /// z range of its primitives (empty cells: [inf, -inf]).
+    obj: [f32; 2],
+    /// z range of the ground under it (no ground: [inf, -inf]).
+    gnd: [f32; 2],
+    /// Its items: `items[start..end]`.
+    start: u32,
+    end: u32,
+}
+
+/// A primitive listed in a cell, with its z range for a quick reject.
+#[derive(Clone, Copy, Debug)]
+struct Item {
+    prim: u32,
+    z: [f32; 2],
+}
+
 /// A primitive whose bounds cover more cells than this is tested once per ray instead.
 const GLOBAL_CELLS: usize = 64;
 
@@ -412,15 +431,12 @@ pub struct Scene {
     cell: f64,
     nx: usize,
     ny: usize,
-    cell_start: Vec<u32>,
-    items: Vec<u32>,
+    /// Per cell, packed in one cache line: the z ranges and the item slice.
+    cells: Vec<Cell>,
+    items: Vec<Item>,
     /// Primitives covering many cells (floors, ceilings, long walls): tested once per ray,
     /// before the walk, so that their hit bounds it.
     global: Vec<u32>,
-    /// Per cell: z range of its primitives (empty cells: [inf, -inf]).
-    obj_z: Vec<[f32; 2]>,
-    /// Per cell: z range of the ground under it (no ground: [inf, -inf]).
-    gnd_z: Vec<[f32; 2]>,
     zmin: f64,
     zmax: f64,
 }
@@ -437,7 +453,7 @@ impl Scene {
     ) -> Self {
         let nx = (((hi[0] - lo[0]) / cell).ceil() as usize).max(1);
         let ny = (((hi[1] - lo[1]) / cell).ceil() as usize).max(1);
-        let mut lists: Vec<Vec<u32>> = vec![Vec::new(); nx * ny];
+        let mut lists: Vec<Vec<Item>> = vec![Vec::new(); nx * ny];
         let mut obj_z = vec![[f32::INFINITY, f32::NEG_INFINITY]; nx * ny];
         let (mut zmin, mut zmax) = (f64::INFINITY, f64::NEG_INFINITY);
         let mut global = Vec::new();
@@ -459,7 +475,8 @@ impl Scene {
                     if !p.shape.touches_square(c0, cell) {
                         continue;
                     }
-                    lists[j * nx + i].push(k as u32);
+                    lists[j * nx + i]
+                        .push(Item { prim: k as u32, z: [next_down(bl[2] as f32), next_up(bh[2] as f32)] });
                     let z = &mut obj_z[j * nx + i];
                     z[0] = z[0].min(next_down(bl[2] as f32));
                     z[1] = z[1].max(next_up(bh[2] as f32));
@@ -479,30 +496,14 @@ impl Scene {
                 }
             }
         }
-        let mut cell_start = Vec::with_capacity(nx * ny + 1);
+        let mut cells = Vec::with_capacity(nx * ny);
         let mut items = Vec::new();
-        for l in &lists {
-            cell_start.push(items.len() as u32);
+        for (c, l) in lists.iter().enumerate() {
+            let start = items.len() as u32;
             items.extend_from_slice(l);
+            cells.push(Cell { obj: obj_z[c], gnd: gnd_z[c], start, end: items.len() as u32 });
         }
-        cell_start.push(items.len() as u32);
-        Self {
-            prims,
-            ground,
-            seed,
-            gx0: lo[0],
-            gy0: lo[1],
-            cell,
-            nx,
-            ny,
-            cell_start,
-            items,
-            global,
-            obj_z,
-            gnd_z,
-            zmin,
-            zmax,
-        }
+        Self { prims, ground, seed, gx0: lo[0], gy0: lo[1], cell, nx, ny, cells, items, global, zmin, zmax }
     }
 
     /// The primitives.
@@ -566,11 +567,11 @@ impl Scene {
             let t_exit = tnx.min(tny).min(t1);
             let (za, zb) = (oz + dz * t_enter, oz + dz * t_exit.min(best));
             let (zl, zh) = if za < zb { (za, zb) } else { (zb, za) };
-            let oz_c = self.obj_z[c];
-            if zl <= oz_c[1] as f64 && zh >= oz_c[0] as f64 {
-                let (s, e) = (self.cell_start[c] as usize, self.cell_start[c + 1] as usize);
-                for &k in &self.items[s..e] {
-                    if mailbox.contains(&k) {
+            let cell = self.cells[c];
+            if zl <= cell.obj[1] as f64 && zh >= cell.obj[0] as f64 {
+                for it in &self.items[cell.start as usize..cell.end as usize] {
+                    let k = it.prim;
+                    if zl > it.z[1] as f64 || zh < it.z[0] as f64 || mailbox.contains(&k) {
                         continue;
                     }
                     mailbox[mb & 7] = k;
@@ -578,7 +579,7 @@ impl Scene {
                     self.test_prim(k, ray, 0.0, &mut best, &mut res, key);
                 }
             }
-            let g = self.gnd_z[c];
+            let g = cell.gnd;
             if zl <= g[1] as f64
                 && zh >= g[0] as f64
                 && let Some(ground) = &self.ground

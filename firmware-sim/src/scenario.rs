@@ -170,7 +170,7 @@ impl ScenarioConfig {
             imu_noise: ImuNoise::icm42688p(),
             imu_board: BoardConfig::default(),
             imu_phase_ns: 1_250_000,
-            threads: 1,
+            threads: std::thread::available_parallelism().map_or(1, |n| n.get().min(4)),
         }
     }
 }

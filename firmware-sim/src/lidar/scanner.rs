@@ -264,6 +264,12 @@ impl DirectScanner {
         }
     }
 
+    /// Number of firings (rays) in scan `j`.
+    pub fn rays_in_scan(&self, j: u64) -> u64 {
+        let (a, b) = self.scan_units(j);
+        (b - a) * self.units_width() as u64
+    }
+
     /// Absolute time of the first firing of scan `j`, ns.
     pub fn scan_start_ns(&self, j: u64) -> u64 {
         let (a, _) = self.scan_units(j);
