@@ -402,7 +402,7 @@ impl Velodyne {
                     let at = |r: f64| {
                         [f.origin[0] + r * f.dir[0], f.origin[1] + r * f.dir[1], f.origin[2] + r * f.dir[2]]
                     };
-                    let az_f = (self.head_azimuth_deg(f.t_ns) + self.azimuth_offset[laser]).rem_euclid(360.0);
+                    let az_f = wrap360(self.head_azimuth_deg(f.t_ns) + self.azimuth_offset[laser]);
                     truth[nt] = TruthPoint {
                         block: b as u8,
                         channel: ch as u8,
@@ -445,6 +445,12 @@ impl Velodyne {
         let n = nmea.len().min(POSITION_PACKET_LEN - 206);
         out[206..206 + n].copy_from_slice(&nmea[..n]);
     }
+}
+
+/// An angle in degrees wrapped into [0, 360) (no_std: no `f64::rem_euclid`).
+pub fn wrap360(x: f64) -> f64 {
+    let w = x - 360.0 * libm::floor(x / 360.0);
+    if w >= 360.0 { 0.0 } else { w }
 }
 
 /// A small `core::fmt::Write` into a byte slice (no heap).
@@ -512,7 +518,7 @@ pub fn gprmc(
         (lon - lon_d) * 60.0,
         lon_h,
         speed_kn.clamp(0.0, 999.9),
-        course_deg.rem_euclid(360.0),
+        wrap360(course_deg),
         d,
         mo,
         y.rem_euclid(100)
