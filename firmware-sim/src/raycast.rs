@@ -556,8 +556,9 @@ impl Scene {
         let mut tny = if dy != 0.0 { (by - oy) / dy } else { f64::INFINITY };
         let mut t_enter = t0;
         let mut best = t1;
+        let inv = inverse(ray.d);
         for &k in &self.global {
-            self.test_prim(k, ray, 0.0, &mut best, &mut res, key);
+            self.test_prim(k, ray, &inv, 0.0, &mut best, &mut res, key);
         }
         // Primitives already tested by this ray (they span several cells).
         let mut mailbox = [u32::MAX; 8];
@@ -576,7 +577,7 @@ impl Scene {
                     }
                     mailbox[mb & 7] = k;
                     mb += 1;
-                    self.test_prim(k, ray, 0.0, &mut best, &mut res, key);
+                    self.test_prim(k, ray, &inv, 0.0, &mut best, &mut res, key);
                 }
             }
             let g = cell.gnd;
@@ -615,12 +616,45 @@ impl Scene {
         res
     }
 
+    /// The same answer as [`Self::cast`] without the grid: every primitive and the whole ground
+    /// are tested. The reference for the grid's correctness tests and speed-up figure.
+    pub fn cast_brute(&self, ray: &Ray, t_max: f64, key: u64) -> RayResult {
+        let mut res = RayResult::default();
+        let mut best = t_max;
+        let inv = inverse(ray.d);
+        for k in 0..self.prims.len() as u32 {
+            self.test_prim(k, ray, &inv, 0.0, &mut best, &mut res, key);
+        }
+        if let Some(g) = &self.ground
+            && let Some(h) = g.cast(ray, 0.0, best)
+            && h.t < best
+        {
+            res.hit = Some(h);
+        }
+        if let (Some(p), Some(h)) = (res.partial, res.hit)
+            && p.t >= h.t
+        {
+            res.partial = None;
+        }
+        res
+    }
+
     #[inline]
-    fn test_prim(&self, k: u32, ray: &Ray, tmin: f64, best: &mut f64, res: &mut RayResult, key: u64) {
+    #[allow(clippy::too_many_arguments)]
+    fn test_prim(
+        &self,
+        k: u32,
+        ray: &Ray,
+        inv: &[f64; 3],
+        tmin: f64,
+        best: &mut f64,
+        res: &mut RayResult,
+        key: u64,
+    ) {
         let p = &self.prims[k as usize];
         match p.shape {
             Shape::Box { c, h, cos, sin } => {
-                if let Some((t, n)) = ray_box(ray, c, h, cos, sin, tmin, *best) {
+                if let Some((t, n)) = ray_box_inv(ray, inv, c, h, cos, sin, tmin, *best) {
                     *best = t;
                     res.hit = Some(Hit { t, n: face(n, ray.d), refl: p.refl, fraction: 1.0, prim: k });
                 }
@@ -680,36 +714,76 @@ pub fn ray_box(
     tmin: f64,
     tmax: f64,
 ) -> Option<(f64, [f64; 3])> {
+    ray_box_inv(ray, &inverse(ray.d), c, h, cos, sin, tmin, tmax)
+}
+
+/// Component-wise 1/d (infinite for zero components).
+#[inline]
+fn inverse(d: [f64; 3]) -> [f64; 3] {
+    [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]]
+}
+
+/// One slab of a box: updates the entry/exit distances; false if the ray misses.
+#[inline(always)]
+fn slab(o: f64, d: f64, inv: f64, h: f64, a: usize, tn: &mut f64, tf: &mut f64, axis: &mut usize) -> bool {
+    if d == 0.0 {
+        return o >= -h && o <= h;
+    }
+    let (t1, t2) = ((-h - o) * inv, (h - o) * inv);
+    let (lo, hi) = if t1 < t2 { (t1, t2) } else { (t2, t1) };
+    if lo > *tn {
+        *tn = lo;
+        *axis = a;
+    }
+    *tf = tf.min(hi);
+    *tn <= *tf
+}
+
+/// [`ray_box`] with the ray's inverse direction precomputed (the z slab and axis-aligned
+/// boxes need no division).
+#[inline]
+#[allow(clippy::too_many_arguments)]
+fn ray_box_inv(
+    ray: &Ray,
+    inv: &[f64; 3],
+    c: [f64; 3],
+    h: [f64; 3],
+    cos: f64,
+    sin: f64,
+    tmin: f64,
+    tmax: f64,
+) -> Option<(f64, [f64; 3])> {
     let (px, py, pz) = (ray.o[0] - c[0], ray.o[1] - c[1], ray.o[2] - c[2]);
-    let o = [cos * px + sin * py, -sin * px + cos * py, pz];
-    let d = [cos * ray.d[0] + sin * ray.d[1], -sin * ray.d[0] + cos * ray.d[1], ray.d[2]];
     let mut tn = f64::NEG_INFINITY;
-    let mut tf = f64::INFINITY;
-    let mut axis = 0usize;
-    for a in 0..3 {
-        if d[a] == 0.0 {
-            if o[a] < -h[a] || o[a] > h[a] {
-                return None;
-            }
-            continue;
-        }
-        let inv = 1.0 / d[a];
-        let (t1, t2) = ((-h[a] - o[a]) * inv, (h[a] - o[a]) * inv);
-        let (lo, hi) = if t1 < t2 { (t1, t2) } else { (t2, t1) };
-        if lo > tn {
-            tn = lo;
-            axis = a;
-        }
-        tf = tf.min(hi);
-        if tn > tf {
+    let mut tf = tmax;
+    let mut axis = 2usize;
+    // The z slab first: it is unrotated and rejects most boxes above or below the ray.
+    if !slab(pz, ray.d[2], inv[2], h[2], 2, &mut tn, &mut tf, &mut axis) {
+        return None;
+    }
+    let (d0, d1) = if sin == 0.0 && cos == 1.0 {
+        if !slab(px, ray.d[0], inv[0], h[0], 0, &mut tn, &mut tf, &mut axis)
+            || !slab(py, ray.d[1], inv[1], h[1], 1, &mut tn, &mut tf, &mut axis)
+        {
             return None;
         }
-    }
+        (ray.d[0], ray.d[1])
+    } else {
+        let o = [cos * px + sin * py, -sin * px + cos * py];
+        let d = [cos * ray.d[0] + sin * ray.d[1], -sin * ray.d[0] + cos * ray.d[1]];
+        if !slab(o[0], d[0], 1.0 / d[0], h[0], 0, &mut tn, &mut tf, &mut axis)
+            || !slab(o[1], d[1], 1.0 / d[1], h[1], 1, &mut tn, &mut tf, &mut axis)
+        {
+            return None;
+        }
+        (d[0], d[1])
+    };
     // Origin inside the box (tn < tmin): a sensor inside a solid sees nothing of it.
     if tn <= tmin || tn >= tmax {
         return None;
     }
-    let s = if d[axis] > 0.0 { -1.0 } else { 1.0 };
+    let da = [d0, d1, ray.d[2]][axis];
+    let s = if da > 0.0 { -1.0 } else { 1.0 };
     let n = match axis {
         0 => [s * cos, s * sin, 0.0],
         1 => [-s * sin, s * cos, 0.0],

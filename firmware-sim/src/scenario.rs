@@ -361,14 +361,36 @@ impl Scenario {
     }
 
     /// Every event (IMU samples and scans) in time order.
+    ///
+    /// Scans are generated ahead on a background thread (at most two waiting), so that their
+    /// generation overlaps whatever the caller does with the previous ones; the events are the
+    /// same as without it (every ray is a pure function of the seed).
     pub fn events(&self) -> Events<'_> {
+        let scanner = self.scanner();
+        let (tx, rx) = std::sync::mpsc::sync_channel(2);
+        let owned = std::sync::Arc::new(self.clone());
+        let worker = std::thread::Builder::new()
+            .name("loglio-sim-scans".into())
+            .spawn(move || {
+                let mut scanner = owned.scanner();
+                while scanner.scan_end_ns(scanner.next_index()) <= owned.end_ns() {
+                    let scan = scanner.next(|| owned.echo_source());
+                    if tx.send(scan).is_err() {
+                        break; // the consumer is gone
+                    }
+                }
+            })
+            .ok();
+        let rx = worker.as_ref().map(|_| rx);
         Events {
             sc: self,
             imu: self.imu_samples(),
             pending: None,
-            scanner: self.scanner(),
+            scanner,
             scan_end: None,
             imu_done: false,
+            rx,
+            _worker: worker,
         }
     }
 }
@@ -443,9 +465,12 @@ pub struct Events<'a> {
     sc: &'a Scenario,
     imu: ImuStream<Discard>,
     pending: Option<ImuSample>,
+    /// Knows the scans' times (and generates them itself if no thread could be started).
     scanner: DirectScanner,
     scan_end: Option<u64>,
     imu_done: bool,
+    rx: Option<std::sync::mpsc::Receiver<SimScan>>,
+    _worker: Option<std::thread::JoinHandle<()>>,
 }
 
 impl Iterator for Events<'_> {
@@ -465,8 +490,20 @@ impl Iterator for Events<'_> {
             }
             _ if scan_ok => {
                 self.scan_end = None;
-                let sc = self.sc;
-                Some(Event::Scan(self.scanner.next(|| sc.echo_source())))
+                let j = self.scanner.next_index();
+                let prefetched = self.rx.as_ref().and_then(|rx| rx.recv().ok());
+                let scan = match prefetched {
+                    Some(s) => {
+                        self.scanner.skip(1);
+                        s
+                    }
+                    None => {
+                        let sc = self.sc;
+                        self.scanner.next(|| sc.echo_source())
+                    }
+                };
+                debug_assert_eq!(scan.index, j);
+                Some(Event::Scan(scan))
             }
             _ => None,
         }

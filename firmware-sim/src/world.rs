@@ -508,6 +508,33 @@ mod tests {
     }
 
     #[test]
+    fn grid_casting_equals_brute_force() {
+        // Random rays from around the trajectories: the grid must return exactly what testing
+        // every primitive returns (hit distance, primitive, partial leaf).
+        for (kind, traj) in [
+            (SceneKind::Town, Trajectory::Vehicle { terrain: Terrain::town() }),
+            (SceneKind::Town, Trajectory::Drone { ground_z: 0.0 }),
+            (SceneKind::Hall, Trajectory::Handheld),
+            (SceneKind::Corridor, Trajectory::Corridor),
+        ] {
+            let w = World::build(kind, 21);
+            let mut rng = SplitMix64::new(4, 4);
+            let mut hits = 0;
+            for i in 0..3000u64 {
+                let p = traj.eval(rng.range(0.0, 40.0)).position;
+                let (az, el) = (rng.range(-3.2, 3.2), rng.range(-0.6, 0.4));
+                let d = [libm::cos(el) * libm::cos(az), libm::cos(el) * libm::sin(az), libm::sin(el)];
+                let r = Ray { o: [p.x, p.y, p.z], d };
+                let a = w.scene.cast(&r, 150.0, i);
+                let b = w.scene.cast_brute(&r, 150.0, i);
+                assert_eq!(a, b, "{kind:?} ray {i}: {r:?}");
+                hits += a.hit.is_some() as u32;
+            }
+            assert!(hits > 1000, "{kind:?}: {hits}");
+        }
+    }
+
+    #[test]
     fn corridor_has_constant_cross_section() {
         let w = World::build(SceneKind::Corridor, 1);
         for x in [-150.0, 0.0, 77.7, 300.0] {

@@ -14,6 +14,8 @@ use clap::{Args, Parser, Subcommand};
 use loglio_firmware_sim::imu_chip::Odr;
 use loglio_firmware_sim::lidar::ouster::{LidarMode, Profile};
 use loglio_firmware_sim::lidar::{ReturnMode, SensorModel};
+use loglio_firmware_sim::raycast::Ray;
+use loglio_firmware_sim::rng::SplitMix64;
 use loglio_firmware_sim::scenario::{Event, LidarConfig, Scenario, ScenarioConfig, ScenarioKind};
 use loglio_firmware_sim::{files, live};
 
@@ -209,6 +211,34 @@ fn main() -> anyhow::Result<()> {
                 rays as f64 / cpu / 1e6,
                 rays as f64 / wall / 1e6,
                 points as f64 / n as f64
+            );
+            // Baseline in the same run: the same random rays cast with and without the grid.
+            let rays_b: Vec<Ray> = {
+                let mut rng = SplitMix64::new(7, 7);
+                (0..20_000)
+                    .map(|_| {
+                        let p =
+                            s.trajectory().eval(rng.range(0.0, seconds)).attached(&s.extrinsic()).position;
+                        let (az, el) = (rng.range(-3.2, 3.2), rng.range(-0.44, 0.27));
+                        Ray { o: [p.x, p.y, p.z], d: [el.cos() * az.cos(), el.cos() * az.sin(), el.sin()] }
+                    })
+                    .collect()
+            };
+            let scene = &s.world().scene;
+            let time = |f: &dyn Fn(&Ray, u64) -> bool| {
+                let c0 = thread_cpu_s();
+                let hits = rays_b.iter().enumerate().filter(|(i, r)| f(r, *i as u64)).count();
+                (thread_cpu_s() - c0, hits)
+            };
+            let (tg, hg) = time(&|r, k| scene.cast(r, 200.0, k).hit.is_some());
+            let (tb, hb) = time(&|r, k| scene.cast_brute(r, 200.0, k).hit.is_some());
+            assert_eq!(hg, hb);
+            println!(
+                "grid vs brute force ({} primitives): {:.2} vs {:.3} M rays per CPU-second, speed-up {:.0}x",
+                scene.prims().len(),
+                rays_b.len() as f64 / tg / 1e6,
+                rays_b.len() as f64 / tb / 1e6,
+                tb / tg
             );
             // The whole sequence through the Scenario API, with all cores.
             let mut sc2 = sc;

@@ -292,6 +292,11 @@ impl DirectScanner {
         }
     }
 
+    /// Skips `n` scans.
+    pub fn skip(&mut self, n: u64) {
+        self.next_scan += n;
+    }
+
     /// Index of the next scan [`Self::next`] produces.
     pub fn next_index(&self) -> u64 {
         self.next_scan
