@@ -725,6 +725,7 @@ fn inverse(d: [f64; 3]) -> [f64; 3] {
 
 /// One slab of a box: updates the entry/exit distances; false if the ray misses.
 #[inline(always)]
+#[allow(clippy::too_many_arguments)]
 fn slab(o: f64, d: f64, inv: f64, h: f64, a: usize, tn: &mut f64, tf: &mut f64, axis: &mut usize) -> bool {
     if d == 0.0 {
         return o >= -h && o <= h;
