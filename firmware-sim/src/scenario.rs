@@ -515,6 +515,22 @@ mod tests {
     use super::*;
 
     #[test]
+    fn scans_do_not_depend_on_threads_or_prefetch() {
+        let mut cfg = ScenarioConfig::new(ScenarioKind::FastRotation, SensorModel::Vlp32c, 3);
+        cfg.duration_s = 2.6;
+        cfg.threads = 1;
+        let one = Scenario::from_config(cfg.clone()).unwrap();
+        cfg.threads = 3;
+        let three = Scenario::from_config(cfg).unwrap();
+        assert_eq!(one.scan(24), three.scan(24));
+        let ev: Vec<Event> = three.events().collect();
+        let scans: Vec<&SimScan> =
+            ev.iter().filter_map(|e| if let Event::Scan(s) = e { Some(s) } else { None }).collect();
+        assert_eq!(scans.len(), 25);
+        assert_eq!(*scans[24], one.scan(24));
+    }
+
+    #[test]
     fn events_are_time_ordered_and_complete() {
         let mut cfg = ScenarioConfig::new(ScenarioKind::Handheld, SensorModel::Vlp16, 7);
         cfg.duration_s = 1.05;
