@@ -526,7 +526,7 @@ mod tests {
         let ev: Vec<Event> = three.events().collect();
         let scans: Vec<&SimScan> =
             ev.iter().filter_map(|e| if let Event::Scan(s) = e { Some(s) } else { None }).collect();
-        assert_eq!(scans.len(), 25);
+        assert_eq!(scans.len(), 26);
         assert_eq!(*scans[24], one.scan(24));
     }
 
