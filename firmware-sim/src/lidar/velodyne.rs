@@ -673,6 +673,30 @@ mod tests {
     }
 
     #[test]
+    fn timestamps_wrap_at_the_top_of_the_hour() {
+        // Start 50 ms before 13:00:00 UTC: packet timestamps run up to 3,599,9xx,xxx us and
+        // restart from 0 at the hour, each the packet's first firing time modulo one hour.
+        let cfg = VelodyneConfig::default_for(SensorModel::Vlp16);
+        let v = Velodyne::new(cfg, 1_714_568_400_000_000_000 - 50_000_000).unwrap();
+        let mut buf = [0u8; DATA_PACKET_LEN];
+        let mut truth = [TruthPoint::default(); POINTS_PER_PACKET];
+        let mut wrapped = false;
+        let mut prev = 0u32;
+        for k in 0..80 {
+            v.data_packet(k, &mut Wall { sequences: 0 }, &mut buf, &mut truth);
+            let ts = u32::from_le_bytes(buf[1200..1204].try_into().unwrap());
+            assert!(ts < 3_600_000_000);
+            assert_eq!(ts as u64, (v.packet_time_ns(k) / 1000) % 3_600_000_000);
+            if k > 0 && ts < prev {
+                wrapped = true;
+                assert!(prev > 3_599_900_000 && ts < 2_000);
+            }
+            prev = ts;
+        }
+        assert!(wrapped);
+    }
+
+    #[test]
     fn gprmc_sentence_and_position_packet() {
         // 2024-05-01 12:10:07 UTC.
         let mut s = [0u8; 100];
