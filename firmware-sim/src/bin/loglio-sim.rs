@@ -159,6 +159,12 @@ impl ScenarioArgs {
     }
 }
 
+/// CPU time of the whole process (all threads), seconds.
+fn process_cpu_s() -> f64 {
+    let t = rustix::time::clock_gettime(rustix::time::ClockId::ProcessCPUTime);
+    t.tv_sec as f64 + t.tv_nsec as f64 * 1e-9
+}
+
 /// CPU time of the calling thread, seconds.
 fn thread_cpu_s() -> f64 {
     let t = rustix::time::clock_gettime(rustix::time::ClockId::ThreadCPUTime);
@@ -244,7 +250,7 @@ fn main() -> anyhow::Result<()> {
             let mut sc2 = sc;
             sc2.threads = 0;
             let s = sc2.build()?;
-            let t = Instant::now();
+            let (t, c0) = (Instant::now(), process_cpu_s());
             let (mut scans, mut imu) = (0, 0);
             for ev in s.events() {
                 match ev {
@@ -253,10 +259,11 @@ fn main() -> anyhow::Result<()> {
                 }
             }
             println!(
-                "sequence: {:.0} s of {} ({scans} scans, {imu} IMU samples) generated in {:.2} s with {} threads",
+                "sequence: {:.0} s of {} ({scans} scans, {imu} IMU samples) generated in {:.2} s wall, {:.2} s CPU, with {} threads",
                 seconds,
                 s.config().lidar.model().name(),
                 t.elapsed().as_secs_f64(),
+                process_cpu_s() - c0,
                 s.config().threads
             );
         }
