@@ -557,9 +557,15 @@ fn live_mode_sends_udp_and_serial() {
     let expect_data = WireStream::new(&sc)
         .filter(|e| matches!(e.wire, Wire::Udp { port: velodyne::DATA_PORT, .. }))
         .count();
-    let offset = 20_000 + (std::process::id() % 20_000) as u16;
-    let data = UdpSocket::bind(("127.0.0.1", velodyne::DATA_PORT + offset)).unwrap();
-    let _pos = UdpSocket::bind(("127.0.0.1", velodyne::POSITION_PORT + offset)).unwrap();
+    // Free loopback ports: other tests (or other engineers' runs) may hold some.
+    let (offset, data, _pos) = (0..200u16)
+        .find_map(|i| {
+            let offset = 20_000 + ((std::process::id() as u16 % 97) * 200 + i * 7) % 20_000;
+            let d = UdpSocket::bind(("127.0.0.1", velodyne::DATA_PORT + offset)).ok()?;
+            let p = UdpSocket::bind(("127.0.0.1", velodyne::POSITION_PORT + offset)).ok()?;
+            Some((offset, d, p))
+        })
+        .expect("no free loopback ports");
     data.set_read_timeout(Some(std::time::Duration::from_millis(500))).unwrap();
     let cfg = loglio_firmware_sim::live::LiveConfig {
         host: std::net::Ipv4Addr::LOCALHOST,

@@ -204,7 +204,8 @@ pub fn velodyne_packet<S: EchoSource>(v: &Velodyne, k: u64, src: &mut S) -> (Vec
 pub fn ouster_packet<S: EchoSource>(o: &Ouster, k: u64, src: &mut S) -> (Vec<u8>, Vec<OusterTruth>) {
     let mut buf = vec![0u8; o.packet_len()];
     let mut truth = vec![OusterTruth::default(); ouster::COLUMNS_PER_PACKET * o.beams()];
-    let n = o.lidar_packet(k, src, &mut buf, &mut truth);
+    // The buffers are sized for this packet: the encoder cannot refuse them.
+    let n = o.lidar_packet(k, src, &mut buf, &mut truth).unwrap_or(0);
     truth.truncate(n);
     (buf, truth)
 }

@@ -299,18 +299,19 @@ impl Ouster {
         }
     }
 
-    /// Encodes lidar packet `k` (global columns 16k .. 16k+15) into `out` (at least
-    /// [`Self::packet_len`] bytes) asking `src` for the echoes; the strongest echo is
-    /// reported. Writes the truth of every non-zero pixel into `truth` and returns how many.
+    /// Encodes lidar packet `k` (global columns 16k .. 16k+15) into `out` asking `src` for the
+    /// echoes; the strongest echo is reported. Writes the truth of the non-zero pixels into
+    /// `truth` (as many as fit) and returns how many, or an error if `out` is shorter than
+    /// [`Self::packet_len`].
     pub fn lidar_packet<S: EchoSource>(
         &self,
         k: u64,
         src: &mut S,
         out: &mut [u8],
         truth: &mut [OusterTruth],
-    ) -> usize {
+    ) -> Result<usize, BufferTooSmall> {
         let len = self.packet_len();
-        let out = &mut out[..len];
+        let out = out.get_mut(..len).ok_or(BufferTooSmall)?;
         out.fill(0);
         let w = self.columns() as u64;
         let g0 = k * COLUMNS_PER_PACKET as u64;
@@ -389,9 +390,21 @@ impl Ouster {
             }
             off += col_len;
         }
-        nt
+        Ok(nt)
     }
 }
+
+/// The output buffer is shorter than the packet.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BufferTooSmall;
+
+impl core::fmt::Display for BufferTooSmall {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str("output buffer shorter than the Ouster lidar packet")
+    }
+}
+
+impl core::error::Error for BufferTooSmall {}
 
 /// Encodes an IMU packet: timestamps (ns), acceleration in g, angular velocity in deg/s.
 pub fn imu_packet(
@@ -467,7 +480,11 @@ mod tests {
                 let mut buf = [0u8; MAX_LIDAR_PACKET_LEN];
                 let mut truth = [OusterTruth::default(); 1024];
                 for k in [0u64, 1, 63, 64, 65] {
-                    let n = o.lidar_packet(k, &mut Sphere, &mut buf, &mut truth);
+                    let n = o.lidar_packet(k, &mut Sphere, &mut buf, &mut truth).unwrap();
+                    assert_eq!(
+                        o.lidar_packet(k, &mut Sphere, &mut buf[..100], &mut truth),
+                        Err(BufferTooSmall)
+                    );
                     assert!(n > 14 * h, "{n}");
                     let pkt = &buf[..o.packet_len()];
                     let frame = (k * 16 / 1024) as u16;
