@@ -112,8 +112,9 @@ impl Builder {
 }
 
 impl World {
-    /// Builds a world. The scenario's trajectories are passed in so that nothing is placed in
-    /// their way (`keep_clear`: every trajectory that will move through this world).
+    /// Builds a world from its seed. Nothing is placed in the way of the trajectories that move
+    /// through it (the town keeps clear of the vehicle's road and the drone's courtyard, the hall
+    /// of the walking loop and the rotation spot).
     pub fn build(kind: SceneKind, seed: u64) -> World {
         match kind {
             SceneKind::Town => town(seed),
@@ -172,7 +173,6 @@ fn town(seed: u64) -> World {
     }
     // Street furniture along the road: poles with signs, trees, parked cars.
     let mut placed: Vec<Shape> = Vec::new();
-    let mut arc = 0.0;
     let mut last = road[0];
     let mut next_pole = 12.0;
     let mut next_tree = 6.0;
@@ -180,7 +180,6 @@ fn town(seed: u64) -> World {
     let mut dist = 0.0;
     for p in &road {
         let step = libm::hypot(p[0] - last[0], p[1] - last[1]);
-        arc += step;
         dist += step;
         last = *p;
         let (c, s) = (libm::cos(p[2]), libm::sin(p[2]));
@@ -247,7 +246,6 @@ fn town(seed: u64) -> World {
             }
         }
     }
-    let _ = arc;
     // The drone's courtyard: a clear disc ringed by towers.
     let court = DRONE_START;
     let court_clear = 13.0;
@@ -467,7 +465,6 @@ fn corridor(seed: u64) -> World {
     b.push(Shape::boxed([cx, -w - t * 0.5, h * 0.5], [len, t, h], 0.0), 45);
     b.push(Shape::boxed([x0 - t * 0.5, 0.0, h * 0.5], [t, 2.0 * w, h], 0.0), 45);
     b.push(Shape::boxed([x1 + t * 0.5, 0.0, h * 0.5], [t, 2.0 * w, h], 0.0), 45);
-    let _ = b.rng.unit();
     let scene = Scene::new(b.prims, None, seed, [x0 - 2.0, -w - 2.0], [x1 + 2.0, w + 2.0], 4.0);
     World { kind: SceneKind::Corridor, seed, terrain: Terrain::flat(0.0), scene }
 }
