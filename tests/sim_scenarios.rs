@@ -599,7 +599,7 @@ fn live_mode_sends_udp_and_serial() {
         }
         (n, h.join().unwrap().unwrap(), reader.join().unwrap())
     });
-    // Loopback UDP at twice real time: nothing should be lost; allow a little for a busy machine.
+    // Loopback UDP in real time: nothing should be lost; allow a little for a busy machine.
     assert!(expect_data > 300 && n * 10 >= expect_data * 9, "{n} of {expect_data} data packets");
     assert_eq!(stats.datagrams as usize, expect_data + expect_data / 14);
     let frames = decode_serial(&bytes);

@@ -24,7 +24,7 @@ use crate::stream::{Wire, WireStream};
 pub struct Pty {
     master: OwnedFd,
     /// Kept open so the line stays up while no reader is attached.
-    _slave: OwnedFd,
+    slave: OwnedFd,
     /// Path of the slave device (e.g. /dev/pts/7).
     pub path: PathBuf,
 }
@@ -43,7 +43,16 @@ impl Pty {
         rustix::termios::tcsetattr(&slave, OptionalActions::Now, &t)?;
         let fl = rustix::fs::fcntl_getfl(&master)?;
         rustix::fs::fcntl_setfl(&master, fl | OFlags::NONBLOCK)?;
-        Ok(Pty { master, _slave: slave, path })
+        Ok(Pty { master, slave, path })
+    }
+
+    /// Waits (at most `timeout`) until a reader has taken every byte written so far; closing
+    /// the master earlier would discard them.
+    pub fn wait_drained(&self, timeout: Duration) {
+        let t = Instant::now();
+        while t.elapsed() < timeout && rustix::io::ioctl_fionread(&self.slave).is_ok_and(|n| n > 0) {
+            std::thread::sleep(Duration::from_millis(2));
+        }
     }
 
     /// Writes `bytes` without blocking; returns false (nothing written) if the line is full.
@@ -125,6 +134,8 @@ pub fn run(sc: &Scenario, cfg: &LiveConfig, on_ready: impl FnOnce(&Pty)) -> anyh
             }
         }
     }
+    // Give a reader the chance to take the last frames before the line goes down.
+    pty.wait_drained(Duration::from_secs(1));
     if let Some(link) = &cfg.pty_link {
         let _ = std::fs::remove_file(link);
     }
