@@ -569,7 +569,7 @@ fn live_mode_sends_udp_and_serial() {
     data.set_read_timeout(Some(std::time::Duration::from_millis(500))).unwrap();
     let cfg = loglio_firmware_sim::live::LiveConfig {
         host: std::net::Ipv4Addr::LOCALHOST,
-        rate: 2.0,
+        rate: 1.0,
         pty_link: None,
         port_offset: offset,
     };
