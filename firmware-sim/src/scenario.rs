@@ -350,6 +350,25 @@ impl Scenario {
         s
     }
 
+    /// Velodyne data packet `k` (1206-byte UDP payload) with the ground truth of every
+    /// non-zero data point it encodes (sensor-frame xyz at the firing time, firing time, laser);
+    /// `None` for an Ouster scenario. For decoder round-trip tests.
+    pub fn velodyne_packet(&self, k: u64) -> Option<(Vec<u8>, Vec<crate::lidar::velodyne::TruthPoint>)> {
+        match &self.firmware {
+            Firmware::Velodyne(v) => Some(crate::stream::velodyne_packet(v, k, &mut self.echo_source())),
+            Firmware::Ouster(_) => None,
+        }
+    }
+
+    /// Ouster lidar packet `k` with the ground truth of every non-zero pixel; `None` for a
+    /// Velodyne scenario.
+    pub fn ouster_packet(&self, k: u64) -> Option<(Vec<u8>, Vec<crate::lidar::ouster::OusterTruth>)> {
+        match &self.firmware {
+            Firmware::Ouster(o) => Some(crate::stream::ouster_packet(o, k, &mut self.echo_source())),
+            Firmware::Velodyne(_) => None,
+        }
+    }
+
     /// Scan `j` (revolution or frame `j` since the start).
     pub fn scan(&self, j: u64) -> SimScan {
         self.scanner().scan(j, || self.echo_source())
@@ -528,6 +547,20 @@ mod tests {
             ev.iter().filter_map(|e| if let Event::Scan(s) = e { Some(s) } else { None }).collect();
         assert_eq!(scans.len(), 26);
         assert_eq!(*scans[24], one.scan(24));
+    }
+
+    #[test]
+    fn packet_helpers_match_the_sensor_kind() {
+        let v = Scenario::new(ScenarioKind::Corridor, SensorModel::Vlp16, 1);
+        let (bytes, truth) = v.velodyne_packet(3).unwrap();
+        assert_eq!(bytes.len(), 1206);
+        assert!(!truth.is_empty() && truth.iter().all(|t| t.raw_distance > 0));
+        assert!(v.ouster_packet(3).is_none());
+        let o = Scenario::new(ScenarioKind::Corridor, SensorModel::Os1_16, 1);
+        let (bytes, truth) = o.ouster_packet(3).unwrap();
+        assert_eq!(bytes.len(), 32 + 16 * (12 + 12 * 16) + 32);
+        assert!(!truth.is_empty());
+        assert!(o.velodyne_packet(3).is_none());
     }
 
     #[test]
