@@ -1,2 +1,12 @@
 //! loglio-host: the std shell around `loglio-core`. It feeds the core from live sensors, pcap
 //! files and ROS bags, and writes trajectories, maps and plots.
+//!
+//! | module | what |
+//! |---|---|
+//! | [`config`] | the TOML configuration: presets, overrides, validation, the commented template |
+//! | [`diag`] | one-line `warning: ...` diagnostics |
+//! | [`eval`] | ATE/RPE against a ground truth, evo-compatible |
+
+pub mod config;
+pub mod diag;
+pub mod eval;
