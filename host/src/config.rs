@@ -186,11 +186,9 @@ impl Preset {
 impl FromStr for Preset {
     type Err = ConfigError;
     fn from_str(s: &str) -> Result<Self, ConfigError> {
-        Self::ALL
-            .iter()
-            .copied()
-            .find(|p| p.name().eq_ignore_ascii_case(s))
-            .ok_or_else(|| ConfigError(format!("config: unknown preset \"{s}\" (known: {})", Preset::known())))
+        Self::ALL.iter().copied().find(|p| p.name().eq_ignore_ascii_case(s)).ok_or_else(|| {
+            ConfigError(format!("config: unknown preset \"{s}\" (known: {})", Preset::known()))
+        })
     }
 }
 
@@ -432,48 +430,170 @@ const fn opt(key: &'static str, kind: Kind, unit: &'static str, doc: &'static st
 
 /// Every key of the file, in template order. Single source of the ranges, units and docs.
 static SPECS: &[Spec] = &[
-    spec("sensor.columns", Kind::Int { min: 8, max: 3600 }, "columns",
-        "Range-image columns per revolution: 360 deg / column width for Velodyne (1800 = 0.2 deg); the lidar mode's columns for Ouster (512, 1024 or 2048)."),
-    spec("sensor.scan_rate_hz", Kind::Float { min: 5.0, max: 20.0 }, "Hz", "Revolutions per second (Velodyne RPM / 60; Ouster 10 or 20)."),
-    spec("sensor.blind", Kind::Float { min: 0.0, max: 50.0 }, "m",
-        "Points closer than this to the LiDAR are ignored (the robot itself, rain, dust). The reference used 2 m where the platform is in view."),
-    spec("sensor.max_range", Kind::Float { min: 1.0, max: 500.0 }, "m", "Points farther than this are ignored."),
-    opt("sensor.calibration", Kind::Path, "path",
-        "Velodyne calibration file (ROS velodyne YAML) with the beam table; without it the datasheet angles are used.", "\"VLP16.yaml\""),
-    opt("sensor.ouster_metadata", Kind::Path, "path",
-        "Ouster sensor metadata JSON (beam angles, lidar mode, IMU transform); needed for raw Ouster packets.", "\"os1.json\""),
+    spec(
+        "sensor.columns",
+        Kind::Int { min: 8, max: 3600 },
+        "columns",
+        "Range-image columns per revolution: 360 deg / column width for Velodyne (1800 = 0.2 deg); the lidar mode's columns for Ouster (512, 1024 or 2048).",
+    ),
+    spec(
+        "sensor.scan_rate_hz",
+        Kind::Float { min: 5.0, max: 20.0 },
+        "Hz",
+        "Revolutions per second (Velodyne RPM / 60; Ouster 10 or 20).",
+    ),
+    spec(
+        "sensor.blind",
+        Kind::Float { min: 0.0, max: 50.0 },
+        "m",
+        "Points closer than this to the LiDAR are ignored (the robot itself, rain, dust). The reference used 2 m where the platform is in view.",
+    ),
+    spec(
+        "sensor.max_range",
+        Kind::Float { min: 1.0, max: 500.0 },
+        "m",
+        "Points farther than this are ignored.",
+    ),
+    opt(
+        "sensor.calibration",
+        Kind::Path,
+        "path",
+        "Velodyne calibration file (ROS velodyne YAML) with the beam table; without it the datasheet angles are used.",
+        "\"VLP16.yaml\"",
+    ),
+    opt(
+        "sensor.ouster_metadata",
+        Kind::Path,
+        "path",
+        "Ouster sensor metadata JSON (beam angles, lidar mode, IMU transform); needed for raw Ouster packets.",
+        "\"os1.json\"",
+    ),
     spec("network.bind", Kind::Str, "IP address", "Local address the UDP sockets bind to (live only)."),
-    spec("network.lidar_port", Kind::Int { min: 1, max: 65535 }, "UDP port", "Port of the LiDAR data packets (Velodyne 2368, Ouster 7502)."),
-    spec("network.imu_port", Kind::Int { min: 1, max: 65535 }, "UDP port", "Port of the Ouster IMU packets (7503); unused for Velodyne."),
-    spec("imu.source", Kind::Enum(&["serial", "ouster", "csv"]), "",
-        "Where IMU samples come from: serial = loglio IMU frames on imu.serial_device; ouster = the Ouster's own IMU packets; csv = imu.csv_path (replays)."),
-    spec("imu.serial_device", Kind::Str, "device path", "Serial device of the IMU board (imu.source = \"serial\")."),
+    spec(
+        "network.lidar_port",
+        Kind::Int { min: 1, max: 65535 },
+        "UDP port",
+        "Port of the LiDAR data packets (Velodyne 2368, Ouster 7502).",
+    ),
+    spec(
+        "network.imu_port",
+        Kind::Int { min: 1, max: 65535 },
+        "UDP port",
+        "Port of the Ouster IMU packets (7503); unused for Velodyne.",
+    ),
+    spec(
+        "imu.source",
+        Kind::Enum(&["serial", "ouster", "csv"]),
+        "",
+        "Where IMU samples come from: serial = loglio IMU frames on imu.serial_device; ouster = the Ouster's own IMU packets; csv = imu.csv_path (replays).",
+    ),
+    spec(
+        "imu.serial_device",
+        Kind::Str,
+        "device path",
+        "Serial device of the IMU board (imu.source = \"serial\").",
+    ),
     spec("imu.baud", Kind::Int { min: 1200, max: 12_000_000 }, "baud", "Serial baud rate."),
-    opt("imu.csv_path", Kind::Path, "path", "IMU CSV with the header t,gx,gy,gz,ax,ay,az (s, rad/s, m/s^2); for imu.source = \"csv\".", "\"imu.csv\""),
-    spec("imu.gyro_noise", Kind::Float { min: 1e-6, max: 1.0 }, "rad/s/sqrt(Hz)", "Gyroscope white noise density (tuned for LIO, larger than a datasheet's)."),
-    spec("imu.acc_noise", Kind::Float { min: 1e-5, max: 10.0 }, "m/s^2/sqrt(Hz)", "Accelerometer white noise density."),
-    spec("imu.gyro_bias_walk", Kind::Float { min: 1e-9, max: 1.0 }, "rad/s^2/sqrt(Hz)", "Gyroscope bias random walk."),
-    spec("imu.acc_bias_walk", Kind::Float { min: 1e-8, max: 10.0 }, "m/s^3/sqrt(Hz)", "Accelerometer bias random walk."),
+    opt(
+        "imu.csv_path",
+        Kind::Path,
+        "path",
+        "IMU CSV with the header t,gx,gy,gz,ax,ay,az (s, rad/s, m/s^2); for imu.source = \"csv\".",
+        "\"imu.csv\"",
+    ),
+    spec(
+        "imu.gyro_noise",
+        Kind::Float { min: 1e-6, max: 1.0 },
+        "rad/s/sqrt(Hz)",
+        "Gyroscope white noise density (tuned for LIO, larger than a datasheet's).",
+    ),
+    spec(
+        "imu.acc_noise",
+        Kind::Float { min: 1e-5, max: 10.0 },
+        "m/s^2/sqrt(Hz)",
+        "Accelerometer white noise density.",
+    ),
+    spec(
+        "imu.gyro_bias_walk",
+        Kind::Float { min: 1e-9, max: 1.0 },
+        "rad/s^2/sqrt(Hz)",
+        "Gyroscope bias random walk.",
+    ),
+    spec(
+        "imu.acc_bias_walk",
+        Kind::Float { min: 1e-8, max: 10.0 },
+        "m/s^3/sqrt(Hz)",
+        "Accelerometer bias random walk.",
+    ),
     spec("imu.gravity", Kind::Float { min: 9.7, max: 9.9 }, "m/s^2", "Local gravity magnitude."),
-    spec("extrinsics.translation", Kind::Floats { len: 3, min: -10.0, max: 10.0 }, "m",
-        "LiDAR origin in the IMU frame, x y z: p_imu = R * p_lidar + translation."),
-    opt("extrinsics.rotation_rpy_deg", Kind::Floats { len: 3, min: -360.0, max: 360.0 }, "deg",
-        "R as roll, pitch, yaw (R = Rz(yaw) Ry(pitch) Rx(roll)). Set this or rotation_quat_wxyz, not both; neither means identity.", "[0.0, 0.0, 0.0]"),
-    opt("extrinsics.rotation_quat_wxyz", Kind::Floats { len: 4, min: -1.0, max: 1.0 }, "unit quaternion",
-        "R as a unit quaternion w, x, y, z. Set this or rotation_rpy_deg, not both.", "[1.0, 0.0, 0.0, 0.0]"),
-    spec("time.lidar_imu_offset", Kind::Float { min: -1.0, max: 1.0 }, "s",
-        "LiDAR clock minus IMU clock: IMU stamps are moved onto the LiDAR clock by adding it."),
-    spec("time.scan_stamp_offset", Kind::Float { min: -1.0, max: 1.0 }, "s",
-        "Added to each scan's stamp to get its start (-0.1 for a 10 Hz driver that stamps the scan end)."),
-    spec("time.lidar_time_source", Kind::Enum(&["packet", "capture"]), "",
-        "packet = the sensor's own timestamps (PTP/GPS or free-running); capture = the host's receive or capture time."),
-    spec("mapping.voxel_size", Kind::Float { min: 0.05, max: 5.0 }, "m", "Voxel edge of the map (the paper: 0.4 for VLP-32C, 0.5 for OS1-16)."),
-    spec("mapping.scan_voxel_size", Kind::Float { min: 0.05, max: 5.0 }, "m", "Leaf size of the scan downsampling."),
-    spec("mapping.map_capacity", Kind::Int { min: 1024, max: 100_000_000 }, "voxels",
-        "Most voxels the map holds; the pool is allocated once at start-up (memory = capacity x bytes per voxel, see the README)."),
-    spec("mapping.association", Kind::Enum(&["full", "plane-only", "plain"]), "",
-        "full = LOG-LIO (large surfel, small surfel, point-to-plane, with visibility and consistency checks); plane-only = LOG-C; plain = no normals, no checks (FAST-LIO2-like)."),
-    spec("filter.max_iterations", Kind::Int { min: 1, max: 20 }, "passes", "Most iterated-update passes per scan."),
+    spec(
+        "extrinsics.translation",
+        Kind::Floats { len: 3, min: -10.0, max: 10.0 },
+        "m",
+        "LiDAR origin in the IMU frame, x y z: p_imu = R * p_lidar + translation.",
+    ),
+    opt(
+        "extrinsics.rotation_rpy_deg",
+        Kind::Floats { len: 3, min: -360.0, max: 360.0 },
+        "deg",
+        "R as roll, pitch, yaw (R = Rz(yaw) Ry(pitch) Rx(roll)). Set this or rotation_quat_wxyz, not both; neither means identity.",
+        "[0.0, 0.0, 0.0]",
+    ),
+    opt(
+        "extrinsics.rotation_quat_wxyz",
+        Kind::Floats { len: 4, min: -1.0, max: 1.0 },
+        "unit quaternion",
+        "R as a unit quaternion w, x, y, z. Set this or rotation_rpy_deg, not both.",
+        "[1.0, 0.0, 0.0, 0.0]",
+    ),
+    spec(
+        "time.lidar_imu_offset",
+        Kind::Float { min: -1.0, max: 1.0 },
+        "s",
+        "LiDAR clock minus IMU clock: IMU stamps are moved onto the LiDAR clock by adding it.",
+    ),
+    spec(
+        "time.scan_stamp_offset",
+        Kind::Float { min: -1.0, max: 1.0 },
+        "s",
+        "Added to each scan's stamp to get its start (-0.1 for a 10 Hz driver that stamps the scan end).",
+    ),
+    spec(
+        "time.lidar_time_source",
+        Kind::Enum(&["packet", "capture"]),
+        "",
+        "packet = the sensor's own timestamps (PTP/GPS or free-running); capture = the host's receive or capture time.",
+    ),
+    spec(
+        "mapping.voxel_size",
+        Kind::Float { min: 0.05, max: 5.0 },
+        "m",
+        "Voxel edge of the map (the paper: 0.4 for VLP-32C, 0.5 for OS1-16).",
+    ),
+    spec(
+        "mapping.scan_voxel_size",
+        Kind::Float { min: 0.05, max: 5.0 },
+        "m",
+        "Leaf size of the scan downsampling.",
+    ),
+    spec(
+        "mapping.map_capacity",
+        Kind::Int { min: 1024, max: 100_000_000 },
+        "voxels",
+        "Most voxels the map holds; the pool is allocated once at start-up (memory = capacity x bytes per voxel, see the README).",
+    ),
+    spec(
+        "mapping.association",
+        Kind::Enum(&["full", "plane-only", "plain"]),
+        "",
+        "full = LOG-LIO (large surfel, small surfel, point-to-plane, with visibility and consistency checks); plane-only = LOG-C; plain = no normals, no checks (FAST-LIO2-like).",
+    ),
+    spec(
+        "filter.max_iterations",
+        Kind::Int { min: 1, max: 20 },
+        "passes",
+        "Most iterated-update passes per scan.",
+    ),
 ];
 
 const SECTIONS: [(&str, &str); 7] = [
@@ -503,8 +623,10 @@ fn kind_range_text(kind: Kind, unit: &str) -> String {
     }
 }
 
+/// A float as TOML and the messages write it: always with a '.' or an exponent.
 fn fmt_num(v: f64) -> String {
-    if v != 0.0 && (v.abs() < 1e-3 || v.abs() >= 1e6) { format!("{v:e}") } else { format!("{v}") }
+    let s = if v != 0.0 && (v.abs() < 1e-3 || v.abs() >= 1e6) { format!("{v:e}") } else { format!("{v}") };
+    if v.is_finite() && !s.contains(['.', 'e']) { format!("{s}.0") } else { s }
 }
 
 fn type_name(v: &toml::Value) -> &'static str {
@@ -544,7 +666,9 @@ fn check_value(spec: &Spec, v: &toml::Value) -> Result<toml::Value, ConfigError>
             Ok(toml::Value::Float(f))
         }
         Kind::Int { min, max } => {
-            let toml::Value::Integer(i) = v else { bail!("{key} must be an integer, found {}", type_name(v)) };
+            let toml::Value::Integer(i) = v else {
+                bail!("{key} must be an integer, found {}", type_name(v))
+            };
             if !(min..=max).contains(i) {
                 bail!("{key} = {i} is out of range ({range})");
             }
@@ -565,7 +689,9 @@ fn check_value(spec: &Spec, v: &toml::Value) -> Result<toml::Value, ConfigError>
             Ok(v.clone())
         }
         Kind::Floats { len, min, max } => {
-            let toml::Value::Array(a) = v else { bail!("{key} must be an array of {len} numbers, found {}", type_name(v)) };
+            let toml::Value::Array(a) = v else {
+                bail!("{key} must be an array of {len} numbers, found {}", type_name(v))
+            };
             if a.len() != len {
                 bail!("{key} must be an array of {len} numbers, found {}", a.len());
             }
@@ -690,7 +816,8 @@ impl Config {
             Some(v) => bail!("preset must be a string, found {}", type_name(v)),
         };
         let base = Config::preset(preset);
-        let mut merged = toml::Table::try_from(&base).map_err(|e| ConfigError(format!("config: internal: {e}")))?;
+        let mut merged =
+            toml::Table::try_from(&base).map_err(|e| ConfigError(format!("config: internal: {e}")))?;
         for (section, value) in &user {
             if section == "preset" {
                 continue;
@@ -708,7 +835,9 @@ impl Config {
                 .as_table_mut()
                 .ok_or_else(|| ConfigError(format!("config: internal: {section} is not a table")))?;
             // One rotation form replaces the other unless the file sets both.
-            for (a, b) in [("rotation_quat_wxyz", "rotation_rpy_deg"), ("rotation_rpy_deg", "rotation_quat_wxyz")] {
+            for (a, b) in
+                [("rotation_quat_wxyz", "rotation_rpy_deg"), ("rotation_rpy_deg", "rotation_quat_wxyz")]
+            {
                 if section == "extrinsics" && entries.contains_key(a) && !entries.contains_key(b) {
                     target.remove(b);
                 }
@@ -721,9 +850,9 @@ impl Config {
                 target.insert(key.clone(), check_value(spec, v)?);
             }
         }
-        let cfg: Config = toml::Value::Table(merged)
-            .try_into()
-            .map_err(|e: toml::de::Error| ConfigError(format!("config: {}", crate::diag::one_line(e.message()))))?;
+        let cfg: Config = toml::Value::Table(merged).try_into().map_err(|e: toml::de::Error| {
+            ConfigError(format!("config: {}", crate::diag::one_line(e.message())))
+        })?;
         cfg.validate()?;
         Ok(cfg)
     }
@@ -744,10 +873,16 @@ impl Config {
         let ouster = self.preset.family() == SensorFamily::Ouster;
         let p = self.preset;
         if ouster && ![512, 1024, 2048].contains(&self.sensor.columns) {
-            bail!("sensor.columns = {} is not an Ouster lidar mode's width (512, 1024 or 2048) for preset {p}", self.sensor.columns);
+            bail!(
+                "sensor.columns = {} is not an Ouster lidar mode's width (512, 1024 or 2048) for preset {p}",
+                self.sensor.columns
+            );
         }
         if ouster && ![10.0, 20.0].contains(&self.sensor.scan_rate_hz) {
-            bail!("sensor.scan_rate_hz = {} is not an Ouster rate (10 or 20) for preset {p}", fmt_num(self.sensor.scan_rate_hz));
+            bail!(
+                "sensor.scan_rate_hz = {} is not an Ouster rate (10 or 20) for preset {p}",
+                fmt_num(self.sensor.scan_rate_hz)
+            );
         }
         if self.sensor.blind >= self.sensor.max_range {
             bail!(
@@ -757,10 +892,14 @@ impl Config {
             );
         }
         if ouster && self.sensor.calibration.is_some() {
-            bail!("sensor.calibration is a Velodyne calibration file; preset {p} is an Ouster (use sensor.ouster_metadata)");
+            bail!(
+                "sensor.calibration is a Velodyne calibration file; preset {p} is an Ouster (use sensor.ouster_metadata)"
+            );
         }
         if !ouster && self.sensor.ouster_metadata.is_some() {
-            bail!("sensor.ouster_metadata is for Ouster presets; preset {p} is a Velodyne (use sensor.calibration)");
+            bail!(
+                "sensor.ouster_metadata is for Ouster presets; preset {p} is a Velodyne (use sensor.calibration)"
+            );
         }
         if self.network.bind.parse::<std::net::IpAddr>().is_err() {
             bail!("network.bind = \"{}\" is not an IP address (e.g. 0.0.0.0)", self.network.bind);
@@ -779,7 +918,9 @@ impl Config {
         if let Some(q) = e.rotation_quat_wxyz {
             let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
             if (n - 1.0).abs() > 1e-3 {
-                bail!("extrinsics.rotation_quat_wxyz has norm {n:.6}; it must be a unit quaternion (w, x, y, z)");
+                bail!(
+                    "extrinsics.rotation_quat_wxyz has norm {n:.6}; it must be a unit quaternion (w, x, y, z)"
+                );
             }
         }
         Ok(())
@@ -803,11 +944,19 @@ impl Config {
             self.preset.description(),
             self.preset
         ));
-        push_comment(&mut out, &format!("The sensor model; it sets the default of every key below. One of: {}.", Preset::known()));
+        push_comment(
+            &mut out,
+            &format!(
+                "The sensor model; it sets the default of every key below. One of: {}.",
+                Preset::known()
+            ),
+        );
         out.push_str(&format!("preset = \"{}\"\n", self.preset));
         for (section, what) in SECTIONS {
             out.push_str(&format!("\n# {what}\n[{section}]\n"));
-            for spec in SPECS.iter().filter(|s| s.key.starts_with(section) && s.key.as_bytes()[section.len()] == b'.') {
+            for spec in
+                SPECS.iter().filter(|s| s.key.starts_with(section) && s.key.as_bytes()[section.len()] == b'.')
+            {
                 let key = &spec.key[section.len() + 1..];
                 let range = kind_range_text(spec.kind, spec.unit);
                 let value = table.get(section).and_then(|t| t.get(key));
@@ -921,7 +1070,11 @@ mod tests {
 
     #[test]
     fn rpy_matches_the_zyx_convention() {
-        let e = Extrinsics { translation: [0.0; 3], rotation_rpy_deg: Some([10.0, -20.0, 30.0]), rotation_quat_wxyz: None };
+        let e = Extrinsics {
+            translation: [0.0; 3],
+            rotation_rpy_deg: Some([10.0, -20.0, 30.0]),
+            rotation_quat_wxyz: None,
+        };
         let r = e.rotation_matrix();
         let (a, b, c) = (10f64.to_radians(), (-20f64).to_radians(), 30f64.to_radians());
         let rx = [[1.0, 0.0, 0.0], [0.0, a.cos(), -a.sin()], [0.0, a.sin(), a.cos()]];
@@ -948,7 +1101,7 @@ mod tests {
     fn bad_values_name_the_key_and_the_range() {
         assert_eq!(
             err("preset = \"vlp16\"\n[mapping]\nvoxel_size = -0.4\n"),
-            "config: mapping.voxel_size = -0.4 is out of range (0.05..=5 m)"
+            "config: mapping.voxel_size = -0.4 is out of range (0.05..=5.0 m)"
         );
         assert_eq!(
             err("preset = \"vlp16\"\n[filter]\nmax_iterations = 0\n"),
@@ -968,11 +1121,11 @@ mod tests {
         );
         assert_eq!(
             err("preset = \"vlp16\"\n[imu]\ngyro_noise = nan\n"),
-            "config: imu.gyro_noise = NaN is out of range (1e-6..=1 rad/s/sqrt(Hz))"
+            "config: imu.gyro_noise = NaN is out of range (1e-6..=1.0 rad/s/sqrt(Hz))"
         );
         assert_eq!(
             err("preset = \"vlp16\"\n[sensor]\nblind = 20.0\nmax_range = 10.0\n"),
-            "config: sensor.blind = 20 must be less than sensor.max_range = 10 (m)"
+            "config: sensor.blind = 20.0 must be less than sensor.max_range = 10.0 (m)"
         );
         assert_eq!(
             err("preset = \"os1-64\"\n[sensor]\ncolumns = 1800\n"),
@@ -982,13 +1135,18 @@ mod tests {
             err("preset = \"vlp16\"\n[imu]\nsource = \"ouster\"\n"),
             "config: imu.source = \"ouster\" needs an Ouster preset (os1-*), not vlp16"
         );
-        assert_eq!(err("preset = \"vlp16\"\n[imu]\nsource = \"csv\"\n"), "config: imu.source = \"csv\" needs imu.csv_path");
+        assert_eq!(
+            err("preset = \"vlp16\"\n[imu]\nsource = \"csv\"\n"),
+            "config: imu.source = \"csv\" needs imu.csv_path"
+        );
         assert_eq!(
             err("preset = \"vlp16\"\n[extrinsics]\nrotation_quat_wxyz = [1.0, 1.0, 0.0, 0.0]\n"),
             "config: extrinsics.rotation_quat_wxyz has norm 1.414214; it must be a unit quaternion (w, x, y, z)"
         );
         assert_eq!(
-            err("preset = \"vlp16\"\n[extrinsics]\nrotation_quat_wxyz = [1.0, 0.0, 0.0, 0.0]\nrotation_rpy_deg = [0, 0, 0]\n"),
+            err(
+                "preset = \"vlp16\"\n[extrinsics]\nrotation_quat_wxyz = [1.0, 0.0, 0.0, 0.0]\nrotation_rpy_deg = [0, 0, 0]\n"
+            ),
             "config: set extrinsics.rotation_quat_wxyz or extrinsics.rotation_rpy_deg, not both"
         );
         assert_eq!(
@@ -1015,7 +1173,10 @@ mod tests {
             err("[mapping]\nvoxel_size = 0.4\n"),
             "config: missing key preset (one of: vlp16, vlp32c, hdl32e, os1-16, os1-32, os1-64, os1-128)"
         );
-        assert_eq!(err("preset = \"vlp16\"\nmapping = 3\n"), "config: mapping must be a table ([mapping]), found an integer");
+        assert_eq!(
+            err("preset = \"vlp16\"\nmapping = 3\n"),
+            "config: mapping must be a table ([mapping]), found an integer"
+        );
         let syntax = err("preset = \"vlp16\"\n[mapping\n");
         assert!(syntax.starts_with("config: line 2, column "), "{syntax}");
         assert!(!syntax.contains('\n'));
@@ -1027,7 +1188,7 @@ mod tests {
         cfg.mapping.scan_voxel_size = 9.0;
         assert_eq!(
             cfg.validate().unwrap_err().0,
-            "config: mapping.scan_voxel_size = 9 is out of range (0.05..=5 m)"
+            "config: mapping.scan_voxel_size = 9.0 is out of range (0.05..=5.0 m)"
         );
     }
 }

@@ -14,6 +14,16 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 static WARNINGS: AtomicU64 = AtomicU64::new(0);
 
+/// The progress bar on screen, if any: warnings are printed above it.
+static BAR: std::sync::Mutex<Option<indicatif::ProgressBar>> = std::sync::Mutex::new(None);
+
+/// Registers (or clears) the progress bar that warnings must not garble.
+pub(crate) fn set_progress_bar(bar: Option<indicatif::ProgressBar>) {
+    if let Ok(mut b) = BAR.lock() {
+        *b = bar;
+    }
+}
+
 thread_local! {
     static CAPTURED: RefCell<Option<Vec<String>>> = const { RefCell::new(None) };
 }
@@ -50,7 +60,11 @@ pub fn warn(msg: impl Display) {
         }
     });
     if !captured {
-        eprintln!("{line}");
+        let bar = BAR.lock().ok().and_then(|b| b.clone());
+        match bar {
+            Some(bar) if !bar.is_hidden() => bar.suspend(|| eprintln!("{line}")),
+            _ => eprintln!("{line}"),
+        }
     }
 }
 

@@ -101,11 +101,17 @@ pub enum Format {
     Kitti,
 }
 
-fn numbers<'a>(line: &'a str) -> impl Iterator<Item = &'a str> {
+fn numbers(line: &str) -> impl Iterator<Item = &str> {
     line.split(|c: char| c.is_whitespace() || c == ',').filter(|s| !s.is_empty())
 }
 
-fn parse_numbers(line: &str, name: &str, lineno: usize, want: usize, what: &str) -> Result<Vec<f64>, EvalError> {
+fn parse_numbers(
+    line: &str,
+    name: &str,
+    lineno: usize,
+    want: usize,
+    what: &str,
+) -> Result<Vec<f64>, EvalError> {
     let fields: Vec<&str> = numbers(line).collect();
     if fields.len() != want {
         bail!("{name} line {lineno}: expected {want} numbers ({what}), found {}", fields.len());
@@ -148,7 +154,10 @@ pub fn parse_tum(text: &str, name: &str) -> Result<Trajectory, EvalError> {
         let (x, y, z, w) = (v[4], v[5], v[6], v[7]);
         let n = (x * x + y * y + z * z + w * w).sqrt();
         if (n - 1.0).abs() > 1e-2 {
-            bail!("{name} line {}: quaternion norm {n:.4} is not 1 (TUM order is t tx ty tz qx qy qz qw)", i + 1);
+            bail!(
+                "{name} line {}: quaternion norm {n:.4} is not 1 (TUM order is t tx ty tz qx qy qz qw)",
+                i + 1
+            );
         }
         let q = [w / n, x / n, y / n, z / n];
         let m = crate::config::quat_to_matrix(q);
@@ -242,7 +251,12 @@ fn nearest(sorted: &[f64], x: f64) -> usize {
 
 /// Pairs the poses of `gt` and `est` by time (see the module docs). Returns the two matched
 /// trajectories, equally long.
-pub fn associate(gt: &Trajectory, est: &Trajectory, max_diff: f64, offset: f64) -> Result<(Trajectory, Trajectory), EvalError> {
+pub fn associate(
+    gt: &Trajectory,
+    est: &Trajectory,
+    max_diff: f64,
+    offset: f64,
+) -> Result<(Trajectory, Trajectory), EvalError> {
     match (&gt.stamps, &est.stamps) {
         (None, None) => {
             if gt.len() != est.len() {
@@ -285,7 +299,9 @@ pub fn associate(gt: &Trajectory, est: &Trajectory, max_diff: f64, offset: f64) 
             }
             Ok((gt.subset(&gi), est.subset(&ei)))
         }
-        _ => bail!("one trajectory has stamps and the other none: give a KITTI times file for both or neither"),
+        _ => {
+            bail!("one trajectory has stamps and the other none: give a KITTI times file for both or neither")
+        }
     }
 }
 
@@ -456,7 +472,12 @@ impl Default for EvalOptions {
 }
 
 /// The pose pairs (i, j) of the RPE, chosen on the given poses (see the module docs).
-pub fn rpe_pairs(gt: &[Pose], delta: f64, unit: DeltaUnit, all_pairs: bool) -> Result<Vec<(usize, usize)>, EvalError> {
+pub fn rpe_pairs(
+    gt: &[Pose],
+    delta: f64,
+    unit: DeltaUnit,
+    all_pairs: bool,
+) -> Result<Vec<(usize, usize)>, EvalError> {
     let n = gt.len();
     match unit {
         DeltaUnit::Frames => {
@@ -548,6 +569,8 @@ pub struct EvalReport {
     pub rpe_rot_deg: Stats,
     /// Stamp (s, or index without stamps) and APE translation of every matched pose.
     pub ape_series: Vec<(f64, f64)>,
+    /// Whether the series' first element is a stamp (false: a pose index).
+    pub has_stamps: bool,
     /// Matched ground-truth positions.
     pub gt_positions: Vec<[f64; 3]>,
     /// Matched, aligned estimate positions.
@@ -570,8 +593,12 @@ pub fn evaluate(gt: &Trajectory, est: &Trajectory, opt: &EvalOptions) -> Result<
     };
     let est_al: Vec<Pose> = e.poses.iter().map(|p| alignment.apply(p)).collect();
     let ape_t: Vec<f64> = g.poses.iter().zip(&est_al).map(|(q, p)| (p.t - q.t).norm()).collect();
-    let ape_r: Vec<f64> =
-        g.poses.iter().zip(&est_al).map(|(q, p)| rotation_angle(&(q.r.transpose() * p.r)).to_degrees()).collect();
+    let ape_r: Vec<f64> = g
+        .poses
+        .iter()
+        .zip(&est_al)
+        .map(|(q, p)| rotation_angle(&(q.r.transpose() * p.r)).to_degrees())
+        .collect();
     let pair_poses = if opt.pairs_from_gt { &g.poses } else { &est_al };
     let pairs = rpe_pairs(pair_poses, opt.rpe_delta, opt.rpe_unit, opt.all_pairs)?;
     if pairs.is_empty() {
@@ -601,6 +628,7 @@ pub fn evaluate(gt: &Trajectory, est: &Trajectory, opt: &EvalOptions) -> Result<
         rpe_trans: Stats::of(&rpe_t),
         rpe_rot_deg: Stats::of(&rpe_r),
         ape_series: times.into_iter().zip(ape_t).collect(),
+        has_stamps: g.stamps.is_some(),
         gt_positions: g.poses.iter().map(|p| [p.t.x, p.t.y, p.t.z]).collect(),
         est_positions: est_al.iter().map(|p| [p.t.x, p.t.y, p.t.z]).collect(),
     })
@@ -654,12 +682,16 @@ impl fmt::Display for EvalReport {
         )?;
         let unit = if o.rpe_unit == DeltaUnit::Frames { "frames" } else { "m" };
         let pairs = if o.all_pairs { ", all pairs" } else { "" };
-        writeln!(f, "{:<26} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10} {:>7}", "", "rmse", "mean", "median", "std", "min", "max", "n")?;
+        writeln!(
+            f,
+            "{:<26} {:>10} {:>10} {:>10} {:>10} {:>10} {:>10} {:>7}",
+            "", "rmse", "mean", "median", "std", "min", "max", "n"
+        )?;
         let rows = [
-            ("APE translation (m)".to_string(), &self.ape_trans),
-            ("APE rotation (deg)".to_string(), &self.ape_rot_deg),
-            (format!("RPE translation (m)"), &self.rpe_trans),
-            (format!("RPE rotation (deg)"), &self.rpe_rot_deg),
+            ("APE translation (m)", &self.ape_trans),
+            ("APE rotation (deg)", &self.ape_rot_deg),
+            ("RPE translation (m)", &self.rpe_trans),
+            ("RPE rotation (deg)", &self.rpe_rot_deg),
         ];
         for (name, s) in rows {
             writeln!(
@@ -669,7 +701,7 @@ impl fmt::Display for EvalReport {
             )?;
         }
         let on = if o.pairs_from_gt { "ground truth" } else { "estimate" };
-        write!(f, "RPE over pairs {} {unit} apart{pairs} (chosen on the {on})", o.rpe_delta)
+        write!(f, "RPE pose pairs: delta {} ({unit}){pairs}, chosen on the {on}", o.rpe_delta)
     }
 }
 
@@ -694,7 +726,11 @@ mod tests {
     #[test]
     fn umeyama_recovers_an_exact_similarity() {
         let gt = helix(50);
-        let true_t = Similarity { r: rz(0.7) * Matrix3::new(1.0, 0.0, 0.0, 0.0, 0.6, -0.8, 0.0, 0.8, 0.6), t: Vector3::new(3.0, -2.0, 1.0), s: 2.5 };
+        let true_t = Similarity {
+            r: rz(0.7) * Matrix3::new(1.0, 0.0, 0.0, 0.0, 0.6, -0.8, 0.0, 0.8, 0.6),
+            t: Vector3::new(3.0, -2.0, 1.0),
+            s: 2.5,
+        };
         // est = inverse of true_t applied to gt, so aligning est gives back gt.
         let inv_r = true_t.r.transpose();
         let est: Vec<Vector3<f64>> = gt.poses.iter().map(|p| inv_r * (p.t - true_t.t) / true_t.s).collect();
@@ -718,7 +754,8 @@ mod tests {
         assert!(rep.ape_trans.max < 1e-9, "{:?}", rep.ape_trans);
         assert!(rep.ape_rot_deg.max < 1e-6);
         assert!(rep.rpe_trans.max < 1e-9);
-        let none = evaluate(&gt, &est, &EvalOptions { align: Alignment::None, ..Default::default() }).unwrap();
+        let none =
+            evaluate(&gt, &est, &EvalOptions { align: Alignment::None, ..Default::default() }).unwrap();
         assert!(none.ape_trans.min > 1.0);
         // RPE is blind to a global rigid transform.
         assert!(none.rpe_trans.max < 1e-9);
@@ -773,8 +810,12 @@ mod tests {
         assert_eq!(em.stamps.unwrap(), vec![0.004, 2.009]);
         let (gm, _) = associate(&g, &e, 0.01, -0.02).unwrap();
         assert_eq!(gm.stamps.unwrap(), vec![1.0]);
-        let err = associate(&g, &Trajectory { stamps: Some(vec![50.0]), poses: helix(1).poses }, 0.01, 0.0).unwrap_err();
-        assert_eq!(err.0, "no matching timestamps within 0.01 s: ground truth spans 0.000..3.000 s, estimate 50.000..50.000 s (after offset 0 s)");
+        let err = associate(&g, &Trajectory { stamps: Some(vec![50.0]), poses: helix(1).poses }, 0.01, 0.0)
+            .unwrap_err();
+        assert_eq!(
+            err.0,
+            "no matching timestamps within 0.01 s: ground truth spans 0.000..3.000 s, estimate 50.000..50.000 s (after offset 0 s)"
+        );
     }
 
     fn brute_pairs(gt: &[Pose], delta: f64) -> Vec<(usize, usize)> {
@@ -811,7 +852,11 @@ mod tests {
             poses.push(Pose { r: Matrix3::identity(), t: Vector3::new(x, 0.0, 0.0) });
         }
         for delta in [0.5, 1.0, 3.3, 10.0, 55.0] {
-            assert_eq!(rpe_pairs(&poses, delta, DeltaUnit::Metres, true).unwrap(), brute_pairs(&poses, delta), "{delta}");
+            assert_eq!(
+                rpe_pairs(&poses, delta, DeltaUnit::Metres, true).unwrap(),
+                brute_pairs(&poses, delta),
+                "{delta}"
+            );
         }
         let consecutive = rpe_pairs(&poses, 10.0, DeltaUnit::Metres, false).unwrap();
         assert!(consecutive.windows(2).all(|w| w[0].1 == w[1].0));
@@ -822,15 +867,25 @@ mod tests {
     #[test]
     fn bad_tum_files_give_one_line_errors() {
         let e = |t: &str| parse_tum(t, "est.txt").unwrap_err().0;
-        assert_eq!(e("0 1 2 3 0 0 0 1\n1 1 2 3 0 0 1\n"), "est.txt line 2: expected 8 numbers (t tx ty tz qx qy qz qw), found 7");
+        assert_eq!(
+            e("0 1 2 3 0 0 0 1\n1 1 2 3 0 0 1\n"),
+            "est.txt line 2: expected 8 numbers (t tx ty tz qx qy qz qw), found 7"
+        );
         assert_eq!(e("# header\n0 1 2 x 0 0 0 1\n"), "est.txt line 2: `x` is not a number");
         assert_eq!(e("0 1 2 nan 0 0 0 1\n"), "est.txt line 1: `nan` is not a finite number");
-        assert_eq!(e("1 0 0 0 0 0 0 1\n0.5 0 0 0 0 0 0 1\n"), "est.txt line 2: timestamp 0.5 does not increase (previous 1)");
-        assert_eq!(e("0 0 0 0 1 0 0 1\n"), "est.txt line 1: quaternion norm 1.4142 is not 1 (TUM order is t tx ty tz qx qy qz qw)");
+        assert_eq!(
+            e("1 0 0 0 0 0 0 1\n0.5 0 0 0 0 0 0 1\n"),
+            "est.txt line 2: timestamp 0.5 does not increase (previous 1)"
+        );
+        assert_eq!(
+            e("0 0 0 0 1 0 0 1\n"),
+            "est.txt line 1: quaternion norm 1.4142 is not 1 (TUM order is t tx ty tz qx qy qz qw)"
+        );
         assert_eq!(e("# nothing\n\n"), "est.txt: no poses (TUM format: t tx ty tz qx qy qz qw per line)");
         let ok = parse_tum("0,1,2,3,0,0,0,1\n", "x").unwrap();
         assert_eq!(ok.poses[0].t, Vector3::new(1.0, 2.0, 3.0));
-        let k = parse_kitti("1 0 0 1 0 1 0 2 0 0 1 3\n", "gt.txt", Some(("0.1\n0.2\n", "times.txt"))).unwrap_err();
+        let k = parse_kitti("1 0 0 1 0 1 0 2 0 0 1 3\n", "gt.txt", Some(("0.1\n0.2\n", "times.txt")))
+            .unwrap_err();
         assert_eq!(k.0, "times.txt: 2 times for the 1 poses of gt.txt");
     }
 }

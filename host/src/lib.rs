@@ -6,7 +6,9 @@
 //! | [`config`] | the TOML configuration: presets, overrides, validation, the commented template |
 //! | [`diag`] | one-line `warning: ...` diagnostics |
 //! | [`eval`] | ATE/RPE against a ground truth, evo-compatible |
+//! | [`output`] | TUM trajectory, PLY/PCD map, per-scan CSV, PNG/SVG plots, progress bar |
 
 pub mod config;
 pub mod diag;
 pub mod eval;
+pub mod output;
