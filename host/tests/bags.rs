@@ -232,11 +232,11 @@ fn imu_at(t_ns: u64) -> Imu {
     }
 }
 
-/// (record time, topic, type, serialised) of 3 scans and 200 Hz IMU, in record order.
-fn sequence(
-    enc: Encoding,
-    fields: &[FieldSpec],
-) -> (Vec<(u64, &'static str, MessageType, Vec<u8>)>, Vec<Expect>) {
+/// (record time, topic, type, serialised message).
+type Msg = (u64, &'static str, MessageType, Vec<u8>);
+
+/// 3 scans and 200 Hz IMU, in record order.
+fn sequence(enc: Encoding, fields: &[FieldSpec]) -> (Vec<Msg>, Vec<Expect>) {
     let mut out = Vec::new();
     let mut exp = Vec::new();
     for k in 0..3usize {
@@ -525,11 +525,7 @@ fn record_time_stamps_when_the_capture_clock_is_chosen() {
 // ---------------------------------------------------------------------------------------------
 // Bad input.
 
-fn small_bag(
-    dir: &Path,
-    name: &str,
-    threshold: usize,
-) -> (PathBuf, Vec<(u64, &'static str, MessageType, Vec<u8>)>) {
+fn small_bag(dir: &Path, name: &str, threshold: usize) -> (PathBuf, Vec<Msg>) {
     let path = dir.join(name);
     let (msgs, _) = sequence(Encoding::Ros1, build::VELODYNE);
     write_ros1(&path, &msgs, threshold, ChunkCompression::None);
