@@ -32,6 +32,8 @@ enum Command {
     Config(ConfigArgs),
     /// ATE and RPE of an estimated trajectory against a ground truth (evo-compatible).
     Eval(EvalArgs),
+    /// List a ROS bag's topics and what loglio reads from it; with --read, decode it all.
+    BagInfo(BagInfoArgs),
 }
 
 #[derive(Debug, Args)]
@@ -119,6 +121,27 @@ struct EvalArgs {
     plot: Option<PathBuf>,
 }
 
+#[derive(Debug, Args)]
+struct BagInfoArgs {
+    /// A ROS 1 bag, a rosbag2 directory, a .db3 or an .mcap file.
+    bag: PathBuf,
+    /// Sensor preset (decides how clouds' rings map to rows).
+    #[arg(long, default_value = "vlp16", value_name = "NAME")]
+    preset: String,
+    /// Configuration file (instead of --preset).
+    #[arg(long, value_name = "FILE", conflicts_with = "preset")]
+    config: Option<PathBuf>,
+    /// The LiDAR topic (found by message type if not given).
+    #[arg(long, value_name = "TOPIC")]
+    lidar_topic: Option<String>,
+    /// The IMU topic (found by message type if not given).
+    #[arg(long, value_name = "TOPIC")]
+    imu_topic: Option<String>,
+    /// Decode every message of the chosen topics and print what came out.
+    #[arg(long)]
+    read: bool,
+}
+
 fn main() -> ExitCode {
     std::panic::set_hook(Box::new(|info| {
         let payload = info.payload();
@@ -174,9 +197,14 @@ fn usage_error(e: clap::Error) -> ExitCode {
 }
 
 fn run(cli: Cli) -> anyhow::Result<()> {
+    // Exercises the panic hook in the CLI tests (a bug must still print one line).
+    if std::env::var_os("LOGLIO_TEST_INTERNAL_PANIC").is_some() {
+        panic!("deliberate panic for the tests\nwith a second line");
+    }
     match cli.command {
         Command::Config(a) => config_cmd(a),
         Command::Eval(a) => eval_cmd(a),
+        Command::BagInfo(a) => bag_info_cmd(a),
     }
 }
 
@@ -244,6 +272,90 @@ fn eval_cmd(a: EvalArgs) -> anyhow::Result<()> {
         write_eval_plots(prefix, &report)?;
     }
     print(&if a.json { report.to_json() } else { report.to_string() })
+}
+
+fn bag_info_cmd(a: BagInfoArgs) -> anyhow::Result<()> {
+    use loglio_host::bag::{BagEvent, BagOptions, BagReader, TopicKind};
+    let cfg = match &a.config {
+        Some(path) => Config::load(path)?,
+        None => {
+            let p: Preset = a.preset.parse().map_err(|e: loglio_host::config::ConfigError| {
+                anyhow::anyhow!("{}", e.0.trim_start_matches("config: "))
+            })?;
+            Config::preset(p)
+        }
+    };
+    let mut opt = BagOptions::from_config(&cfg)?;
+    opt.lidar_topic = a.lidar_topic;
+    opt.imu_topic = a.imu_topic;
+    opt.require_imu = false;
+    let mut bag = BagReader::open(&a.bag, opt)?;
+    let mut s = format!("{}: {}, {} topics\n", a.bag.display(), bag.format(), bag.topics().len());
+    for t in bag.topics() {
+        let n = t.count.map_or("?".to_string(), |n| n.to_string());
+        s.push_str(&format!("  {:<40} {:<36} {:>8}\n", t.name, t.msg_type, n));
+    }
+    let sel = bag.selection().clone();
+    let kind = match sel.lidar.1 {
+        TopicKind::PointCloud2 => "point clouds",
+        TopicKind::VelodyneScan => "Velodyne packets",
+        TopicKind::OusterPacket => "Ouster packets",
+        _ => "?",
+    };
+    s.push_str(&format!(
+        "reads: LiDAR {} ({kind}), IMU {}",
+        sel.lidar.0,
+        sel.imu.as_deref().unwrap_or("none")
+    ));
+    if let Some(m) = &sel.metadata {
+        s.push_str(&format!(", metadata {m}"));
+    }
+    print(&s)?;
+    if !a.read {
+        return Ok(());
+    }
+    let progress = output::Progress::new(bag.total_messages().unwrap_or(0), "messages", false);
+    let span = |v: &Option<(u64, u64)>| match v {
+        Some((a, b)) => format!("{} .. {} s", output::format_stamp_ns(*a), output::format_stamp_ns(*b)),
+        None => "-".to_string(),
+    };
+    let (mut scans, mut imu, mut packets) = (None::<(u64, u64)>, None::<(u64, u64)>, None::<(u64, u64)>);
+    let (mut points, mut n_scans) = (0u64, 0u64);
+    let widen =
+        |r: &mut Option<(u64, u64)>, t: u64| *r = Some(r.map_or((t, t), |(a, b)| (a.min(t), b.max(t))));
+    let mut result = Ok(());
+    while let Some(item) = bag.next() {
+        let item = match item {
+            Ok(i) => i,
+            Err(e) => {
+                result = Err(e);
+                break;
+            }
+        };
+        progress.set_position(bag.stats().messages);
+        match item.event {
+            BagEvent::Scan(sc) => {
+                widen(&mut scans, sc.stamp_ns);
+                points += sc.points.len() as u64;
+                n_scans += 1;
+            }
+            BagEvent::Imu(i) => widen(&mut imu, i.t_ns),
+            BagEvent::LidarPacket(p) => widen(&mut packets, p.stamp_ns),
+            BagEvent::OusterMetadata(_) => {}
+        }
+    }
+    progress.finish();
+    result?;
+    let mut s = format!("{}\n", bag.stats());
+    if n_scans > 0 {
+        s.push_str(&format!(
+            "scans: {}, {:.0} points each on average\n",
+            span(&scans),
+            points as f64 / n_scans as f64
+        ));
+    }
+    s.push_str(&format!("IMU samples: {}\npackets: {}", span(&imu), span(&packets)));
+    print(&s)
 }
 
 fn with_suffix(prefix: &Path, suffix: &str) -> PathBuf {

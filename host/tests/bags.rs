@@ -277,7 +277,7 @@ fn write_ros1(
 
 fn write_mcap(path: &Path, msgs: &[(u64, &str, MessageType, Vec<u8>)]) {
     let f = std::io::BufWriter::new(std::fs::File::create(path).unwrap());
-    let mut w = mcap::Writer::new(f).unwrap();
+    let mut w = mcap::WriteOptions::new().profile("ros2").create(f).unwrap();
     let mut chans = BTreeMap::new();
     for (seq, (t, topic, ty, bytes)) in msgs.iter().enumerate() {
         let ch = match chans.get(topic) {
