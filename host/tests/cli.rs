@@ -11,13 +11,32 @@ fn loglio(args: &[&str]) -> Output {
     loglio_env(args, &[])
 }
 
+/// Runs the binary, through `LOGLIO_TEST_RUNNER` when set (cross tests: the tests run under
+/// qemu-user, and the kernel cannot exec the foreign binary they spawn without binfmt_misc, so
+/// `.ci/run` sets it to `qemu-aarch64 -L /usr/aarch64-linux-gnu`).
 fn loglio_env(args: &[&str], env: &[(&str, &str)]) -> Output {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_loglio"));
+    let bin = env!("CARGO_BIN_EXE_loglio");
+    let runner = std::env::var("LOGLIO_TEST_RUNNER").unwrap_or_default();
+    let mut parts = runner.split_whitespace();
+    let mut c = match parts.next() {
+        Some(prog) => {
+            let mut c = Command::new(prog);
+            c.args(parts).arg(bin);
+            c
+        }
+        None => Command::new(bin),
+    };
     c.args(args).env("RUST_BACKTRACE", "full").env_remove("LOGLIO_TEST_INTERNAL_PANIC");
     for (k, v) in env {
         c.env(k, v);
     }
-    c.output().expect("run loglio")
+    match c.output() {
+        Ok(o) => o,
+        Err(e) if e.raw_os_error() == Some(8) => {
+            panic!("cannot execute {bin} on this machine ({e}); set LOGLIO_TEST_RUNNER to the target's runner, e.g. \"qemu-aarch64 -L /usr/aarch64-linux-gnu\"")
+        }
+        Err(e) => panic!("cannot run {bin}: {e}"),
+    }
 }
 
 /// Asserts a failure with exactly this one stderr line and exit code.
