@@ -1,10 +1,23 @@
 //! loglio-host: the std shell around `loglio-core`. It feeds the core from live sensors, pcap
 //! files and ROS bags, and writes trajectories, maps and plots.
+//!
+//! | module | what |
+//! |---|---|
+//! | [`bag`] | ROS 1 bags, rosbag2 sqlite3 and MCAP in, a time-ordered event stream out; a ROS 1 bag writer |
+//! | [`config`] | the TOML configuration: presets, overrides, validation, the commented template |
+//! | [`diag`] | one-line `warning: ...` diagnostics |
+//! | [`eval`] | ATE/RPE against a ground truth, evo-compatible |
+//! | [`output`] | TUM trajectory, PLY/PCD map, per-scan CSV, PNG/SVG plots, progress bar |
 
+pub mod bag;
+pub mod config;
+pub mod diag;
+pub mod eval;
 pub mod imu_csv;
 pub mod knn_pca;
 pub mod normals;
 pub mod ouster_meta;
+pub mod output;
 pub mod pcap;
 pub mod serial;
 pub mod time_align;

@@ -1,24 +1,389 @@
 //! The `loglio` command.
+//!
+//! Every failure prints one line, `error: ...`, on stderr and exits non-zero (1 for errors, 2
+//! for command-line mistakes, 101 for an internal error); non-fatal problems print
+//! `warning: ...` lines (see `loglio_host::diag`). A panic hook turns a bug into one line too,
+//! whatever `RUST_BACKTRACE` says.
 
-use clap::{Parser, Subcommand};
+use std::io::{self, Write};
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+use anyhow::{Context, bail};
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use loglio_host::config::{Config, Preset};
+use loglio_host::diag::one_line;
+use loglio_host::eval::{self, Alignment, DeltaUnit, EvalOptions, Format};
+use loglio_host::output;
 
 /// LiDAR-inertial odometry for spinning LiDARs (LOG-LIO).
 #[derive(Debug, Parser)]
-#[command(name = "loglio", version, about)]
+#[command(name = "loglio", version, about, propagate_version = true)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
 }
 
+/// The subcommands. `live`, `replay`, `bag`, `sim`, `demo` and `bench` (they run the odometry)
+/// and `normals` (Ring FALS) are added by their modules.
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// Print a sensor preset's commented configuration template, or check a configuration file.
+    Config(ConfigArgs),
+    /// ATE and RPE of an estimated trajectory against a ground truth (evo-compatible).
+    Eval(EvalArgs),
+    /// List a ROS bag's topics and what loglio reads from it; with --read, decode it all.
+    BagInfo(BagInfoArgs),
     /// Ring FALS normals of a real capture (the bundled Ouster OS-1-32 frame by default): valid
     /// normals, time per scan, agreement with kNN-PCA on planar points.
     Normals(loglio_host::normals::NormalsArgs),
 }
 
-fn main() -> anyhow::Result<()> {
-    match Cli::parse().command {
-        Command::Normals(args) => loglio_host::normals::run(&args),
+#[derive(Debug, Args)]
+#[command(group = clap::ArgGroup::new("what").required(true).args(["preset", "check", "list"]))]
+struct ConfigArgs {
+    /// Print the commented template of this preset (vlp16, vlp32c, hdl32e, os1-16, os1-32,
+    /// os1-64, os1-128); it parses back to the preset's values.
+    #[arg(long, value_name = "NAME")]
+    preset: Option<String>,
+    /// Validate a configuration file and print the resolved configuration.
+    #[arg(long, value_name = "FILE")]
+    check: Option<PathBuf>,
+    /// List the presets.
+    #[arg(long)]
+    list: bool,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum FormatArg {
+    /// `t tx ty tz qx qy qz qw` per line.
+    Tum,
+    /// 12 numbers per line (row-major 3x4 [R|t]); stamps from --gt-times/--est-times.
+    Kitti,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum AlignArg {
+    /// No alignment.
+    None,
+    /// Rotation and translation (evo -a).
+    Se3,
+    /// Rotation, translation and scale (evo -as).
+    Sim3,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum UnitArg {
+    /// Poses.
+    Frames,
+    /// Metres of path length.
+    M,
+}
+
+#[derive(Debug, Args)]
+struct EvalArgs {
+    /// Ground-truth trajectory.
+    gt: PathBuf,
+    /// Estimated trajectory (e.g. loglio's trajectory.tum).
+    est: PathBuf,
+    /// File format of both trajectories.
+    #[arg(long, value_enum, default_value = "tum")]
+    format: FormatArg,
+    /// KITTI times file of the ground truth (one stamp in seconds per line).
+    #[arg(long, value_name = "FILE")]
+    gt_times: Option<PathBuf>,
+    /// KITTI times file of the estimate.
+    #[arg(long, value_name = "FILE")]
+    est_times: Option<PathBuf>,
+    /// Alignment of the estimate onto the ground truth before computing errors.
+    #[arg(long, value_enum, default_value = "se3")]
+    align: AlignArg,
+    /// Largest stamp difference of an associated pose pair, seconds (evo --t_max_diff).
+    #[arg(long, default_value_t = 0.01, value_name = "S")]
+    t_max_diff: f64,
+    /// Added to the estimate's stamps before association, seconds (evo --t_offset).
+    #[arg(long, default_value_t = 0.0, value_name = "S", allow_negative_numbers = true)]
+    t_offset: f64,
+    /// RPE delta between the poses of a pair.
+    #[arg(long, default_value_t = 1.0)]
+    delta: f64,
+    /// Unit of --delta.
+    #[arg(long, value_enum, default_value = "frames")]
+    delta_unit: UnitArg,
+    /// RPE over every pair at the delta, not only consecutive ones (evo --all_pairs).
+    #[arg(long)]
+    all_pairs: bool,
+    /// Choose the RPE pairs on the ground truth instead of the estimate (evo --pairs_from_reference).
+    #[arg(long)]
+    pairs_from_gt: bool,
+    /// Print the report as JSON.
+    #[arg(long)]
+    json: bool,
+    /// Write plots PREFIX_trajectory.{png,svg} and PREFIX_ape.{png,svg}.
+    #[arg(long, value_name = "PREFIX")]
+    plot: Option<PathBuf>,
+}
+
+#[derive(Debug, Args)]
+struct BagInfoArgs {
+    /// A ROS 1 bag, a rosbag2 directory, a .db3 or an .mcap file.
+    bag: PathBuf,
+    /// Sensor preset (decides how clouds' rings map to rows).
+    #[arg(long, default_value = "vlp16", value_name = "NAME")]
+    preset: String,
+    /// Configuration file (instead of --preset).
+    #[arg(long, value_name = "FILE", conflicts_with = "preset")]
+    config: Option<PathBuf>,
+    /// The LiDAR topic (found by message type if not given).
+    #[arg(long, value_name = "TOPIC")]
+    lidar_topic: Option<String>,
+    /// The IMU topic (found by message type if not given).
+    #[arg(long, value_name = "TOPIC")]
+    imu_topic: Option<String>,
+    /// Decode every message of the chosen topics and print what came out.
+    #[arg(long)]
+    read: bool,
+}
+
+fn main() -> ExitCode {
+    std::panic::set_hook(Box::new(|info| {
+        let payload = info.payload();
+        let msg = payload
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| payload.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "unknown panic".into());
+        let at = info.location().map(|l| format!(" at {}:{}", l.file(), l.line())).unwrap_or_default();
+        eprintln!("error: internal error: {}{at} (a bug in loglio; please report it)", one_line(&msg));
+    }));
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) => return usage_error(e),
+    };
+    match std::panic::catch_unwind(|| run(cli)) {
+        Ok(Ok(())) => ExitCode::SUCCESS,
+        Ok(Err(e)) => {
+            // A closed pipe (`loglio config --preset vlp16 | head`) is not a failure.
+            if e.chain().any(|c| {
+                c.downcast_ref::<io::Error>().is_some_and(|io| io.kind() == io::ErrorKind::BrokenPipe)
+            }) {
+                return ExitCode::SUCCESS;
+            }
+            eprintln!("error: {}", one_line(&format!("{e:#}")));
+            ExitCode::FAILURE
+        }
+        Err(_) => ExitCode::from(101),
     }
+}
+
+/// Clap's own messages span several lines; keep help and version as they are and shorten the
+/// rest to their first line.
+fn usage_error(e: clap::Error) -> ExitCode {
+    use clap::error::ErrorKind;
+    match e.kind() {
+        ErrorKind::DisplayHelp | ErrorKind::DisplayVersion => {
+            let _ = e.print();
+            ExitCode::SUCCESS
+        }
+        ErrorKind::DisplayHelpOnMissingArgumentOrSubcommand | ErrorKind::MissingSubcommand => {
+            eprintln!("error: no subcommand given; see 'loglio --help'");
+            ExitCode::from(2)
+        }
+        _ => {
+            let text = e.render().to_string();
+            let first = text.lines().find(|l| !l.trim().is_empty()).unwrap_or("error: invalid command line");
+            let first = first.strip_prefix("error: ").unwrap_or(first);
+            eprintln!("error: {}; see 'loglio --help'", one_line(first));
+            ExitCode::from(2)
+        }
+    }
+}
+
+fn run(cli: Cli) -> anyhow::Result<()> {
+    // Exercises the panic hook in the CLI tests (a bug must still print one line).
+    if std::env::var_os("LOGLIO_TEST_INTERNAL_PANIC").is_some() {
+        panic!("deliberate panic for the tests\nwith a second line");
+    }
+    match cli.command {
+        Command::Config(a) => config_cmd(a),
+        Command::Eval(a) => eval_cmd(a),
+        Command::BagInfo(a) => bag_info_cmd(a),
+        Command::Normals(a) => loglio_host::normals::run(&a),
+    }
+}
+
+fn print(text: &str) -> anyhow::Result<()> {
+    let mut out = io::stdout().lock();
+    out.write_all(text.as_bytes())?;
+    if !text.ends_with('\n') {
+        out.write_all(b"\n")?;
+    }
+    out.flush()?;
+    Ok(())
+}
+
+fn config_cmd(a: ConfigArgs) -> anyhow::Result<()> {
+    if a.list {
+        let mut s = String::new();
+        for p in Preset::ALL {
+            s.push_str(&format!("{:<8} {}\n", p.name(), p.description()));
+        }
+        return print(&s);
+    }
+    if let Some(name) = a.preset {
+        let preset: Preset = name.parse().map_err(|e: loglio_host::config::ConfigError| {
+            anyhow::anyhow!("{}", e.0.trim_start_matches("config: "))
+        })?;
+        return print(&loglio_host::config::template(preset));
+    }
+    if let Some(path) = a.check {
+        let cfg = Config::load(&path)?;
+        print(&cfg.to_commented_toml())?;
+        eprintln!("{}: valid (preset {})", path.display(), cfg.preset);
+        return Ok(());
+    }
+    bail!("give --preset NAME, --check FILE or --list")
+}
+
+fn eval_cmd(a: EvalArgs) -> anyhow::Result<()> {
+    let format = match a.format {
+        FormatArg::Tum => Format::Tum,
+        FormatArg::Kitti => Format::Kitti,
+    };
+    if !(a.t_max_diff >= 0.0 && a.t_max_diff.is_finite()) {
+        bail!("--t-max-diff must be a non-negative number of seconds, not {}", a.t_max_diff);
+    }
+    let gt = eval::read_trajectory(&a.gt, format, a.gt_times.as_deref())?;
+    let est = eval::read_trajectory(&a.est, format, a.est_times.as_deref())?;
+    let opt = EvalOptions {
+        align: match a.align {
+            AlignArg::None => Alignment::None,
+            AlignArg::Se3 => Alignment::Se3,
+            AlignArg::Sim3 => Alignment::Sim3,
+        },
+        max_diff: a.t_max_diff,
+        offset: a.t_offset,
+        rpe_delta: a.delta,
+        rpe_unit: match a.delta_unit {
+            UnitArg::Frames => DeltaUnit::Frames,
+            UnitArg::M => DeltaUnit::Metres,
+        },
+        all_pairs: a.all_pairs,
+        pairs_from_gt: a.pairs_from_gt,
+    };
+    let report = eval::evaluate(&gt, &est, &opt)?;
+    if let Some(prefix) = &a.plot {
+        write_eval_plots(prefix, &report)?;
+    }
+    print(&if a.json { report.to_json() } else { report.to_string() })
+}
+
+fn bag_info_cmd(a: BagInfoArgs) -> anyhow::Result<()> {
+    use loglio_host::bag::{BagEvent, BagOptions, BagReader, TopicKind};
+    let cfg = match &a.config {
+        Some(path) => Config::load(path)?,
+        None => {
+            let p: Preset = a.preset.parse().map_err(|e: loglio_host::config::ConfigError| {
+                anyhow::anyhow!("{}", e.0.trim_start_matches("config: "))
+            })?;
+            Config::preset(p)
+        }
+    };
+    let mut opt = BagOptions::from_config(&cfg)?;
+    opt.lidar_topic = a.lidar_topic;
+    opt.imu_topic = a.imu_topic;
+    opt.require_imu = false;
+    let mut bag = BagReader::open(&a.bag, opt)?;
+    let mut s = format!("{}: {}, {} topics\n", a.bag.display(), bag.format(), bag.topics().len());
+    for t in bag.topics() {
+        let n = t.count.map_or("?".to_string(), |n| n.to_string());
+        s.push_str(&format!("  {:<40} {:<36} {:>8}\n", t.name, t.msg_type, n));
+    }
+    let sel = bag.selection().clone();
+    let kind = match sel.lidar.1 {
+        TopicKind::PointCloud2 => "point clouds",
+        TopicKind::VelodyneScan => "Velodyne packets",
+        TopicKind::OusterPacket => "Ouster packets",
+        _ => "?",
+    };
+    s.push_str(&format!(
+        "reads: LiDAR {} ({kind}), IMU {}",
+        sel.lidar.0,
+        sel.imu.as_deref().unwrap_or("none")
+    ));
+    if let Some(m) = &sel.metadata {
+        s.push_str(&format!(", metadata {m}"));
+    }
+    print(&s)?;
+    if !a.read {
+        return Ok(());
+    }
+    let progress = output::Progress::new(bag.total_messages().unwrap_or(0), "messages", false);
+    let span = |v: &Option<(u64, u64)>| match v {
+        Some((a, b)) => format!("{} .. {} s", output::format_stamp_ns(*a), output::format_stamp_ns(*b)),
+        None => "-".to_string(),
+    };
+    let (mut scans, mut imu, mut packets) = (None::<(u64, u64)>, None::<(u64, u64)>, None::<(u64, u64)>);
+    let (mut points, mut n_scans) = (0u64, 0u64);
+    let widen =
+        |r: &mut Option<(u64, u64)>, t: u64| *r = Some(r.map_or((t, t), |(a, b)| (a.min(t), b.max(t))));
+    let mut result = Ok(());
+    while let Some(item) = bag.next() {
+        let item = match item {
+            Ok(i) => i,
+            Err(e) => {
+                result = Err(e);
+                break;
+            }
+        };
+        progress.set_position(bag.stats().messages);
+        match item.event {
+            BagEvent::Scan(sc) => {
+                widen(&mut scans, sc.stamp_ns);
+                points += sc.points.len() as u64;
+                n_scans += 1;
+            }
+            BagEvent::Imu(i) => widen(&mut imu, i.t_ns),
+            BagEvent::LidarPacket(p) => widen(&mut packets, p.stamp_ns),
+            BagEvent::OusterMetadata(_) => {}
+        }
+    }
+    progress.finish();
+    result?;
+    let mut s = format!("{}\n", bag.stats());
+    if n_scans > 0 {
+        s.push_str(&format!(
+            "scans: {}, {:.0} points each on average\n",
+            span(&scans),
+            points as f64 / n_scans as f64
+        ));
+    }
+    s.push_str(&format!("IMU samples: {}\npackets: {}", span(&imu), span(&packets)));
+    print(&s)
+}
+
+fn with_suffix(prefix: &Path, suffix: &str) -> PathBuf {
+    let mut s = prefix.as_os_str().to_owned();
+    s.push(suffix);
+    PathBuf::from(s)
+}
+
+fn write_eval_plots(prefix: &Path, r: &eval::EvalReport) -> anyhow::Result<()> {
+    let align = match r.options.align {
+        Alignment::None => "not aligned",
+        Alignment::Se3 => "SE(3)-aligned",
+        Alignment::Sim3 => "Sim(3)-aligned",
+    };
+    for ext in ["png", "svg"] {
+        let p = with_suffix(prefix, &format!("_trajectory.{ext}"));
+        let title = format!("Trajectory, top view ({align})");
+        output::plot_trajectory_top_view(&p, &title, "estimate", &r.est_positions, Some(&r.gt_positions))
+            .with_context(|| "writing the trajectory plot")?;
+        let p = with_suffix(prefix, &format!("_ape.{ext}"));
+        let title = format!("APE translation ({align}), rmse {:.3} m", r.ape_trans.rmse);
+        let x_desc = if r.has_stamps { "time since start [s]" } else { "pose index" };
+        output::plot_error_over_time(&p, &title, x_desc, "error [m]", &r.ape_series)
+            .with_context(|| "writing the error plot")?;
+    }
+    Ok(())
 }

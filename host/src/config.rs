@@ -1,0 +1,1194 @@
+//! The `loglio` configuration: a TOML file that names a sensor preset and overrides any of its
+//! values, validated with messages that name the bad key and its allowed range.
+//!
+//! ```toml
+//! preset = "vlp32c"
+//! [mapping]
+//! voxel_size = 0.4
+//! [extrinsics]
+//! translation = [0.27255, -0.00053, 0.17954]
+//! ```
+//!
+//! `loglio config --preset NAME` prints [`template`]: every key with a comment saying what it
+//! is, its unit and its range, set to the preset's value; it parses back to [`Config::preset`].
+//!
+//! # How the lead maps this onto the core (when the pipeline lands)
+//!
+//! [`Config`] is a plain host struct on purpose; the core's config structs are built from it:
+//!
+//! | host key | core |
+//! |---|---|
+//! | `preset`, `sensor.columns` | the [`RangeImageLayout`]: rows and nominal elevations from [`Preset`], or the real beam table from `sensor.calibration` (Velodyne, `velodyne_calib.rs`) / `sensor.ouster_metadata` (`ouster_meta.rs`); Ring FALS builds its table from that layout |
+//! | `sensor.blind`, `sensor.max_range` | the odometry's range gate on incoming points (metres, from the LiDAR origin) |
+//! | `sensor.scan_rate_hz` | scan assembly (expected scan period) and the time-from-azimuth fallback |
+//! | `imu.gyro_noise`, `imu.acc_noise` | ESKF process noise, white noise densities: discrete variance per IMU step of length dt is `density^2 / dt` (rates) or `density^2 * dt` (integrated angle/velocity) |
+//! | `imu.gyro_bias_walk`, `imu.acc_bias_walk` | ESKF bias random walks: variance `density^2 * dt` per step |
+//! | `imu.gravity` | gravity magnitude of the gravity-aligned world frame |
+//! | `extrinsics` | the fixed LiDAR-in-IMU transform: `p_imu = R * p_lidar + t` ([`Extrinsics::rotation_matrix`], [`Extrinsics::translation`]) |
+//! | `time.*` | `time_align.rs`: IMU stamps on the LiDAR clock are `t_imu + lidar_imu_offset`; a scan starts at its stamp plus `scan_stamp_offset`; `lidar_time_source` picks the packet's own time or the capture time |
+//! | `mapping.voxel_size` | the voxel map's voxel edge (the paper's map resolution) |
+//! | `mapping.scan_voxel_size` | the scan downsampling leaf size |
+//! | `mapping.map_capacity` | the voxel pool capacity (the hash index is sized from it) |
+//! | `mapping.association` | the association mode: `full` (LOG-LIO), `plane-only` (LOG-C), `plain` (FAST-LIO2-like) |
+//! | `filter.max_iterations` | the iterated ESKF's maximum number of passes per scan |
+//! | `imu.source`, `imu.serial_device`, `imu.baud`, `imu.csv_path`, `network.*` | the host's inputs (`serial.rs`, `imu_csv.rs`, `udp.rs`) |
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+
+use loglio_core::range_image::RangeImageLayout;
+use serde::{Deserialize, Serialize};
+
+/// A configuration error: one line that names the bad key and what is allowed.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ConfigError(pub String);
+
+impl fmt::Display for ConfigError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for ConfigError {}
+
+macro_rules! bail {
+    ($($t:tt)*) => { return Err(ConfigError(format!("config: {}", format_args!($($t)*)))) };
+}
+
+/// A supported sensor: sets the default of every configuration key.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum Preset {
+    /// Velodyne VLP-16 (Puck).
+    #[serde(rename = "vlp16")]
+    Vlp16,
+    /// Velodyne VLP-32C (Ultra Puck).
+    #[serde(rename = "vlp32c")]
+    Vlp32c,
+    /// Velodyne HDL-32E.
+    #[serde(rename = "hdl32e")]
+    Hdl32e,
+    /// Ouster OS1, 16 beams.
+    #[serde(rename = "os1-16")]
+    Os1_16,
+    /// Ouster OS1, 32 beams.
+    #[serde(rename = "os1-32")]
+    Os1_32,
+    /// Ouster OS1, 64 beams.
+    #[serde(rename = "os1-64")]
+    Os1_64,
+    /// Ouster OS1, 128 beams.
+    #[serde(rename = "os1-128")]
+    Os1_128,
+}
+
+/// Sensor family, which decides packet formats and the order of `ring` in point clouds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SensorFamily {
+    /// Velodyne: `ring` 0 is the lowest beam.
+    Velodyne,
+    /// Ouster: `ring` 0 is the highest beam.
+    Ouster,
+}
+
+impl Preset {
+    /// Every preset, in the order the documentation lists them.
+    pub const ALL: [Preset; 7] = [
+        Preset::Vlp16,
+        Preset::Vlp32c,
+        Preset::Hdl32e,
+        Preset::Os1_16,
+        Preset::Os1_32,
+        Preset::Os1_64,
+        Preset::Os1_128,
+    ];
+
+    /// The name used in files and on the command line (`vlp16`, `os1-64`, ...).
+    pub fn name(self) -> &'static str {
+        match self {
+            Preset::Vlp16 => "vlp16",
+            Preset::Vlp32c => "vlp32c",
+            Preset::Hdl32e => "hdl32e",
+            Preset::Os1_16 => "os1-16",
+            Preset::Os1_32 => "os1-32",
+            Preset::Os1_64 => "os1-64",
+            Preset::Os1_128 => "os1-128",
+        }
+    }
+
+    /// The known names joined by ", " (for error messages).
+    pub fn known() -> String {
+        Self::ALL.iter().map(|p| p.name()).collect::<Vec<_>>().join(", ")
+    }
+
+    /// A one-line description.
+    pub fn description(self) -> &'static str {
+        match self {
+            Preset::Vlp16 => "Velodyne VLP-16, 16 beams over +-15 deg",
+            Preset::Vlp32c => "Velodyne VLP-32C, 32 beams over -25..+15 deg",
+            Preset::Hdl32e => "Velodyne HDL-32E, 32 beams over -30.67..+10.67 deg",
+            Preset::Os1_16 => "Ouster OS1-16",
+            Preset::Os1_32 => "Ouster OS1-32",
+            Preset::Os1_64 => "Ouster OS1-64",
+            Preset::Os1_128 => "Ouster OS1-128",
+        }
+    }
+
+    /// Velodyne or Ouster.
+    pub fn family(self) -> SensorFamily {
+        match self {
+            Preset::Vlp16 | Preset::Vlp32c | Preset::Hdl32e => SensorFamily::Velodyne,
+            _ => SensorFamily::Ouster,
+        }
+    }
+
+    /// Number of beams (range-image rows).
+    pub fn rows(self) -> usize {
+        match self {
+            Preset::Vlp16 | Preset::Os1_16 => 16,
+            Preset::Vlp32c | Preset::Hdl32e | Preset::Os1_32 => 32,
+            Preset::Os1_64 => 64,
+            Preset::Os1_128 => 128,
+        }
+    }
+
+    /// Nominal beam elevations in degrees, row 0 the highest (datasheet values; Velodyne's
+    /// agree with the factory calibration files of the VLP-16, VLP-32C and HDL-32E). Ouster
+    /// beams are taken as evenly spread over the OS1's +-21.2 deg; the real table comes from
+    /// the sensor's metadata.
+    pub fn nominal_elevations_deg(self) -> Vec<f64> {
+        let mut asc: Vec<f64> = match self {
+            Preset::Vlp16 => (0..16).map(|i| -15.0 + 2.0 * i as f64).collect(),
+            Preset::Vlp32c => vec![
+                -25.0, -15.639, -11.31, -8.843, -7.254, -6.148, -5.333, -4.667, -4.0, -3.667, -3.333, -3.0,
+                -2.667, -2.333, -2.0, -1.667, -1.333, -1.0, -0.667, -0.333, 0.0, 0.333, 0.667, 1.0, 1.333,
+                1.667, 2.333, 3.333, 4.667, 7.0, 10.333, 15.0,
+            ],
+            Preset::Hdl32e => (0..32).map(|i| -30.67 + (41.34 / 31.0) * i as f64).collect(),
+            _ => {
+                let n = self.rows();
+                (0..n).map(|i| -21.2 + 42.4 * i as f64 / (n - 1) as f64).collect()
+            }
+        };
+        asc.reverse();
+        asc
+    }
+
+    /// The nominal range-image layout with `columns` columns (clockwise, as both families
+    /// spin), every beam at azimuth offset 0.
+    pub fn nominal_layout(self, columns: usize) -> Result<RangeImageLayout, ConfigError> {
+        let el: Vec<f32> = self.nominal_elevations_deg().iter().map(|d| d.to_radians() as f32).collect();
+        RangeImageLayout::from_elevations(&el, columns, true)
+            .map_err(|e| ConfigError(format!("config: sensor.columns = {columns}: {e}")))
+    }
+}
+
+impl FromStr for Preset {
+    type Err = ConfigError;
+    fn from_str(s: &str) -> Result<Self, ConfigError> {
+        Self::ALL.iter().copied().find(|p| p.name().eq_ignore_ascii_case(s)).ok_or_else(|| {
+            ConfigError(format!("config: unknown preset \"{s}\" (known: {})", Preset::known()))
+        })
+    }
+}
+
+impl fmt::Display for Preset {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// Where the IMU samples come from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ImuSource {
+    /// loglio's serial IMU frames on `imu.serial_device`.
+    Serial,
+    /// The Ouster's own IMU packets (UDP `network.imu_port`, or in the pcap/bag).
+    Ouster,
+    /// A CSV file `t,gx,gy,gz,ax,ay,az` (replays only).
+    Csv,
+}
+
+/// Which clock stamps the LiDAR points.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LidarTimeSource {
+    /// The sensor's own timestamp in each packet (PTP/GPS-synchronised or free-running).
+    Packet,
+    /// The host's receive time (live) or the capture time (pcap, bag record time).
+    Capture,
+}
+
+/// Data association mode (the paper's ablations).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum AssociationMode {
+    /// LOG-LIO: large surfel, small surfel, point-to-plane, behind visibility and consistency checks.
+    Full,
+    /// LOG-C: plane association with the normal checks, no surfel hierarchy.
+    PlaneOnly,
+    /// No normals and no checks: FAST-LIO2-like point-to-plane.
+    Plain,
+}
+
+/// `[sensor]`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SensorConfig {
+    /// Range-image columns per revolution.
+    pub columns: u32,
+    /// Revolutions per second.
+    pub scan_rate_hz: f64,
+    /// Points closer than this are ignored, metres.
+    pub blind: f64,
+    /// Points farther than this are ignored, metres.
+    pub max_range: f64,
+    /// Velodyne calibration file (ROS velodyne YAML).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<PathBuf>,
+    /// Ouster metadata JSON.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ouster_metadata: Option<PathBuf>,
+}
+
+/// `[network]` (live UDP).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NetworkConfig {
+    /// Local address to bind the UDP sockets to.
+    pub bind: String,
+    /// UDP port of the LiDAR data packets.
+    pub lidar_port: u16,
+    /// UDP port of the Ouster IMU packets.
+    pub imu_port: u16,
+}
+
+/// `[imu]`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ImuConfig {
+    /// Where samples come from.
+    pub source: ImuSource,
+    /// Serial device of loglio's IMU frames.
+    pub serial_device: String,
+    /// Serial baud rate.
+    pub baud: u32,
+    /// IMU CSV file.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub csv_path: Option<PathBuf>,
+    /// Gyroscope white noise density, rad/s/sqrt(Hz).
+    pub gyro_noise: f64,
+    /// Accelerometer white noise density, m/s^2/sqrt(Hz).
+    pub acc_noise: f64,
+    /// Gyroscope bias random walk, rad/s^2/sqrt(Hz).
+    pub gyro_bias_walk: f64,
+    /// Accelerometer bias random walk, m/s^3/sqrt(Hz).
+    pub acc_bias_walk: f64,
+    /// Local gravity magnitude, m/s^2.
+    pub gravity: f64,
+}
+
+/// `[extrinsics]`: the LiDAR frame in the IMU frame, `p_imu = R * p_lidar + t`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Extrinsics {
+    /// t, metres.
+    pub translation: [f64; 3],
+    /// R as roll, pitch, yaw in degrees (R = Rz(yaw) Ry(pitch) Rx(roll)).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rotation_rpy_deg: Option<[f64; 3]>,
+    /// R as a unit quaternion w, x, y, z.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rotation_quat_wxyz: Option<[f64; 4]>,
+}
+
+impl Extrinsics {
+    /// The translation t, metres.
+    pub fn translation(&self) -> [f64; 3] {
+        self.translation
+    }
+
+    /// The rotation as a unit quaternion (w, x, y, z); identity if neither form is set.
+    pub fn quaternion_wxyz(&self) -> [f64; 4] {
+        if let Some(q) = self.rotation_quat_wxyz {
+            let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+            return [q[0] / n, q[1] / n, q[2] / n, q[3] / n];
+        }
+        let [r, p, y] = self.rotation_rpy_deg.unwrap_or([0.0; 3]).map(f64::to_radians);
+        let (sr, cr) = (r / 2.0).sin_cos();
+        let (sp, cp) = (p / 2.0).sin_cos();
+        let (sy, cy) = (y / 2.0).sin_cos();
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ]
+    }
+
+    /// The rotation matrix R (row-major).
+    pub fn rotation_matrix(&self) -> [[f64; 3]; 3] {
+        quat_to_matrix(self.quaternion_wxyz())
+    }
+}
+
+/// Rotation matrix of a unit quaternion (w, x, y, z).
+pub fn quat_to_matrix([w, x, y, z]: [f64; 4]) -> [[f64; 3]; 3] {
+    [
+        [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
+        [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
+        [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)],
+    ]
+}
+
+/// `[time]`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TimeConfig {
+    /// LiDAR clock minus IMU clock, seconds: IMU stamps are moved onto the LiDAR clock by adding it.
+    pub lidar_imu_offset: f64,
+    /// Added to a scan's stamp to get its start, seconds (-0.1 when a 10 Hz driver stamps scan ends).
+    pub scan_stamp_offset: f64,
+    /// Which clock stamps the LiDAR points.
+    pub lidar_time_source: LidarTimeSource,
+}
+
+/// `[mapping]`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MappingConfig {
+    /// Voxel edge of the map, metres.
+    pub voxel_size: f64,
+    /// Leaf size of the scan downsampling, metres.
+    pub scan_voxel_size: f64,
+    /// Most voxels the map holds (the preallocated pool).
+    pub map_capacity: u64,
+    /// Association mode.
+    pub association: AssociationMode,
+}
+
+/// `[filter]`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FilterConfig {
+    /// Most iterated-update passes per scan.
+    pub max_iterations: u32,
+}
+
+/// The whole configuration.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    /// The sensor preset the values started from.
+    pub preset: Preset,
+    /// `[sensor]`.
+    pub sensor: SensorConfig,
+    /// `[network]`.
+    pub network: NetworkConfig,
+    /// `[imu]`.
+    pub imu: ImuConfig,
+    /// `[extrinsics]`.
+    pub extrinsics: Extrinsics,
+    /// `[time]`.
+    pub time: TimeConfig,
+    /// `[mapping]`.
+    pub mapping: MappingConfig,
+    /// `[filter]`.
+    pub filter: FilterConfig,
+}
+
+/// What a key holds, for checking and for the template's comments.
+#[derive(Clone, Copy, Debug)]
+enum Kind {
+    Float { min: f64, max: f64 },
+    Int { min: i64, max: i64 },
+    Str,
+    Path,
+    Enum(&'static [&'static str]),
+    Floats { len: usize, min: f64, max: f64 },
+}
+
+/// One documented key.
+#[derive(Clone, Copy, Debug)]
+struct Spec {
+    key: &'static str,
+    kind: Kind,
+    unit: &'static str,
+    doc: &'static str,
+    /// Optional keys may be absent; the template shows them commented out with this example.
+    example: Option<&'static str>,
+}
+
+const fn spec(key: &'static str, kind: Kind, unit: &'static str, doc: &'static str) -> Spec {
+    Spec { key, kind, unit, doc, example: None }
+}
+
+const fn opt(key: &'static str, kind: Kind, unit: &'static str, doc: &'static str, ex: &'static str) -> Spec {
+    Spec { key, kind, unit, doc, example: Some(ex) }
+}
+
+/// Every key of the file, in template order. Single source of the ranges, units and docs.
+static SPECS: &[Spec] = &[
+    spec(
+        "sensor.columns",
+        Kind::Int { min: 8, max: 3600 },
+        "columns",
+        "Range-image columns per revolution: 360 deg / column width for Velodyne (1800 = 0.2 deg); the lidar mode's columns for Ouster (512, 1024 or 2048).",
+    ),
+    spec(
+        "sensor.scan_rate_hz",
+        Kind::Float { min: 5.0, max: 20.0 },
+        "Hz",
+        "Revolutions per second (Velodyne RPM / 60; Ouster 10 or 20).",
+    ),
+    spec(
+        "sensor.blind",
+        Kind::Float { min: 0.0, max: 50.0 },
+        "m",
+        "Points closer than this to the LiDAR are ignored (the robot itself, rain, dust). The reference used 2 m where the platform is in view.",
+    ),
+    spec(
+        "sensor.max_range",
+        Kind::Float { min: 1.0, max: 500.0 },
+        "m",
+        "Points farther than this are ignored.",
+    ),
+    opt(
+        "sensor.calibration",
+        Kind::Path,
+        "path",
+        "Velodyne calibration file (ROS velodyne YAML) with the beam table; without it the datasheet angles are used.",
+        "\"VLP16.yaml\"",
+    ),
+    opt(
+        "sensor.ouster_metadata",
+        Kind::Path,
+        "path",
+        "Ouster sensor metadata JSON (beam angles, lidar mode, IMU transform); needed for raw Ouster packets.",
+        "\"os1.json\"",
+    ),
+    spec("network.bind", Kind::Str, "IP address", "Local address the UDP sockets bind to (live only)."),
+    spec(
+        "network.lidar_port",
+        Kind::Int { min: 1, max: 65535 },
+        "UDP port",
+        "Port of the LiDAR data packets (Velodyne 2368, Ouster 7502).",
+    ),
+    spec(
+        "network.imu_port",
+        Kind::Int { min: 1, max: 65535 },
+        "UDP port",
+        "Port of the Ouster IMU packets (7503); unused for Velodyne.",
+    ),
+    spec(
+        "imu.source",
+        Kind::Enum(&["serial", "ouster", "csv"]),
+        "",
+        "Where IMU samples come from: serial = loglio IMU frames on imu.serial_device; ouster = the Ouster's own IMU packets; csv = imu.csv_path (replays).",
+    ),
+    spec(
+        "imu.serial_device",
+        Kind::Str,
+        "device path",
+        "Serial device of the IMU board (imu.source = \"serial\").",
+    ),
+    spec("imu.baud", Kind::Int { min: 1200, max: 12_000_000 }, "baud", "Serial baud rate."),
+    opt(
+        "imu.csv_path",
+        Kind::Path,
+        "path",
+        "IMU CSV with the header t,gx,gy,gz,ax,ay,az (s, rad/s, m/s^2); for imu.source = \"csv\".",
+        "\"imu.csv\"",
+    ),
+    spec(
+        "imu.gyro_noise",
+        Kind::Float { min: 1e-6, max: 1.0 },
+        "rad/s/sqrt(Hz)",
+        "Gyroscope white noise density (tuned for LIO, larger than a datasheet's).",
+    ),
+    spec(
+        "imu.acc_noise",
+        Kind::Float { min: 1e-5, max: 10.0 },
+        "m/s^2/sqrt(Hz)",
+        "Accelerometer white noise density.",
+    ),
+    spec(
+        "imu.gyro_bias_walk",
+        Kind::Float { min: 1e-9, max: 1.0 },
+        "rad/s^2/sqrt(Hz)",
+        "Gyroscope bias random walk.",
+    ),
+    spec(
+        "imu.acc_bias_walk",
+        Kind::Float { min: 1e-8, max: 10.0 },
+        "m/s^3/sqrt(Hz)",
+        "Accelerometer bias random walk.",
+    ),
+    spec("imu.gravity", Kind::Float { min: 9.7, max: 9.9 }, "m/s^2", "Local gravity magnitude."),
+    spec(
+        "extrinsics.translation",
+        Kind::Floats { len: 3, min: -10.0, max: 10.0 },
+        "m",
+        "LiDAR origin in the IMU frame, x y z: p_imu = R * p_lidar + translation.",
+    ),
+    opt(
+        "extrinsics.rotation_rpy_deg",
+        Kind::Floats { len: 3, min: -360.0, max: 360.0 },
+        "deg",
+        "R as roll, pitch, yaw (R = Rz(yaw) Ry(pitch) Rx(roll)). Set this or rotation_quat_wxyz, not both; neither means identity.",
+        "[0.0, 0.0, 0.0]",
+    ),
+    opt(
+        "extrinsics.rotation_quat_wxyz",
+        Kind::Floats { len: 4, min: -1.0, max: 1.0 },
+        "unit quaternion",
+        "R as a unit quaternion w, x, y, z. Set this or rotation_rpy_deg, not both.",
+        "[1.0, 0.0, 0.0, 0.0]",
+    ),
+    spec(
+        "time.lidar_imu_offset",
+        Kind::Float { min: -1.0, max: 1.0 },
+        "s",
+        "LiDAR clock minus IMU clock: IMU stamps are moved onto the LiDAR clock by adding it.",
+    ),
+    spec(
+        "time.scan_stamp_offset",
+        Kind::Float { min: -1.0, max: 1.0 },
+        "s",
+        "Added to each scan's stamp to get its start (-0.1 for a 10 Hz driver that stamps the scan end).",
+    ),
+    spec(
+        "time.lidar_time_source",
+        Kind::Enum(&["packet", "capture"]),
+        "",
+        "packet = the sensor's own timestamps (PTP/GPS or free-running); capture = the host's receive or capture time.",
+    ),
+    spec(
+        "mapping.voxel_size",
+        Kind::Float { min: 0.05, max: 5.0 },
+        "m",
+        "Voxel edge of the map (the paper: 0.4 for VLP-32C, 0.5 for OS1-16).",
+    ),
+    spec(
+        "mapping.scan_voxel_size",
+        Kind::Float { min: 0.05, max: 5.0 },
+        "m",
+        "Leaf size of the scan downsampling.",
+    ),
+    spec(
+        "mapping.map_capacity",
+        Kind::Int { min: 1024, max: 100_000_000 },
+        "voxels",
+        "Most voxels the map holds; the pool is allocated once at start-up (memory = capacity x bytes per voxel, see the README).",
+    ),
+    spec(
+        "mapping.association",
+        Kind::Enum(&["full", "plane-only", "plain"]),
+        "",
+        "full = LOG-LIO (large surfel, small surfel, point-to-plane, with visibility and consistency checks); plane-only = LOG-C; plain = no normals, no checks (FAST-LIO2-like).",
+    ),
+    spec(
+        "filter.max_iterations",
+        Kind::Int { min: 1, max: 20 },
+        "passes",
+        "Most iterated-update passes per scan.",
+    ),
+];
+
+const SECTIONS: [(&str, &str); 7] = [
+    ("sensor", "The LiDAR."),
+    ("network", "Live UDP input."),
+    ("imu", "The IMU: source and noise model."),
+    ("extrinsics", "The LiDAR frame in the IMU frame."),
+    ("time", "Clocks and time offsets."),
+    ("mapping", "The voxel map and data association."),
+    ("filter", "The iterated error-state Kalman filter."),
+];
+
+fn find_spec(key: &str) -> Option<&'static Spec> {
+    SPECS.iter().find(|s| s.key == key)
+}
+
+fn kind_range_text(kind: Kind, unit: &str) -> String {
+    let unit_sfx = if unit.is_empty() { String::new() } else { format!(" {unit}") };
+    match kind {
+        Kind::Float { min, max } => format!("{}..={}{unit_sfx}", fmt_num(min), fmt_num(max)),
+        Kind::Int { min, max } => format!("{min}..={max}{unit_sfx}"),
+        Kind::Str | Kind::Path => unit.to_string(),
+        Kind::Enum(list) => format!("one of: {}", list.join(", ")),
+        Kind::Floats { len, min, max } => {
+            format!("{len} numbers, each {}..={}{unit_sfx}", fmt_num(min), fmt_num(max))
+        }
+    }
+}
+
+/// A float as TOML and the messages write it: always with a '.' or an exponent.
+fn fmt_num(v: f64) -> String {
+    let s = if v != 0.0 && (v.abs() < 1e-3 || v.abs() >= 1e6) { format!("{v:e}") } else { format!("{v}") };
+    if v.is_finite() && !s.contains(['.', 'e']) { format!("{s}.0") } else { s }
+}
+
+fn type_name(v: &toml::Value) -> &'static str {
+    match v {
+        toml::Value::String(_) => "a string",
+        toml::Value::Integer(_) => "an integer",
+        toml::Value::Float(_) => "a number",
+        toml::Value::Boolean(_) => "a boolean",
+        toml::Value::Datetime(_) => "a date",
+        toml::Value::Array(_) => "an array",
+        toml::Value::Table(_) => "a table",
+    }
+}
+
+fn value_text(v: &toml::Value) -> String {
+    match v {
+        toml::Value::Float(f) => fmt_num(*f),
+        other => other.to_string(),
+    }
+}
+
+/// Checks (and normalises: integers become floats where a float is wanted) one value.
+fn check_value(spec: &Spec, v: &toml::Value) -> Result<toml::Value, ConfigError> {
+    let key = spec.key;
+    let range = kind_range_text(spec.kind, spec.unit);
+    let as_f64 = |v: &toml::Value| match v {
+        toml::Value::Float(f) => Some(*f),
+        toml::Value::Integer(i) => Some(*i as f64),
+        _ => None,
+    };
+    match spec.kind {
+        Kind::Float { min, max } => {
+            let Some(f) = as_f64(v) else { bail!("{key} must be a number, found {}", type_name(v)) };
+            if !(min..=max).contains(&f) {
+                bail!("{key} = {} is out of range ({range})", fmt_num(f));
+            }
+            Ok(toml::Value::Float(f))
+        }
+        Kind::Int { min, max } => {
+            let toml::Value::Integer(i) = v else {
+                bail!("{key} must be an integer, found {}", type_name(v))
+            };
+            if !(min..=max).contains(i) {
+                bail!("{key} = {i} is out of range ({range})");
+            }
+            Ok(v.clone())
+        }
+        Kind::Str | Kind::Path => {
+            let toml::Value::String(s) = v else { bail!("{key} must be a string, found {}", type_name(v)) };
+            if s.is_empty() {
+                bail!("{key} must not be empty");
+            }
+            Ok(v.clone())
+        }
+        Kind::Enum(list) => {
+            let toml::Value::String(s) = v else { bail!("{key} must be a string, found {}", type_name(v)) };
+            if !list.contains(&s.as_str()) {
+                bail!("{key} = \"{s}\" is not {range}");
+            }
+            Ok(v.clone())
+        }
+        Kind::Floats { len, min, max } => {
+            let toml::Value::Array(a) = v else {
+                bail!("{key} must be an array of {len} numbers, found {}", type_name(v))
+            };
+            if a.len() != len {
+                bail!("{key} must be an array of {len} numbers, found {}", a.len());
+            }
+            let mut out = Vec::with_capacity(len);
+            for (i, e) in a.iter().enumerate() {
+                let Some(f) = as_f64(e) else { bail!("{key}[{i}] must be a number, found {}", type_name(e)) };
+                if !(min..=max).contains(&f) {
+                    bail!("{key}[{i}] = {} is out of range ({range})", fmt_num(f));
+                }
+                out.push(toml::Value::Float(f));
+            }
+            Ok(toml::Value::Array(out))
+        }
+    }
+}
+
+fn section_keys(section: &str) -> String {
+    SPECS
+        .iter()
+        .filter_map(|s| s.key.strip_prefix(section).and_then(|r| r.strip_prefix('.')))
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+fn line_col(text: &str, offset: usize) -> (usize, usize) {
+    let before = &text[..offset.min(text.len())];
+    let line = before.matches('\n').count() + 1;
+    let col = before.rsplit('\n').next().map_or(0, |l| l.chars().count()) + 1;
+    (line, col)
+}
+
+impl Config {
+    /// The configuration of a preset, with no overrides.
+    pub fn preset(preset: Preset) -> Config {
+        let ouster = preset.family() == SensorFamily::Ouster;
+        let (voxel, max_range) = match preset {
+            Preset::Vlp16 => (0.5, 100.0),
+            Preset::Vlp32c => (0.4, 200.0),
+            Preset::Hdl32e => (0.4, 100.0),
+            _ => (0.5, 120.0),
+        };
+        Config {
+            preset,
+            sensor: SensorConfig {
+                columns: if ouster { 1024 } else { 1800 },
+                scan_rate_hz: 10.0,
+                blind: 1.0,
+                max_range,
+                calibration: None,
+                ouster_metadata: None,
+            },
+            network: NetworkConfig {
+                bind: "0.0.0.0".into(),
+                lidar_port: if ouster { 7502 } else { 2368 },
+                imu_port: 7503,
+            },
+            imu: ImuConfig {
+                source: if ouster { ImuSource::Ouster } else { ImuSource::Serial },
+                serial_device: "/dev/ttyUSB0".into(),
+                baud: 921_600,
+                csv_path: None,
+                // LIO-tuned densities (equivalent to the reference's per-step covariances at
+                // 200 Hz, see docs): far above an IMU datasheet's, which ignore vibration.
+                gyro_noise: 5e-3,
+                acc_noise: 2e-2,
+                gyro_bias_walk: 1e-4,
+                acc_bias_walk: 6e-4,
+                gravity: 9.81,
+            },
+            extrinsics: Extrinsics {
+                // Ouster: points in the sensor frame (the SDK's XYZ) and the internal IMU at
+                // imu_to_sensor_transform = (6.253, -11.775, 7.645) mm in every OS1 metadata
+                // file we have. Velodyne with an external IMU: measure yours.
+                translation: if ouster { [-0.006253, 0.011775, -0.007645] } else { [0.0; 3] },
+                rotation_rpy_deg: Some([0.0; 3]),
+                rotation_quat_wxyz: None,
+            },
+            time: TimeConfig {
+                lidar_imu_offset: 0.0,
+                scan_stamp_offset: 0.0,
+                lidar_time_source: LidarTimeSource::Packet,
+            },
+            mapping: MappingConfig {
+                voxel_size: voxel,
+                scan_voxel_size: voxel,
+                map_capacity: 1_000_000,
+                association: AssociationMode::Full,
+            },
+            filter: FilterConfig { max_iterations: 4 },
+        }
+    }
+
+    /// Reads and validates a configuration file.
+    pub fn load(path: &Path) -> Result<Config, ConfigError> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| ConfigError(format!("config: cannot read {}: {e}", path.display())))?;
+        Self::from_toml_str(&text).map_err(|e| {
+            // Name the file in syntax errors only; key errors already name the key.
+            if e.0.starts_with("config: line ") {
+                ConfigError(e.0.replacen("config: ", &format!("config: {}: ", path.display()), 1))
+            } else {
+                e
+            }
+        })
+    }
+
+    /// Parses and validates a configuration from TOML text.
+    pub fn from_toml_str(text: &str) -> Result<Config, ConfigError> {
+        let user: toml::Table = text.parse().map_err(|e: toml::de::Error| {
+            let msg = crate::diag::one_line(e.message());
+            match e.span() {
+                Some(span) => {
+                    let (l, c) = line_col(text, span.start);
+                    ConfigError(format!("config: line {l}, column {c}: {msg}"))
+                }
+                None => ConfigError(format!("config: {msg}")),
+            }
+        })?;
+        let preset = match user.get("preset") {
+            None => bail!("missing key preset (one of: {})", Preset::known()),
+            Some(toml::Value::String(s)) => s.parse::<Preset>()?,
+            Some(v) => bail!("preset must be a string, found {}", type_name(v)),
+        };
+        let base = Config::preset(preset);
+        let mut merged =
+            toml::Table::try_from(&base).map_err(|e| ConfigError(format!("config: internal: {e}")))?;
+        for (section, value) in &user {
+            if section == "preset" {
+                continue;
+            }
+            if !SECTIONS.iter().any(|(s, _)| s == section) {
+                let known: Vec<&str> = SECTIONS.iter().map(|(s, _)| *s).collect();
+                bail!("unknown key {section} (top-level keys: preset, {})", known.join(", "));
+            }
+            let toml::Value::Table(entries) = value else {
+                bail!("{section} must be a table ([{section}]), found {}", type_name(value));
+            };
+            let target = merged
+                .entry(section.clone())
+                .or_insert_with(|| toml::Value::Table(toml::Table::new()))
+                .as_table_mut()
+                .ok_or_else(|| ConfigError(format!("config: internal: {section} is not a table")))?;
+            // One rotation form replaces the other unless the file sets both.
+            for (a, b) in
+                [("rotation_quat_wxyz", "rotation_rpy_deg"), ("rotation_rpy_deg", "rotation_quat_wxyz")]
+            {
+                if section == "extrinsics" && entries.contains_key(a) && !entries.contains_key(b) {
+                    target.remove(b);
+                }
+            }
+            for (key, v) in entries {
+                let full = format!("{section}.{key}");
+                let Some(spec) = find_spec(&full) else {
+                    bail!("unknown key {full} (keys of [{section}]: {})", section_keys(section));
+                };
+                target.insert(key.clone(), check_value(spec, v)?);
+            }
+        }
+        let cfg: Config = toml::Value::Table(merged).try_into().map_err(|e: toml::de::Error| {
+            ConfigError(format!("config: {}", crate::diag::one_line(e.message())))
+        })?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Checks every value against its range and the keys against each other.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let table = toml::Table::try_from(self).map_err(|e| ConfigError(format!("config: internal: {e}")))?;
+        for spec in SPECS {
+            let (section, key) = spec.key.split_once('.').unwrap_or(("", spec.key));
+            match table.get(section).and_then(|s| s.get(key)) {
+                Some(v) => {
+                    check_value(spec, v)?;
+                }
+                None if spec.example.is_some() => {}
+                None => bail!("missing key {}", spec.key),
+            }
+        }
+        let ouster = self.preset.family() == SensorFamily::Ouster;
+        let p = self.preset;
+        if ouster && ![512, 1024, 2048].contains(&self.sensor.columns) {
+            bail!(
+                "sensor.columns = {} is not an Ouster lidar mode's width (512, 1024 or 2048) for preset {p}",
+                self.sensor.columns
+            );
+        }
+        if ouster && ![10.0, 20.0].contains(&self.sensor.scan_rate_hz) {
+            bail!(
+                "sensor.scan_rate_hz = {} is not an Ouster rate (10 or 20) for preset {p}",
+                fmt_num(self.sensor.scan_rate_hz)
+            );
+        }
+        if self.sensor.blind >= self.sensor.max_range {
+            bail!(
+                "sensor.blind = {} must be less than sensor.max_range = {} (m)",
+                fmt_num(self.sensor.blind),
+                fmt_num(self.sensor.max_range)
+            );
+        }
+        if ouster && self.sensor.calibration.is_some() {
+            bail!(
+                "sensor.calibration is a Velodyne calibration file; preset {p} is an Ouster (use sensor.ouster_metadata)"
+            );
+        }
+        if !ouster && self.sensor.ouster_metadata.is_some() {
+            bail!(
+                "sensor.ouster_metadata is for Ouster presets; preset {p} is a Velodyne (use sensor.calibration)"
+            );
+        }
+        if self.network.bind.parse::<std::net::IpAddr>().is_err() {
+            bail!("network.bind = \"{}\" is not an IP address (e.g. 0.0.0.0)", self.network.bind);
+        }
+        match self.imu.source {
+            ImuSource::Ouster if !ouster => {
+                bail!("imu.source = \"ouster\" needs an Ouster preset (os1-*), not {p}")
+            }
+            ImuSource::Csv if self.imu.csv_path.is_none() => bail!("imu.source = \"csv\" needs imu.csv_path"),
+            _ => {}
+        }
+        let e = &self.extrinsics;
+        if e.rotation_quat_wxyz.is_some() && e.rotation_rpy_deg.is_some() {
+            bail!("set extrinsics.rotation_quat_wxyz or extrinsics.rotation_rpy_deg, not both");
+        }
+        if let Some(q) = e.rotation_quat_wxyz {
+            let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+            if (n - 1.0).abs() > 1e-3 {
+                bail!(
+                    "extrinsics.rotation_quat_wxyz has norm {n:.6}; it must be a unit quaternion (w, x, y, z)"
+                );
+            }
+        }
+        Ok(())
+    }
+
+    /// The nominal range-image layout of this configuration (preset beams, `sensor.columns`).
+    pub fn nominal_layout(&self) -> Result<RangeImageLayout, ConfigError> {
+        self.preset.nominal_layout(self.sensor.columns as usize)
+    }
+
+    /// This configuration as a commented TOML file (see [`template`]).
+    pub fn to_commented_toml(&self) -> String {
+        let table = toml::Table::try_from(self).unwrap_or_default();
+        let mut out = String::new();
+        out.push_str(&format!(
+            "# loglio configuration, preset {}: {}.\n\
+             # Written by `loglio config --preset {}`. Every key except `preset` is optional: a key you\n\
+             # delete takes the preset's value. Check a file with `loglio config --check FILE`.\n\
+             # Units: metres, seconds, radians unless the comment says otherwise.\n\n",
+            self.preset,
+            self.preset.description(),
+            self.preset
+        ));
+        push_comment(
+            &mut out,
+            &format!(
+                "The sensor model; it sets the default of every key below. One of: {}.",
+                Preset::known()
+            ),
+        );
+        out.push_str(&format!("preset = \"{}\"\n", self.preset));
+        for (section, what) in SECTIONS {
+            out.push_str(&format!("\n# {what}\n[{section}]\n"));
+            for spec in
+                SPECS.iter().filter(|s| s.key.starts_with(section) && s.key.as_bytes()[section.len()] == b'.')
+            {
+                let key = &spec.key[section.len() + 1..];
+                let range = kind_range_text(spec.kind, spec.unit);
+                let value = table.get(section).and_then(|t| t.get(key));
+                let tail = match (value, spec.example) {
+                    (None, Some(_)) => format!(" [{range}; unset by default]"),
+                    _ => format!(" [{range}]"),
+                };
+                push_comment(&mut out, &format!("{}{tail}", spec.doc));
+                match (value, spec.example) {
+                    (Some(v), _) => out.push_str(&format!("{key} = {}\n", value_text(v))),
+                    (None, Some(ex)) => out.push_str(&format!("# {key} = {ex}\n")),
+                    (None, None) => {}
+                }
+            }
+        }
+        out
+    }
+}
+
+fn push_comment(out: &mut String, text: &str) {
+    let mut line = String::from("#");
+    for word in text.split_whitespace() {
+        if line.len() + 1 + word.len() > 100 && line.len() > 1 {
+            out.push_str(&line);
+            out.push('\n');
+            line = String::from("#");
+        }
+        line.push(' ');
+        line.push_str(word);
+    }
+    out.push_str(&line);
+    out.push('\n');
+}
+
+/// The commented template of a preset, as printed by `loglio config --preset NAME`.
+pub fn template(preset: Preset) -> String {
+    Config::preset(preset).to_commented_toml()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn err(text: &str) -> String {
+        Config::from_toml_str(text).unwrap_err().0
+    }
+
+    #[test]
+    fn every_preset_is_valid_and_its_template_parses_back() {
+        for p in Preset::ALL {
+            let cfg = Config::preset(p);
+            cfg.validate().unwrap();
+            let text = template(p);
+            let back = Config::from_toml_str(&text).unwrap_or_else(|e| panic!("{p}: {e}\n{text}"));
+            assert_eq!(back, cfg, "{p}");
+            // Every key has a comment line right above it.
+            let lines: Vec<&str> = text.lines().collect();
+            for (i, l) in lines.iter().enumerate() {
+                if !l.starts_with('#') && l.contains(" = ") {
+                    assert!(lines[i - 1].starts_with('#'), "{p}: no comment above `{l}`");
+                }
+            }
+            assert_eq!(p.nominal_elevations_deg().len(), p.rows());
+            let layout = cfg.nominal_layout().unwrap();
+            assert_eq!(layout.rows(), p.rows());
+            assert!(layout.elevation(0) > layout.elevation(p.rows() - 1), "row 0 is the highest");
+        }
+    }
+
+    #[test]
+    fn template_lists_every_key() {
+        let text = template(Preset::Vlp16);
+        for spec in SPECS {
+            let key = spec.key.split_once('.').unwrap().1;
+            let set = text.lines().any(|l| l.starts_with(&format!("{key} = ")));
+            let commented = text.lines().any(|l| l.starts_with(&format!("# {key} = ")));
+            assert!(set || commented, "{} missing from the template", spec.key);
+        }
+        // And every field the struct has is documented.
+        let table = toml::Table::try_from(Config::preset(Preset::Os1_64)).unwrap();
+        for (section, v) in &table {
+            if let toml::Value::Table(t) = v {
+                for key in t.keys() {
+                    assert!(find_spec(&format!("{section}.{key}")).is_some(), "{section}.{key} has no spec");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn overrides_apply_over_the_preset() {
+        let cfg = Config::from_toml_str(
+            "preset = \"vlp32c\"\n[mapping]\nvoxel_size = 1\nassociation = \"plane-only\"\n\
+             [extrinsics]\ntranslation = [0.27255, -0.00053, 0.17954]\nrotation_quat_wxyz = [0.0, 0.0, 0.0, 1.0]\n",
+        )
+        .unwrap();
+        assert_eq!(cfg.mapping.voxel_size, 1.0);
+        assert_eq!(cfg.mapping.scan_voxel_size, 0.4);
+        assert_eq!(cfg.mapping.association, AssociationMode::PlaneOnly);
+        assert_eq!(cfg.extrinsics.translation, [0.27255, -0.00053, 0.17954]);
+        assert_eq!(cfg.extrinsics.rotation_rpy_deg, None, "the quaternion replaces the preset's rpy");
+        let r = cfg.extrinsics.rotation_matrix();
+        // 180 deg about z.
+        let want = [[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]];
+        for i in 0..3 {
+            for j in 0..3 {
+                assert!((r[i][j] - want[i][j]).abs() < 1e-12);
+            }
+        }
+    }
+
+    #[test]
+    fn rpy_matches_the_zyx_convention() {
+        let e = Extrinsics {
+            translation: [0.0; 3],
+            rotation_rpy_deg: Some([10.0, -20.0, 30.0]),
+            rotation_quat_wxyz: None,
+        };
+        let r = e.rotation_matrix();
+        let (a, b, c) = (10f64.to_radians(), (-20f64).to_radians(), 30f64.to_radians());
+        let rx = [[1.0, 0.0, 0.0], [0.0, a.cos(), -a.sin()], [0.0, a.sin(), a.cos()]];
+        let ry = [[b.cos(), 0.0, b.sin()], [0.0, 1.0, 0.0], [-b.sin(), 0.0, b.cos()]];
+        let rz = [[c.cos(), -c.sin(), 0.0], [c.sin(), c.cos(), 0.0], [0.0, 0.0, 1.0]];
+        let mul = |x: [[f64; 3]; 3], y: [[f64; 3]; 3]| {
+            let mut m = [[0.0; 3]; 3];
+            for i in 0..3 {
+                for j in 0..3 {
+                    m[i][j] = (0..3).map(|k| x[i][k] * y[k][j]).sum();
+                }
+            }
+            m
+        };
+        let want = mul(rz, mul(ry, rx));
+        for i in 0..3 {
+            for j in 0..3 {
+                assert!((r[i][j] - want[i][j]).abs() < 1e-12, "{i}{j}");
+            }
+        }
+    }
+
+    #[test]
+    fn bad_values_name_the_key_and_the_range() {
+        assert_eq!(
+            err("preset = \"vlp16\"\n[mapping]\nvoxel_size = -0.4\n"),
+            "config: mapping.voxel_size = -0.4 is out of range (0.05..=5.0 m)"
+        );
+        assert_eq!(
+            err("preset = \"vlp16\"\n[filter]\nmax_iterations = 0\n"),
+            "config: filter.max_iterations = 0 is out of range (1..=20 passes)"
+        );
+        assert_eq!(
+            err("preset = \"vlp16\"\n[mapping]\nassociation = \"fulll\"\n"),
+            "config: mapping.association = \"fulll\" is not one of: full, plane-only, plain"
+        );
+        assert_eq!(
+            err("preset = \"vlp16\"\n[mapping]\nvoxel_size = \"big\"\n"),
+            "config: mapping.voxel_size must be a number, found a string"
+        );
+        assert_eq!(
+            err("preset = \"vlp16\"\n[extrinsics]\ntranslation = [1.0, 2.0]\n"),
+            "config: extrinsics.translation must be an array of 3 numbers, found 2"
+        );
+        assert_eq!(
+            err("preset = \"vlp16\"\n[imu]\ngyro_noise = nan\n"),
+            "config: imu.gyro_noise = NaN is out of range (1e-6..=1.0 rad/s/sqrt(Hz))"
+        );
+        assert_eq!(
+            err("preset = \"vlp16\"\n[sensor]\nblind = 20.0\nmax_range = 10.0\n"),
+            "config: sensor.blind = 20.0 must be less than sensor.max_range = 10.0 (m)"
+        );
+        assert_eq!(
+            err("preset = \"os1-64\"\n[sensor]\ncolumns = 1800\n"),
+            "config: sensor.columns = 1800 is not an Ouster lidar mode's width (512, 1024 or 2048) for preset os1-64"
+        );
+        assert_eq!(
+            err("preset = \"vlp16\"\n[imu]\nsource = \"ouster\"\n"),
+            "config: imu.source = \"ouster\" needs an Ouster preset (os1-*), not vlp16"
+        );
+        assert_eq!(
+            err("preset = \"vlp16\"\n[imu]\nsource = \"csv\"\n"),
+            "config: imu.source = \"csv\" needs imu.csv_path"
+        );
+        assert_eq!(
+            err("preset = \"vlp16\"\n[extrinsics]\nrotation_quat_wxyz = [1.0, 1.0, 0.0, 0.0]\n"),
+            "config: extrinsics.rotation_quat_wxyz has norm 1.414214; it must be a unit quaternion (w, x, y, z)"
+        );
+        assert_eq!(
+            err(
+                "preset = \"vlp16\"\n[extrinsics]\nrotation_quat_wxyz = [1.0, 0.0, 0.0, 0.0]\nrotation_rpy_deg = [0, 0, 0]\n"
+            ),
+            "config: set extrinsics.rotation_quat_wxyz or extrinsics.rotation_rpy_deg, not both"
+        );
+        assert_eq!(
+            err("preset = \"vlp16\"\n[network]\nbind = \"localhost:80\"\n"),
+            "config: network.bind = \"localhost:80\" is not an IP address (e.g. 0.0.0.0)"
+        );
+    }
+
+    #[test]
+    fn unknown_keys_and_presets_are_errors() {
+        assert_eq!(
+            err("preset = \"vlp16\"\n[mapping]\nvoxl_size = 0.4\n"),
+            "config: unknown key mapping.voxl_size (keys of [mapping]: voxel_size, scan_voxel_size, map_capacity, association)"
+        );
+        assert_eq!(
+            err("preset = \"vlp16\"\n[maping]\nvoxel_size = 0.4\n"),
+            "config: unknown key maping (top-level keys: preset, sensor, network, imu, extrinsics, time, mapping, filter)"
+        );
+        assert_eq!(
+            err("preset = \"vlp64\"\n"),
+            "config: unknown preset \"vlp64\" (known: vlp16, vlp32c, hdl32e, os1-16, os1-32, os1-64, os1-128)"
+        );
+        assert_eq!(
+            err("[mapping]\nvoxel_size = 0.4\n"),
+            "config: missing key preset (one of: vlp16, vlp32c, hdl32e, os1-16, os1-32, os1-64, os1-128)"
+        );
+        assert_eq!(
+            err("preset = \"vlp16\"\nmapping = 3\n"),
+            "config: mapping must be a table ([mapping]), found an integer"
+        );
+        let syntax = err("preset = \"vlp16\"\n[mapping\n");
+        assert!(syntax.starts_with("config: line 2, column "), "{syntax}");
+        assert!(!syntax.contains('\n'));
+    }
+
+    #[test]
+    fn programmatic_configs_are_validated_too() {
+        let mut cfg = Config::preset(Preset::Hdl32e);
+        cfg.mapping.scan_voxel_size = 9.0;
+        assert_eq!(
+            cfg.validate().unwrap_err().0,
+            "config: mapping.scan_voxel_size = 9.0 is out of range (0.05..=5.0 m)"
+        );
+    }
+}

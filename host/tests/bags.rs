@@ -1,0 +1,887 @@
+//! ROS bag reading: real bags from the Ouster SDK (ROS 1) and Autoware Nebula (rosbag2 sqlite3),
+//! and bags written here (ROS 1 with loglio's writer, MCAP with the `mcap` crate, rosbag2
+//! sqlite3 with rusqlite) holding PointCloud2 (Velodyne and Ouster driver fields, and clouds
+//! without ring or time) and Imu. Then every kind of bad input.
+
+use std::collections::BTreeMap;
+use std::io::{Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+
+use loglio_core::scan::NO_PIXEL;
+use loglio_host::bag::cloud::build::{self, FieldSpec};
+use loglio_host::bag::msg::{self, Encoding, IMU, Imu, MessageType, POINTCLOUD2, PointCloud2, STRING};
+use loglio_host::bag::ros1_writer::{ChunkCompression, Ros1BagWriter};
+use loglio_host::bag::{
+    BagError, BagEvent, BagFormat, BagItem, BagOptions, BagReader, BagStats, PacketKind, TopicKind,
+};
+use loglio_host::config::{Config, Preset};
+use loglio_host::diag;
+
+/// A scratch directory, removed when dropped unless `LOGLIO_KEEP_TEST_FILES` is set (to look
+/// at the bags with other tools).
+struct Tmp(PathBuf);
+
+impl Drop for Tmp {
+    fn drop(&mut self) {
+        if std::env::var_os("LOGLIO_KEEP_TEST_FILES").is_none() {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+}
+
+impl std::ops::Deref for Tmp {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        &self.0
+    }
+}
+
+fn tmp(name: &str) -> Tmp {
+    let d = std::env::temp_dir().join(format!("loglio-bags-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    Tmp(d)
+}
+
+fn data(rel: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../tests/data").join(rel)
+}
+
+fn opts(p: Preset) -> BagOptions {
+    BagOptions::from_config(&Config::preset(p)).unwrap()
+}
+
+struct Run {
+    items: Vec<BagItem>,
+    end: Result<(), BagError>,
+    stats: BagStats,
+    warnings: Vec<String>,
+}
+
+fn read_all(path: &Path, opt: BagOptions) -> Result<Run, BagError> {
+    let (r, warnings) = diag::capture(|| -> Result<_, BagError> {
+        let mut bag = BagReader::open(path, opt)?;
+        let mut items = Vec::new();
+        let mut end = Ok(());
+        for it in &mut bag {
+            match it {
+                Ok(i) => items.push(i),
+                Err(e) => {
+                    end = Err(e);
+                    break;
+                }
+            }
+        }
+        Ok((items, end, *bag.stats()))
+    });
+    let (items, end, stats) = r?;
+    Ok(Run { items, end, stats, warnings })
+}
+
+fn open_err(path: &Path, opt: BagOptions) -> String {
+    let e = BagReader::open(path, opt).unwrap_err().0;
+    assert!(!e.contains('\n'), "one line: {e}");
+    e
+}
+
+// ---------------------------------------------------------------------------------------------
+// Real bags.
+
+#[test]
+fn ouster_ros1_bag_gives_packets_imu_packets_and_metadata() {
+    let path = data("ouster-sdk/512x10_raw.bag");
+    let bag = BagReader::open(&path, opts(Preset::Os1_64)).unwrap();
+    assert_eq!(bag.format(), BagFormat::Ros1);
+    let sel = bag.selection().clone();
+    assert_eq!(sel.lidar, ("/os_node0/lidar_packets".to_string(), TopicKind::OusterPacket));
+    assert_eq!(sel.imu.as_deref(), Some("/os_node0/imu_packets"));
+    assert_eq!(sel.metadata.as_deref(), Some("/os_node0/metadata"));
+    assert_eq!(bag.total_messages(), Some(43));
+    let run = read_all(&path, opts(Preset::Os1_64)).unwrap();
+    run.end.unwrap();
+    assert!(run.warnings.is_empty(), "{:?}", run.warnings);
+    let (mut lidar, mut imu, mut meta) = (Vec::new(), Vec::new(), Vec::new());
+    for it in &run.items {
+        match &it.event {
+            BagEvent::LidarPacket(p) if p.kind == PacketKind::OusterLidar => {
+                lidar.push((it.record_ns, p.clone()))
+            }
+            BagEvent::LidarPacket(p) if p.kind == PacketKind::OusterImu => {
+                imu.push((it.record_ns, p.clone()))
+            }
+            BagEvent::OusterMetadata(s) => meta.push(s.clone()),
+            other => panic!("unexpected {other:?}"),
+        }
+    }
+    assert_eq!((lidar.len(), imu.len(), meta.len()), (32, 10, 1));
+    assert!(lidar.iter().all(|(_, p)| p.bytes.len() == 8448));
+    assert!(imu.iter().all(|(_, p)| p.bytes.len() == 48));
+    // Values read with Python rosbags (tests/data/ouster-sdk/SOURCE.md).
+    assert_eq!(lidar[0].0, 1_723_828_414_279_578_824);
+    assert_eq!(lidar[0].1.stamp_ns, 1_723_828_414_279_578_824, "Ouster packets carry the record time");
+    assert_eq!(lidar[0].1.bytes[..8], [0x01, 0x00, 0x06, 0x07, 0xc3, 0x7b, 0x92, 0x09]);
+    assert_eq!(imu[0].0, 1_723_828_414_280_472_589);
+    assert_eq!(imu[0].1.bytes[..8], [0x10, 0x4d, 0x88, 0xcc, 0x43, 0x00, 0x00, 0x00]);
+    assert_eq!(lidar[31].0, 1_723_828_414_376_097_122);
+    let json: serde_json::Value = serde_json::from_str(&meta[0]).unwrap();
+    assert!(json.to_string().contains("512x10"), "the metadata names the lidar mode");
+    assert!(run.items.windows(2).all(|w| w[0].record_ns <= w[1].record_ns));
+    assert_eq!(run.stats.messages, 43);
+    assert_eq!(run.stats.packets, 42);
+}
+
+fn check_nebula(
+    rel: &str,
+    file: &str,
+    msgs: u64,
+    packets: usize,
+    first: (u64, [u8; 8]),
+    last: (u64, [u8; 6]),
+) {
+    let mut o = opts(Preset::Vlp32c);
+    o.require_imu = false;
+    for path in [data(rel), data(rel).join(file)] {
+        let run = read_all(&path, o.clone()).unwrap();
+        run.end.unwrap();
+        assert!(run.warnings.is_empty(), "{:?}", run.warnings);
+        assert_eq!(run.stats.messages, msgs);
+        let p: Vec<_> = run
+            .items
+            .iter()
+            .map(|i| match &i.event {
+                BagEvent::LidarPacket(p) => p.clone(),
+                other => panic!("unexpected {other:?}"),
+            })
+            .collect();
+        assert_eq!(p.len(), packets);
+        assert!(p.iter().all(|p| p.kind == PacketKind::Velodyne && p.bytes.len() == 1206));
+        assert_eq!((p[0].stamp_ns, &p[0].bytes[..8]), (first.0, &first.1[..]));
+        let l = &p[packets - 1];
+        assert_eq!((l.stamp_ns, &l.bytes[1200..]), (last.0, &last.1[..]));
+    }
+}
+
+#[test]
+fn nebula_rosbag2_sqlite_bags_give_velodyne_packets() {
+    // Reference values read with Python rosbags (tests/data/velodyne-nebula/SOURCE.md).
+    check_nebula(
+        "velodyne-nebula/vlp16_dual_rosbag2/1673400471837873222",
+        "1673400471837873222_0.db3",
+        4,
+        603,
+        (1_673_400_471_737_763_166, [0xff, 0xee, 0x42, 0x00, 0x00, 0x00, 0x04, 0xdd]),
+        (1_673_400_472_137_216_567, [0xae, 0xc9, 0x66, 0x08, 0x39, 0x22]),
+    );
+    check_nebula(
+        "velodyne-nebula/vlp32c_rosbag2/1713492677464078412",
+        "1713492677464078412_0.db3",
+        5,
+        379,
+        (1_713_492_677_327_771_785, [0xff, 0xee, 0x9f, 0x69, 0xbd, 0x00, 0x0b, 0xd1]),
+        (1_713_492_677_827_134_284, [0x3f, 0xa9, 0x51, 0x25, 0x37, 0x28]),
+    );
+}
+
+// ---------------------------------------------------------------------------------------------
+// Synthetic sequences.
+
+const T0: u64 = 1_700_000_000_000_000_000;
+
+/// Expected per point: xyz, row, t.
+type Expect = Vec<([f32; 3], u16, f32)>;
+
+/// A VLP-16 scan k (Velodyne driver fields; ring 0 lowest; `time` relative to the header stamp,
+/// which marks the scan end as stock drivers do).
+fn vlp16_scan(k: usize, fields: &[FieldSpec]) -> (PointCloud2, Expect) {
+    let el = Preset::Vlp16.nominal_elevations_deg();
+    let cols = 360;
+    let stamp = T0 + (k as u64 + 1) * 100_000_000;
+    let mut pts = Vec::new();
+    for c in 0..cols {
+        for ring in 0..16usize {
+            let az = -(c as f64) * std::f64::consts::TAU / cols as f64 + 0.3;
+            let e = el[15 - ring].to_radians();
+            let r = 5.0 + (c % 7) as f64 + 0.01 * k as f64;
+            let t = c as f64 / cols as f64 * 0.1 - 0.1;
+            pts.push((r * e.cos() * az.cos(), r * e.cos() * az.sin(), r * e.sin(), ring, t));
+        }
+    }
+    let cloud =
+        build::cloud(stamp, "velodyne", fields, 1, pts.len() as u32, Some(32), false, |i, f| match f {
+            "x" => pts[i].0,
+            "y" => pts[i].1,
+            "z" => pts[i].2,
+            "intensity" => (i % 200) as f64,
+            "ring" => pts[i].3 as f64,
+            _ => pts[i].4,
+        });
+    let exp = pts
+        .iter()
+        .map(|p| ([p.0 as f32, p.1 as f32, p.2 as f32], 15 - p.3 as u16, (p.4 + 0.1) as f32))
+        .collect();
+    (cloud, exp)
+}
+
+fn imu_at(t_ns: u64) -> Imu {
+    let s = (t_ns - T0) as f64 * 1e-9;
+    Imu {
+        stamp_ns: t_ns,
+        orientation_xyzw: [0.0, 0.0, 0.0, 1.0],
+        angular_velocity: [0.1 * s, -0.02, 0.3],
+        linear_acceleration: [0.5, s.sin(), 9.81],
+    }
+}
+
+/// (record time, topic, type, serialised message).
+type Msg = (u64, &'static str, MessageType, Vec<u8>);
+
+/// 3 scans and 200 Hz IMU, in record order.
+fn sequence(enc: Encoding, fields: &[FieldSpec]) -> (Vec<Msg>, Vec<Expect>) {
+    let mut out = Vec::new();
+    let mut exp = Vec::new();
+    for k in 0..3usize {
+        for j in 1..=20u64 {
+            let t = T0 + k as u64 * 100_000_000 + j * 5_000_000;
+            out.push((t + 100_000, "/imu/data", IMU, imu_at(t).encode("imu_link", enc)));
+        }
+        let (c, e) = vlp16_scan(k, fields);
+        out.push((c.stamp_ns + 8_000_000, "/velodyne_points", POINTCLOUD2, c.encode(enc)));
+        exp.push(e);
+    }
+    (out, exp)
+}
+
+fn write_ros1(
+    path: &Path,
+    msgs: &[(u64, &str, MessageType, Vec<u8>)],
+    threshold: usize,
+    comp: ChunkCompression,
+) {
+    let mut w = Ros1BagWriter::create(path).unwrap();
+    w.set_chunk_threshold(threshold);
+    w.set_compression(comp);
+    let mut conns = BTreeMap::new();
+    for (t, topic, ty, bytes) in msgs {
+        let c = match conns.get(topic) {
+            Some(c) => *c,
+            None => {
+                let c = w.add_typed_connection(topic, ty).unwrap();
+                conns.insert(*topic, c);
+                c
+            }
+        };
+        w.write(c, *t, bytes).unwrap();
+    }
+    w.finish().unwrap();
+}
+
+fn write_mcap(path: &Path, msgs: &[(u64, &str, MessageType, Vec<u8>)]) {
+    let f = std::io::BufWriter::new(std::fs::File::create(path).unwrap());
+    let mut w = mcap::WriteOptions::new().profile("ros2").create(f).unwrap();
+    let mut chans = BTreeMap::new();
+    for (seq, (t, topic, ty, bytes)) in msgs.iter().enumerate() {
+        let ch = match chans.get(topic) {
+            Some(c) => *c,
+            None => {
+                let s =
+                    w.add_schema(&msg::ros2_name(ty), "ros2msg", msg::ros2_schema(ty).as_bytes()).unwrap();
+                let c = w.add_channel(s, topic, "cdr", &BTreeMap::new()).unwrap();
+                chans.insert(*topic, c);
+                c
+            }
+        };
+        let h = mcap::records::MessageHeader {
+            channel_id: ch,
+            sequence: seq as u32,
+            log_time: *t,
+            publish_time: *t,
+        };
+        w.write_to_known_channel(&h, bytes).unwrap();
+    }
+    w.finish().unwrap();
+}
+
+const ROSBAG2_SCHEMA: &str = "CREATE TABLE schema(schema_version INTEGER PRIMARY KEY,ros_distro TEXT NOT NULL);
+CREATE TABLE metadata(id INTEGER PRIMARY KEY,metadata_version INTEGER NOT NULL,metadata TEXT NOT NULL);
+CREATE TABLE topics(id INTEGER PRIMARY KEY,name TEXT NOT NULL,type TEXT NOT NULL,serialization_format TEXT NOT NULL,offered_qos_profiles TEXT NOT NULL);
+CREATE TABLE messages(id INTEGER PRIMARY KEY,topic_id INTEGER NOT NULL,timestamp INTEGER NOT NULL, data BLOB NOT NULL);
+CREATE INDEX timestamp_idx ON messages (timestamp ASC);
+INSERT INTO schema VALUES (3, 'humble');";
+
+/// Writes a rosbag2 sqlite3 file; `id_base` makes topic ids differ between splits.
+fn write_db3(path: &Path, msgs: &[(u64, &str, MessageType, Vec<u8>)], id_base: i64) {
+    let db = rusqlite::Connection::open(path).unwrap();
+    db.execute_batch(ROSBAG2_SCHEMA).unwrap();
+    let mut ids = BTreeMap::new();
+    for (t, topic, ty, bytes) in msgs {
+        let id = match ids.get(topic) {
+            Some(i) => *i,
+            None => {
+                let id = id_base + ids.len() as i64;
+                db.execute(
+                    "INSERT INTO topics VALUES (?1, ?2, ?3, 'cdr', '')",
+                    rusqlite::params![id, topic, msg::ros2_name(ty)],
+                )
+                .unwrap();
+                ids.insert(*topic, id);
+                id
+            }
+        };
+        db.execute(
+            "INSERT INTO messages (topic_id, timestamp, data) VALUES (?1, ?2, ?3)",
+            rusqlite::params![id, *t as i64, bytes],
+        )
+        .unwrap();
+    }
+}
+
+/// Checks the events of [`sequence`] against what was written.
+fn check_sequence(run: &Run, exp: &[Expect]) {
+    run.end.as_ref().unwrap();
+    let scans: Vec<_> = run
+        .items
+        .iter()
+        .filter_map(|i| if let BagEvent::Scan(s) = &i.event { Some(s) } else { None })
+        .collect();
+    let imu: Vec<_> = run
+        .items
+        .iter()
+        .filter_map(|i| if let BagEvent::Imu(s) = &i.event { Some(*s) } else { None })
+        .collect();
+    assert_eq!(scans.len(), 3);
+    assert_eq!(imu.len(), 60);
+    assert!(run.items.windows(2).all(|w| w[0].record_ns <= w[1].record_ns), "time-ordered");
+    for (k, (s, e)) in scans.iter().zip(exp).enumerate() {
+        // The header stamps the scan end; the earliest point is 100 ms before it (-0.1 s as an
+        // f32 `time` field).
+        let first = (f64::from(-0.1f32) * 1e9).round() as i64;
+        assert_eq!(s.stamp_ns as i64, (T0 + (k as u64 + 1) * 100_000_000) as i64 + first);
+        assert_eq!(s.points.len(), e.len());
+        for (p, (xyz, row, t)) in s.points.iter().zip(e) {
+            assert_eq!(p.xyz, *xyz);
+            assert_eq!(p.row, *row);
+            assert!((p.t - t).abs() < 1e-6, "{} vs {t}", p.t);
+            assert_ne!(p.col, NO_PIXEL);
+        }
+        // 360 azimuth steps clockwise from 0.3 rad on 1800 columns: 5 columns per step.
+        let c0 = s.points[0].col as i64;
+        assert_eq!((s.points[16].col as i64 - c0).rem_euclid(1800), 5);
+    }
+    let first = imu[0];
+    assert_eq!(first.t_ns, T0 + 5_000_000);
+    let want = imu_at(T0 + 5_000_000);
+    assert_eq!(first.gyro, want.angular_velocity.map(|v| v as f32));
+    assert_eq!(first.acc, want.linear_acceleration.map(|v| v as f32));
+}
+
+#[test]
+fn ros1_velodyne_clouds_and_imu_round_trip_through_the_writer() {
+    let dir = tmp("ros1-velodyne");
+    let (msgs, exp) = sequence(Encoding::Ros1, build::VELODYNE);
+    for (name, comp) in
+        [("none", ChunkCompression::None), ("bz2", ChunkCompression::Bz2), ("lz4", ChunkCompression::Lz4)]
+    {
+        let path = dir.join(format!("{name}.bag"));
+        // A small chunk threshold: several chunks, each cloud in its own.
+        write_ros1(&path, &msgs, 64 * 1024, comp);
+        let bag = BagReader::open(&path, opts(Preset::Vlp16)).unwrap();
+        assert_eq!(bag.selection().lidar, ("/velodyne_points".to_string(), TopicKind::PointCloud2));
+        assert_eq!(bag.selection().imu.as_deref(), Some("/imu/data"));
+        assert_eq!(bag.total_messages(), Some(63));
+        let run = read_all(&path, opts(Preset::Vlp16)).unwrap();
+        assert!(run.warnings.is_empty(), "{name}: {:?}", run.warnings);
+        check_sequence(&run, &exp);
+    }
+}
+
+#[test]
+fn ros1_ouster_organised_clouds() {
+    let dir = tmp("ros1-ouster");
+    let path = dir.join("os.bag");
+    let (rows, cols) = (16usize, 512usize);
+    let el = Preset::Os1_16.nominal_elevations_deg();
+    let cloud =
+        build::cloud(T0, "os_sensor", build::OUSTER, rows as u32, cols as u32, Some(48), false, |i, f| {
+            let (r, c) = (i / cols, i % cols);
+            let az = -(c as f64 + 0.5) * std::f64::consts::TAU / cols as f64;
+            let e = el[r].to_radians();
+            let rng = if (r + c) % 50 == 0 { 0.0 } else { 12.0 };
+            match f {
+                "x" => rng * e.cos() * az.cos(),
+                "y" => rng * e.cos() * az.sin(),
+                "z" => rng * e.sin(),
+                "intensity" => 300.0,
+                "t" => c as f64 * 195_312.5,
+                "reflectivity" => 7.0,
+                "ring" => r as f64,
+                _ => 0.0,
+            }
+        });
+    let mut w = Ros1BagWriter::create(&path).unwrap();
+    let c = w.add_typed_connection("/os_cloud_node/points", &POINTCLOUD2).unwrap();
+    let i = w.add_typed_connection("/os_cloud_node/imu", &IMU).unwrap();
+    w.write_imu(i, T0, &imu_at(T0), "os_imu").unwrap();
+    w.write_point_cloud2(c, T0 + 100_000_000, &cloud).unwrap();
+    w.finish().unwrap();
+    let mut cfg = Config::preset(Preset::Os1_16);
+    cfg.sensor.columns = 512;
+    let run = read_all(&path, BagOptions::from_config(&cfg).unwrap()).unwrap();
+    run.end.unwrap();
+    assert!(run.warnings.is_empty(), "{:?}", run.warnings);
+    let BagEvent::Scan(s) = &run.items[1].event else { panic!() };
+    let no_return = (0..rows * cols).filter(|k| (k / cols + k % cols) % 50 == 0).count();
+    assert_eq!(s.skipped as usize, no_return);
+    assert_eq!(s.points.len(), rows * cols - no_return);
+    assert_eq!(s.stamp_ns, T0);
+    // Ring 0 is the top row; columns follow the organised index; t from ns.
+    let p = s.points.iter().find(|p| p.row == 3 && p.col == 100).unwrap();
+    assert!((p.t - 100.0 * 195_312.5e-9).abs() < 1e-7);
+    assert_eq!(p.intensity, 300);
+    assert!(s.points.iter().all(|p| p.row < 16 && p.col < 512));
+}
+
+#[test]
+fn clouds_without_ring_or_time_fall_back_to_geometry_with_one_warning_each() {
+    let dir = tmp("ros1-xyz");
+    let path = dir.join("xyz.bag");
+    let (msgs, exp) = sequence(Encoding::Ros1, build::XYZ);
+    write_ros1(&path, &msgs, 768 * 1024, ChunkCompression::None);
+    let run = read_all(&path, opts(Preset::Vlp16)).unwrap();
+    run.end.as_ref().unwrap();
+    assert_eq!(
+        run.warnings,
+        vec![
+            "warning: /velodyne_points: clouds have no `ring` field; rows are computed from each point's elevation (nearest beam of the layout)".to_string(),
+            "warning: /velodyne_points: clouds have no time field (t, time or timestamp); point times are computed from azimuth at 10 Hz".to_string(),
+        ]
+    );
+    let scans: Vec<_> = run
+        .items
+        .iter()
+        .filter_map(|i| if let BagEvent::Scan(s) = &i.event { Some(s) } else { None })
+        .collect();
+    assert_eq!(scans.len(), 3);
+    for (s, e) in scans.iter().zip(&exp) {
+        // Without times the header stamp is the scan start.
+        for (p, (_, row, t)) in s.points.iter().zip(e) {
+            assert_eq!(p.row, *row, "row from elevation");
+            assert!((p.t - t).abs() < 1e-6, "time from azimuth");
+        }
+    }
+}
+
+#[test]
+fn mcap_cdr_round_trip() {
+    let dir = tmp("mcap");
+    let path = dir.join("seq.mcap");
+    let (msgs, exp) = sequence(Encoding::Cdr, build::VELODYNE);
+    write_mcap(&path, &msgs);
+    let bag = BagReader::open(&path, opts(Preset::Vlp16)).unwrap();
+    assert_eq!(bag.format(), BagFormat::Mcap);
+    assert_eq!(bag.total_messages(), Some(63));
+    let run = read_all(&path, opts(Preset::Vlp16)).unwrap();
+    assert!(run.warnings.is_empty(), "{:?}", run.warnings);
+    check_sequence(&run, &exp);
+}
+
+#[test]
+fn rosbag2_sqlite_round_trip_across_splits() {
+    let dir = tmp("db3");
+    let bagdir = dir.join("run");
+    std::fs::create_dir_all(&bagdir).unwrap();
+    let (msgs, exp) = sequence(Encoding::Cdr, build::VELODYNE);
+    let half = msgs.len() / 2;
+    write_db3(&bagdir.join("run_0.db3"), &msgs[..half], 1);
+    write_db3(&bagdir.join("run_1.db3"), &msgs[half..], 7);
+    let bag = BagReader::open(&bagdir, opts(Preset::Vlp16)).unwrap();
+    assert_eq!(bag.format(), BagFormat::Ros2Sqlite);
+    assert_eq!(bag.total_messages(), Some(63));
+    let run = read_all(&bagdir, opts(Preset::Vlp16)).unwrap();
+    assert!(run.warnings.is_empty(), "{:?}", run.warnings);
+    check_sequence(&run, &exp);
+}
+
+#[test]
+fn record_time_stamps_when_the_capture_clock_is_chosen() {
+    let dir = tmp("capture");
+    let path = dir.join("c.bag");
+    let (msgs, _) = sequence(Encoding::Ros1, build::VELODYNE);
+    write_ros1(&path, &msgs, 768 * 1024, ChunkCompression::None);
+    let mut o = opts(Preset::Vlp16);
+    o.use_record_time = true;
+    let run = read_all(&path, o).unwrap();
+    for it in &run.items {
+        match &it.event {
+            BagEvent::Imu(s) => assert_eq!(s.t_ns, it.record_ns),
+            BagEvent::Scan(s) => {
+                let last = s.points.iter().map(|p| p.t).fold(0.0f32, f32::max);
+                assert_eq!(s.stamp_ns, it.record_ns - (last as f64 * 1e9) as u64);
+            }
+            _ => unreachable!(),
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Bad input.
+
+fn small_bag(dir: &Path, name: &str, threshold: usize) -> (PathBuf, Vec<Msg>) {
+    let path = dir.join(name);
+    let (msgs, _) = sequence(Encoding::Ros1, build::VELODYNE);
+    write_ros1(&path, &msgs, threshold, ChunkCompression::None);
+    (path, msgs)
+}
+
+#[test]
+fn truncated_and_unclosed_ros1_bags_are_one_line_errors() {
+    let dir = tmp("truncated");
+    let (path, _) = small_bag(&dir, "full.bag", 768 * 1024);
+    let bytes = std::fs::read(&path).unwrap();
+    let cut = dir.join("cut.bag");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    let index_pos = u64::from_le_bytes(bytes[13 + 4 + 4 + 10..13 + 4 + 4 + 18].try_into().unwrap());
+    assert_eq!(
+        open_err(&cut, opts(Preset::Vlp16)),
+        format!(
+            "{}: truncated or corrupt: its index starts at byte {index_pos} but the file has {} bytes; run `rosbag reindex` on it",
+            cut.display(),
+            bytes.len() / 2
+        )
+    );
+    // A bag whose recorder died: index_pos 0.
+    let open = dir.join("open.bag");
+    let mut b = bytes.clone();
+    b[13 + 4 + 4 + 10..13 + 4 + 4 + 18].copy_from_slice(&0u64.to_le_bytes());
+    std::fs::write(&open, &b).unwrap();
+    assert_eq!(
+        open_err(&open, opts(Preset::Vlp16)),
+        format!(
+            "{}: the bag was not closed (no index; the recorder was stopped abruptly); run `rosbag reindex` on it",
+            open.display()
+        )
+    );
+    // Cut inside the header.
+    let tiny = dir.join("tiny.bag");
+    std::fs::write(&tiny, &bytes[..40]).unwrap();
+    assert_eq!(
+        open_err(&tiny, opts(Preset::Vlp16)),
+        format!("{}: truncated: the file ends inside the bag header", tiny.display())
+    );
+    // Cut inside the index section: the index records are damaged.
+    let idx = dir.join("index.bag");
+    std::fs::write(&idx, &bytes[..bytes.len() - 10]).unwrap();
+    let e = open_err(&idx, opts(Preset::Vlp16));
+    assert!(e.starts_with(&format!("{}: corrupt index (", idx.display())), "{e}");
+}
+
+#[test]
+fn a_corrupt_chunk_is_skipped_and_the_others_are_read() {
+    let dir = tmp("corrupt-chunk");
+    let (path, _) = small_bag(&dir, "b.bag", 64 * 1024);
+    let mut bytes = std::fs::read(&path).unwrap();
+    // Walk the records after the magic: (header_len, header, data_len, data); find the chunks.
+    let u32_at = |b: &[u8], p: usize| u32::from_le_bytes(b[p..p + 4].try_into().unwrap()) as usize;
+    let mut p = 13;
+    let mut chunk_data = Vec::new();
+    while p + 4 <= bytes.len() {
+        let hl = u32_at(&bytes, p);
+        let header = &bytes[p + 4..p + 4 + hl];
+        let dl = u32_at(&bytes, p + 4 + hl);
+        if header.windows(4).any(|w| w == b"op=\x05") {
+            chunk_data.push(p + 8 + hl);
+        }
+        p += 8 + hl + dl;
+    }
+    assert!(chunk_data.len() >= 3, "{} chunks", chunk_data.len());
+    // Damage the length of the first record inside the second chunk.
+    let at = chunk_data[1];
+    bytes[at..at + 4].copy_from_slice(&0x7fff_ffffu32.to_le_bytes());
+    let bad = dir.join("bad.bag");
+    std::fs::write(&bad, &bytes).unwrap();
+    let run = read_all(&bad, opts(Preset::Vlp16)).unwrap();
+    run.end.as_ref().unwrap();
+    assert_eq!(run.stats.skipped_chunks, 1);
+    assert_eq!(run.warnings.len(), 1, "{:?}", run.warnings);
+    assert!(
+        run.warnings[0].starts_with(&format!("warning: {}: corrupt chunk at byte ", bad.display())),
+        "{}",
+        run.warnings[0]
+    );
+    assert!(run.warnings[0].ends_with("; skipped it (later damage is counted)"));
+    // Everything outside the damaged chunk is there.
+    let good = read_all(&path, opts(Preset::Vlp16)).unwrap();
+    assert!(run.items.len() < good.items.len());
+    assert!(run.items.len() >= good.items.len() - 25, "{} of {}", run.items.len(), good.items.len());
+}
+
+#[test]
+fn missing_ambiguous_and_mistyped_topics_are_one_line_errors() {
+    let dir = tmp("topics");
+    // Cloud only: no IMU.
+    let (c, _) = vlp16_scan(0, build::VELODYNE);
+    let path = dir.join("noimu.bag");
+    write_ros1(
+        &path,
+        &[(T0, "/points", POINTCLOUD2, c.encode(Encoding::Ros1))],
+        1 << 20,
+        ChunkCompression::None,
+    );
+    assert_eq!(
+        open_err(&path, opts(Preset::Vlp16)),
+        format!(
+            "{}: no IMU topic (sensor_msgs/Imu); the bag has /points (sensor_msgs/PointCloud2)",
+            path.display()
+        )
+    );
+    let mut o = opts(Preset::Vlp16);
+    o.require_imu = false;
+    assert!(BagReader::open(&path, o.clone()).is_ok());
+    o.lidar_topic = Some("/velodyne_points".into());
+    assert_eq!(
+        open_err(&path, o.clone()),
+        format!(
+            "{}: no topic /velodyne_points; the bag has /points (sensor_msgs/PointCloud2)",
+            path.display()
+        )
+    );
+    // Two clouds and a string.
+    let two = dir.join("two.bag");
+    let b = c.encode(Encoding::Ros1);
+    write_ros1(
+        &two,
+        &[
+            (T0, "/a", POINTCLOUD2, b.clone()),
+            (T0, "/b", POINTCLOUD2, b),
+            (T0, "/imu", IMU, imu_at(T0).encode("i", Encoding::Ros1)),
+            (T0, "/note", STRING, msg::encode_string("hello", Encoding::Ros1)),
+        ],
+        1 << 20,
+        ChunkCompression::None,
+    );
+    assert_eq!(
+        open_err(&two, opts(Preset::Vlp16)),
+        format!("{}: several LiDAR topics (/a, /b); name one (lidar topic option)", two.display())
+    );
+    let mut o = opts(Preset::Vlp16);
+    o.lidar_topic = Some("/note".into());
+    assert_eq!(
+        open_err(&two, o),
+        format!(
+            "{}: topic /note is a std_msgs/String, not a LiDAR message (sensor_msgs/PointCloud2, velodyne_msgs/VelodyneScan or Ouster PacketMsg)",
+            two.display()
+        )
+    );
+    let mut o = opts(Preset::Vlp16);
+    o.lidar_topic = Some("/a".into());
+    o.imu_topic = Some("/b".into());
+    assert_eq!(
+        open_err(&two, o),
+        format!(
+            "{}: topic /b is a sensor_msgs/PointCloud2, not an IMU message (sensor_msgs/Imu or Ouster IMU PacketMsg)",
+            two.display()
+        )
+    );
+    // IMU only.
+    let imu_only = dir.join("imu.bag");
+    write_ros1(
+        &imu_only,
+        &[(T0, "/imu", IMU, imu_at(T0).encode("i", Encoding::Ros1))],
+        1 << 20,
+        ChunkCompression::None,
+    );
+    assert_eq!(
+        open_err(&imu_only, opts(Preset::Vlp16)),
+        format!(
+            "{}: no LiDAR topic (sensor_msgs/PointCloud2, velodyne_msgs/VelodyneScan or Ouster PacketMsg); the bag has /imu (sensor_msgs/Imu)",
+            imu_only.display()
+        )
+    );
+}
+
+#[test]
+fn malformed_messages_are_dropped_counted_and_warned_once() {
+    let dir = tmp("malformed");
+    let (mut msgs, _) = sequence(Encoding::Ros1, build::VELODYNE);
+    // Cut the data of the first cloud short (the message itself stays well-formed ROS 1) and
+    // truncate an IMU message.
+    let k = msgs.iter().position(|m| m.1 == "/velodyne_points").unwrap();
+    let mut c = PointCloud2::decode(&msgs[k].3, Encoding::Ros1).unwrap();
+    c.data.truncate(1000);
+    msgs[k].3 = c.encode(Encoding::Ros1);
+    msgs[0].3.truncate(50);
+    let path = dir.join("m.bag");
+    write_ros1(&path, &msgs, 768 * 1024, ChunkCompression::None);
+    let run = read_all(&path, opts(Preset::Vlp16)).unwrap();
+    run.end.as_ref().unwrap();
+    assert_eq!(run.stats.malformed, 2);
+    assert_eq!(run.stats.scans, 2);
+    assert_eq!(run.stats.imu, 59);
+    assert_eq!(
+        run.warnings,
+        vec![
+            "warning: /imu/data: dropped a malformed sensor_msgs/Imu message (message too short: Imu fields needs 8 more bytes, 2 left); later ones are counted".to_string(),
+            "warning: /velodyne_points: dropped a malformed sensor_msgs/PointCloud2 message (data holds 1000 bytes, row_step x height needs 184320 (truncated cloud)); later ones are counted".to_string(),
+        ]
+    );
+}
+
+#[test]
+fn late_messages_are_dropped_and_counted() {
+    let dir = tmp("late");
+    let (mut msgs, _) = sequence(Encoding::Ros1, build::VELODYNE);
+    // One IMU sample recorded 3 s before the rest, written last: past the 1 s window.
+    let mut m = msgs[5].clone();
+    m.0 -= 3_000_000_000;
+    msgs.push(m);
+    let path = dir.join("l.bag");
+    write_ros1(&path, &msgs, 768 * 1024, ChunkCompression::None);
+    // Within the reorder window a message is sorted in; past it, dropped.
+    let sorted = read_all(&path, opts(Preset::Vlp16)).unwrap();
+    assert_eq!((sorted.stats.late, sorted.stats.imu), (0, 61));
+    assert_eq!(sorted.items[0].record_ns, msgs[5].0 - 3_000_000_000);
+    let mut o = opts(Preset::Vlp16);
+    o.reorder_window_ns = 50_000_000;
+    let run = read_all(&path, o).unwrap();
+    assert_eq!(run.stats.late, 1);
+    assert_eq!(run.stats.imu, 60);
+    assert_eq!(run.warnings.len(), 1);
+    assert!(run.warnings[0].contains("was dropped (later ones are counted)"));
+}
+
+#[test]
+fn truncated_mcap_delivers_the_good_messages_then_one_error() {
+    let dir = tmp("mcap-cut");
+    let path = dir.join("seq.mcap");
+    let (msgs, _) = sequence(Encoding::Cdr, build::VELODYNE);
+    write_mcap(&path, &msgs);
+    let bytes = std::fs::read(&path).unwrap();
+    let cut = dir.join("cut.mcap");
+    std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).unwrap();
+    let run = read_all(&cut, opts(Preset::Vlp16)).unwrap();
+    let e = run.end.unwrap_err().0;
+    assert!(e.starts_with(&format!("{}: corrupt or truncated MCAP: ", cut.display())), "{e}");
+    assert!(!e.contains('\n'));
+    assert!(!run.items.is_empty() && run.items.len() < 63, "{}", run.items.len());
+}
+
+#[test]
+fn not_bags_corrupt_databases_and_compressed_bags_are_one_line_errors() {
+    let dir = tmp("notbags");
+    let o = || opts(Preset::Vlp16);
+    let text = dir.join("notes.txt");
+    std::fs::write(&text, "hello, not a bag\n").unwrap();
+    assert_eq!(
+        open_err(&text, o()),
+        format!("{}: not a ROS bag (neither a ROS 1 bag, a rosbag2 sqlite3 file nor MCAP)", text.display())
+    );
+    let empty = dir.join("empty.bag");
+    std::fs::write(&empty, "").unwrap();
+    assert_eq!(open_err(&empty, o()), format!("{}: empty file, not a bag", empty.display()));
+    let missing = dir.join("missing.bag");
+    assert!(open_err(&missing, o()).starts_with(&format!("cannot open {}: ", missing.display())));
+    let v1 = dir.join("v1.bag");
+    std::fs::write(&v1, "#ROSBAG V1.2\nxxxx").unwrap();
+    assert_eq!(
+        open_err(&v1, o()),
+        format!("{}: unsupported ROS bag version (only 2.0 is read)", v1.display())
+    );
+    let z = dir.join("b.db3.zstd");
+    std::fs::write(&z, [0x28, 0xb5, 0x2f, 0xfd, 0, 0]).unwrap();
+    assert_eq!(
+        open_err(&z, o()),
+        format!(
+            "{}: a zstd-compressed file; decompress it first (zstd -d, or ros2 bag convert)",
+            z.display()
+        )
+    );
+    // A rosbag2 directory that says it is compressed.
+    let cdir = dir.join("compressed");
+    std::fs::create_dir_all(&cdir).unwrap();
+    std::fs::write(
+        cdir.join("metadata.yaml"),
+        "rosbag2_bagfile_information:\n  compression_format: zstd\n  compression_mode: FILE\n",
+    )
+    .unwrap();
+    assert_eq!(
+        open_err(&cdir, o()),
+        format!(
+            "{}: zstd-compressed rosbag2 bags are not read; decompress it first (ros2 bag convert)",
+            cdir.display()
+        )
+    );
+    let edir = dir.join("emptydir");
+    std::fs::create_dir_all(&edir).unwrap();
+    assert_eq!(
+        open_err(&edir, o()),
+        format!("{}: no .db3 or .mcap files (not a rosbag2 directory)", edir.display())
+    );
+    // A sqlite database that is not a rosbag2 one.
+    let other = dir.join("other.db3");
+    rusqlite::Connection::open(&other).unwrap().execute_batch("CREATE TABLE t(x INTEGER);").unwrap();
+    assert_eq!(
+        open_err(&other, o()),
+        format!("{}: not a rosbag2 database (no topics and messages tables)", other.display())
+    );
+    // A real rosbag2 file with its pages damaged / cut short.
+    let src = data("velodyne-nebula/vlp16_dual_rosbag2/1673400471837873222/1673400471837873222_0.db3");
+    let bytes = std::fs::read(&src).unwrap();
+    let mut o2 = o();
+    o2.require_imu = false;
+    for (name, damaged) in [
+        ("cut.db3", bytes[..bytes.len() / 3].to_vec()),
+        ("garbled.db3", {
+            // Damage pages in the middle (message blobs and their overflow-page links).
+            let mut b = bytes.clone();
+            let mid = bytes.len() / 2 / 4096 * 4096;
+            for x in &mut b[mid..mid + 8 * 4096] {
+                *x = 0xa5;
+            }
+            b
+        }),
+    ] {
+        let p = dir.join(name);
+        std::fs::write(&p, &damaged).unwrap();
+        let e = match read_all(&p, o2.clone()) {
+            Err(e) => e.0,
+            Ok(run) => run.end.expect_err(name).0,
+        };
+        assert!(e.starts_with(&format!("{}: ", p.display())), "{e}");
+        assert!(e.contains("rosbag2") || e.contains("sqlite3"), "{e}");
+        assert!(!e.contains('\n'));
+    }
+}
+
+#[test]
+fn the_writer_takes_any_message_type_and_rejects_bad_md5s() {
+    let dir = tmp("writer");
+    let path = dir.join("w.bag");
+    let mut w = Ros1BagWriter::create(&path).unwrap();
+    assert!(w.add_connection("/x", "my_msgs/Thing", "not-an-md5", "int32 a\n").is_err());
+    let c = w.add_connection("/x", "my_msgs/Thing", "0123456789abcdef0123456789abcdef", "int32 a\n").unwrap();
+    w.write(c, T0, &7i32.to_le_bytes()).unwrap();
+    assert_eq!(w.messages(), 1);
+    let mut f = w.finish().unwrap();
+    // The writer leaves the file positioned at its end.
+    assert_eq!(f.stream_position().unwrap(), std::fs::metadata(&path).unwrap().len());
+    f.flush().unwrap();
+    f.seek(SeekFrom::Start(0)).unwrap();
+    // Read back with the `rosbag` crate directly.
+    let bag = rosbag::RosBag::new(&path).unwrap();
+    let mut got = Vec::new();
+    for rec in bag.chunk_records() {
+        if let rosbag::ChunkRecord::Chunk(ch) = rec.unwrap() {
+            for m in ch.messages() {
+                match m.unwrap() {
+                    rosbag::MessageRecord::MessageData(d) => got.push((d.conn_id, d.time, d.data.to_vec())),
+                    rosbag::MessageRecord::Connection(c) => {
+                        assert_eq!(
+                            (c.topic, c.tp, c.message_definition),
+                            ("/x", "my_msgs/Thing", "int32 a\n")
+                        );
+                    }
+                }
+            }
+        }
+    }
+    assert_eq!(got, vec![(0, T0, 7i32.to_le_bytes().to_vec())]);
+}
