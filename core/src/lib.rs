@@ -19,7 +19,7 @@
 //! | voxel map with incremental distributions | [`voxel_map`], [`surfel`] |
 //! | data association | `association` |
 //! | iterated error-state Kalman filter | [`eskf`] |
-//! | the per-scan pipeline | `odometry` |
+//! | the per-scan pipeline | [`odometry`] |
 #![no_std]
 #![cfg_attr(not(test), forbid(unsafe_code))]
 
@@ -29,6 +29,7 @@ mod fmt;
 pub mod downsample;
 pub mod eskf;
 pub mod imu;
+pub mod odometry;
 pub mod output;
 pub mod range_image;
 pub mod ring_fals;

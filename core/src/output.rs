@@ -105,6 +105,22 @@ pub struct PoseEstimate {
 }
 
 impl PoseEstimate {
+    /// The identity pose at `t_ns` with zero covariance (before initialisation).
+    pub fn identity(t_ns: u64) -> Self {
+        Self {
+            t_ns,
+            rotation: UnitQuaternion::identity(),
+            position: Vector3::zeros(),
+            covariance: Matrix6::zeros(),
+            velocity: Vector3::zeros(),
+            gyro_bias: Vector3::zeros(),
+            acc_bias: Vector3::zeros(),
+            gravity: Vector3::zeros(),
+            ext_rot: UnitQuaternion::identity(),
+            ext_pos: Vector3::zeros(),
+        }
+    }
+
     /// The filter's current estimate.
     pub fn from_filter(f: &Eskf) -> Self {
         let x = f.state();

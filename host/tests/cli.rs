@@ -33,7 +33,9 @@ fn loglio_env(args: &[&str], env: &[(&str, &str)]) -> Output {
     match c.output() {
         Ok(o) => o,
         Err(e) if e.raw_os_error() == Some(8) => {
-            panic!("cannot execute {bin} on this machine ({e}); set LOGLIO_TEST_RUNNER to the target's runner, e.g. \"qemu-aarch64 -L /usr/aarch64-linux-gnu\"")
+            panic!(
+                "cannot execute {bin} on this machine ({e}); set LOGLIO_TEST_RUNNER to the target's runner, e.g. \"qemu-aarch64 -L /usr/aarch64-linux-gnu\""
+            )
         }
         Err(e) => panic!("cannot run {bin}: {e}"),
     }
