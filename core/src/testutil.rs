@@ -52,6 +52,30 @@ impl Rng {
     }
 }
 
+/// SplitMix64 with ranges and a sum-of-12 normal: the map and surfel tests' data generator
+/// (their fixtures were drawn with it; keep the sequence).
+pub struct SplitMix(pub u64);
+
+impl SplitMix {
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in [lo, hi).
+    pub fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * ((self.next_u64() >> 11) as f64 / (1u64 << 53) as f64)
+    }
+
+    /// Sum of 12 uniforms: close enough to a unit normal for test noise.
+    pub fn gauss(&mut self) -> f64 {
+        (0..12).map(|_| self.uniform(0.0, 1.0)).sum::<f64>() - 6.0
+    }
+}
+
 /// The exact state of the IMU at one instant.
 #[derive(Clone, Copy, Debug)]
 pub struct Motion {

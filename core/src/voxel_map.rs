@@ -2002,24 +2002,7 @@ mod tests {
 
     use super::*;
 
-    /// SplitMix64: deterministic test data.
-    struct Rng(u64);
-    impl Rng {
-        fn next_u64(&mut self) -> u64 {
-            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-            let mut z = self.0;
-            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-            z ^ (z >> 31)
-        }
-        fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
-            lo + (hi - lo) * ((self.next_u64() >> 11) as f64 / (1u64 << 53) as f64)
-        }
-        fn gauss(&mut self) -> f64 {
-            // Sum of 12 uniforms: close enough to a unit normal for test noise.
-            (0..12).map(|_| self.uniform(0.0, 1.0)).sum::<f64>() - 6.0
-        }
-    }
+    use crate::testutil::SplitMix as Rng;
 
     fn storage(cap: usize) -> (Vec<Voxel>, Vec<IndexSlot>) {
         (vec![Voxel::EMPTY; cap], vec![IndexSlot::EMPTY; (2 * cap).next_power_of_two()])
