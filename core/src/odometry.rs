@@ -245,12 +245,6 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> ScanStorage<PIX, PTS, 
     }
 }
 
-impl<const PIX: usize, const PTS: usize, const DS: usize> Default for ScanStorage<PIX, PTS, DS> {
-    fn default() -> Self {
-        Self::new()
-    }
-}
-
 /// All the memory of the odometry: the scan buffers and the voxel map (`V` voxels, `I` index
 /// slots). `const fn new()`; put it in a `static` (firmware) or a `Box` (host).
 pub struct OdometryStorage<
@@ -296,14 +290,6 @@ impl<const PIX: usize, const PTS: usize, const DS: usize, const V: usize, const 
     /// An odometry over this storage (the previous contents are discarded).
     pub fn odometry(&mut self, cfg: &OdometryConfig) -> Result<Odometry<'_, PIX, PTS, DS>, OdometryError> {
         Odometry::new(&mut self.scan, &mut self.map, cfg)
-    }
-}
-
-impl<const PIX: usize, const PTS: usize, const DS: usize, const V: usize, const I: usize> Default
-    for OdometryStorage<PIX, PTS, DS, V, I>
-{
-    fn default() -> Self {
-        Self::new()
     }
 }
 
