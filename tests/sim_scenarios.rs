@@ -68,9 +68,16 @@ fn same_seed_same_bytes_different_seed_different_bytes() {
     }
 }
 
+/// VLP-32C elevations, degrees (manual table 9-6).
+const VLP32C_EL: [f64; 32] = [
+    -25., -1., -1.667, -15.639, -11.31, 0., -0.667, -8.843, -7.254, 0.333, -0.333, -6.148, -5.333, 1.333,
+    0.667, -4., -4.667, 1.667, 1., -3.667, -3.333, 3.333, 2.333, -2.667, -3., 7., 4.667, -2.333, -2., 15.,
+    10.333, -1.333,
+];
+
 /// Velodyne data points decoded with the user manuals' formulas: block azimuth plus the
 /// precision-azimuth interpolation by firing time, the laser's azimuth offset, elevation and
-/// VLP-16 vertical offset, and the timing table. Returns (t_ns, laser, xyz).
+/// vertical offset, and the timing table. Returns (t_ns, laser, xyz).
 fn decode_velodyne(model: SensorModel, pkt: &[u8], next_block_az: Option<u16>) -> Vec<(u64, u8, [f64; 3])> {
     let (el, azoff, vert, unit): (Vec<f64>, Vec<f64>, Vec<f64>, f64) = match model {
         SensorModel::Vlp16 => (
@@ -80,16 +87,14 @@ fn decode_velodyne(model: SensorModel, pkt: &[u8], next_block_az: Option<u16>) -
             0.002,
         ),
         SensorModel::Vlp32c => (
-            vec![
-                -25., -1., -1.667, -15.639, -11.31, 0., -0.667, -8.843, -7.254, 0.333, -0.333, -6.148,
-                -5.333, 1.333, 0.667, -4., -4.667, 1.667, 1., -3.667, -3.333, 3.333, 2.333, -2.667, -3., 7.,
-                4.667, -2.333, -2., 15., 10.333, -1.333,
-            ],
+            VLP32C_EL.to_vec(),
             vec![
                 1.4, -4.2, 1.4, -1.4, 1.4, -1.4, 4.2, -1.4, 1.4, -4.2, 1.4, -1.4, 4.2, -1.4, 4.2, -1.4, 1.4,
                 -4.2, 1.4, -4.2, 4.2, -1.4, 1.4, -1.4, 1.4, -1.4, 1.4, -4.2, 4.2, -1.4, 1.4, -1.4,
             ],
-            vec![0.0; 32],
+            // Beam origins 42.4 mm x tan(-elevation) above the sensor origin (the focal distance;
+            // the built-in tables round these to 1 um, well inside the tolerance below).
+            VLP32C_EL.iter().map(|e| 42.4 * (-e).to_radians().tan()).collect(),
             0.004,
         ),
         _ => unreachable!(),

@@ -185,10 +185,12 @@ pub enum Firmware {
 }
 
 impl Firmware {
-    /// The range-image layout the decoders would build for this sensor: rows by elevation (row
-    /// 0 highest); Velodyne columns clockwise from azimuth 0 (`columns()` per revolution), Ouster
-    /// columns = measurement ids, clockwise, with each row's column 0 at pi - beam azimuth in the
-    /// sensor frame.
+    /// The range-image layout of the direct scans: rows by elevation (row 0 highest), as the
+    /// decoders number them; Velodyne columns clockwise from azimuth 0 (`columns()` per
+    /// revolution: 1800 at 600 rpm, where the core's decoder uses one column per firing
+    /// sequence, 1808), Ouster columns = measurement ids (staggered; the core's decoder
+    /// destaggers), clockwise, with each row's column 0 at pi - beam azimuth in the sensor frame.
+    /// Scans decoded from packets carry the decoder's layout instead (tests/sim_roundtrip.rs).
     pub fn layout(&self) -> RangeImageLayout {
         match self {
             Firmware::Velodyne(v) => {

@@ -17,13 +17,16 @@
 //!   (manual table 9-6; added to the block azimuth). Distance unit 4 mm (a 2 mm unit could not
 //!   encode the sensor's 200 m range in 16 bits; calibration files say 0.004 too).
 //! - HDL-32E: 32 lasers fire 1.152 us apart, one sequence per 46.08 us, one per block; 2 mm.
+//! - Every laser's beam starts at a vertical offset from the sensor origin: VLP-16 manual table
+//!   9-1; VLP-32C 42.4 mm x tan(-elevation); HDL-32E the envelope drawing's values (the same
+//!   tables as the core's built-in calibrations, so the host needs no calibration file).
 //! - Dual return: block pairs (0|1, 2|3, ...) share one firing and azimuth; even blocks carry
 //!   the last echo, odd blocks the strongest (the second strongest when the strongest is the
 //!   last); with a single echo both blocks carry it. A packet then spans half the firings.
 //!
 //! Geometry: a laser's direction in the sensor frame at time t has elevation w and clockwise
 //! azimuth a = head(t) + delta; x = r cos(w) cos(a), y = -r cos(w) sin(a), z = r sin(w) (+ the
-//! VLP-16 vertical offset). The head turns at a constant rate from `phase_deg` at the start.
+//! laser's vertical offset). The head turns at a constant rate from `phase_deg` at the start.
 //! The block azimuth is the head azimuth at the block's first firing, rounded to 0.01 degree.
 
 use super::{Echo, EchoSource, Echoes, Firing, RangeModel, ReturnMode, SensorModel};
@@ -56,10 +59,25 @@ const VLP32C_AZIMUTH: [f64; 32] = [
     1.4, -4.2, 1.4, -1.4, 1.4, -1.4, 4.2, -1.4, 1.4, -4.2, 1.4, -1.4, 4.2, -1.4, 4.2, -1.4, 1.4, -4.2, 1.4,
     -4.2, 4.2, -1.4, 1.4, -1.4, 1.4, -1.4, 1.4, -4.2, 4.2, -1.4, 1.4, -1.4,
 ];
+/// VLP-32C vertical offsets of the beam origins, millimetres: the 42.4 mm focal distance times
+/// tan(-elevation) (the manual documents no per-laser offsets; `velodyne_decoder` and the core's
+/// built-in table use the same derivation, so a host decoding without a calibration file gets
+/// the simulated points back).
+const VLP32C_VERTICAL_MM: [f64; 32] = [
+    19.771, 0.740, 1.234, 11.869, 8.480, 0.0, 0.494, 6.596, 5.397, -0.246, 0.246, 4.567, 3.958, -0.987,
+    -0.494, 2.965, 3.461, -1.234, -0.740, 2.717, 2.469, -2.469, -1.727, 1.975, 2.222, -5.206, -3.461, 1.727,
+    1.481, -11.361, -7.731, 0.987,
+];
 const HDL32E_ELEVATION: [f64; 32] = [
     -30.67, -9.33, -29.33, -8.0, -28.0, -6.67, -26.67, -5.33, -25.33, -4.0, -24.0, -2.67, -22.67, -1.33,
     -21.33, 0.0, -20.0, 1.33, -18.67, 2.67, -17.33, 4.0, -16.0, 5.33, -14.67, 6.67, -13.33, 8.0, -12.0, 9.33,
     -10.67, 10.67,
+];
+/// HDL-32E vertical offsets of the laser origins, millimetres (envelope drawing 86-0106 rev B,
+/// as the core's built-in table).
+const HDL32E_VERTICAL_MM: [f64; 32] = [
+    17.17, 4.76, 16.27, 4.07, 15.4, 3.38, 14.54, 2.7, 13.71, 2.02, 12.89, 1.35, 12.09, 0.67, 11.31, 0.0,
+    10.54, -0.67, 9.78, -1.35, 9.04, -2.02, 8.3, -2.7, 7.58, -3.38, 6.86, -4.07, 6.15, -4.76, 5.45, -5.45,
 ];
 
 /// Why a Velodyne configuration was rejected.
@@ -183,8 +201,8 @@ impl Velodyne {
         for l in 0..v.lasers {
             let (el, az, vo) = match cfg.model {
                 SensorModel::Vlp16 => (VLP16_ELEVATION[l], 0.0, VLP16_VERTICAL_MM[l] * 1e-3),
-                SensorModel::Vlp32c => (VLP32C_ELEVATION[l], VLP32C_AZIMUTH[l], 0.0),
-                _ => (HDL32E_ELEVATION[l], 0.0, 0.0),
+                SensorModel::Vlp32c => (VLP32C_ELEVATION[l], VLP32C_AZIMUTH[l], VLP32C_VERTICAL_MM[l] * 1e-3),
+                _ => (HDL32E_ELEVATION[l], 0.0, HDL32E_VERTICAL_MM[l] * 1e-3),
             };
             v.elevation[l] = el;
             v.azimuth_offset[l] = az;
@@ -223,7 +241,7 @@ impl Velodyne {
         self.azimuth_offset[laser]
     }
 
-    /// Vertical offset of a laser's origin, metres (VLP-16; 0 otherwise).
+    /// Vertical offset of a laser's origin, metres.
     pub fn vertical_offset_m(&self, laser: usize) -> f64 {
         self.vertical[laser]
     }
@@ -659,7 +677,9 @@ mod tests {
             let n = v.data_packet(1, &mut Wall { sequences: 0 }, &mut buf, &mut truth);
             let mut seen = 0;
             for t in truth[..n].iter().filter(|t| t.laser == 3) {
-                let r = (0..3).map(|i| t.xyz_exact[i] * t.xyz_exact[i]).sum::<f64>().sqrt();
+                // Range from the beam's origin (the laser's vertical offset above the sensor's).
+                let o = [0.0, 0.0, v.vertical_offset_m(t.laser as usize)];
+                let r = (0..3).map(|i| (t.xyz_exact[i] - o[i]).powi(2)).sum::<f64>().sqrt();
                 let wall = 10.0 / libm::cos(t.elevation_deg.to_radians());
                 let want = match (mode, t.slot) {
                     (ReturnMode::Strongest, _) | (ReturnMode::Dual, 1) => 4.0,
