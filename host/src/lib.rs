@@ -8,6 +8,8 @@
 //! | [`diag`] | one-line `warning: ...` diagnostics |
 //! | [`eval`] | ATE/RPE against a ground truth, evo-compatible |
 //! | [`output`] | TUM trajectory, PLY/PCD map, per-scan CSV, PNG/SVG plots, progress bar |
+//! | [`sim`] | `loglio sim` / `demo`: a firmware-sim scenario end to end, ATE against its ground truth |
+//! | [`pipeline`] | the configuration onto the core odometry, its heap storage, input ordering and outputs |
 
 pub mod bag;
 pub mod config;
@@ -19,7 +21,9 @@ pub mod normals;
 pub mod ouster_meta;
 pub mod output;
 pub mod pcap;
+pub mod pipeline;
 pub mod serial;
+pub mod sim;
 pub mod time_align;
 pub mod udp;
 pub mod velodyne_calib;

@@ -37,6 +37,65 @@ enum Command {
     /// Ring FALS normals of a real capture (the bundled Ouster OS-1-32 frame by default): valid
     /// normals, time per scan, agreement with kNN-PCA on planar points.
     Normals(loglio_host::normals::NormalsArgs),
+    /// Run a simulated scenario (firmware-sim) end to end and report the ATE against its ground truth.
+    Sim(SimArgs),
+    /// The built-in demo: 25 s of a simulated VLP-32C on a car in a town, no files needed; prints
+    /// the ATE against ground truth and writes the outputs into ./loglio-demo/.
+    Demo(DemoArgs),
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum ModeArg {
+    /// LOG-LIO: surfels and point-to-plane behind the normal checks.
+    Full,
+    /// LOG-C: point-to-plane behind the normal checks.
+    PlaneOnly,
+    /// FAST-LIO2-like point-to-plane, no normals.
+    Plain,
+}
+
+impl ModeArg {
+    fn host(self) -> loglio_host::config::AssociationMode {
+        use loglio_host::config::AssociationMode as M;
+        match self {
+            ModeArg::Full => M::Full,
+            ModeArg::PlaneOnly => M::PlaneOnly,
+            ModeArg::Plain => M::Plain,
+        }
+    }
+}
+
+#[derive(Debug, Args)]
+struct SimArgs {
+    /// Scenario: vehicle, handheld, corridor, drone, rotation.
+    #[arg(long, default_value = "vehicle", value_name = "NAME")]
+    scenario: String,
+    /// Simulated LiDAR: vlp16, vlp32c, hdl32e, os1-16, os1-64.
+    #[arg(long, default_value = "vlp32c", value_name = "NAME")]
+    sensor: String,
+    /// Seed of the world and every noise.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Length in seconds (default: the scenario's, 30-40 s).
+    #[arg(long, value_name = "S")]
+    seconds: Option<f64>,
+    /// Association mode.
+    #[arg(long, value_enum)]
+    mode: Option<ModeArg>,
+    /// Output directory (trajectory, ground truth, map, per-scan CSV, plots); nothing is written
+    /// without it.
+    #[arg(long, value_name = "DIR")]
+    out: Option<PathBuf>,
+}
+
+#[derive(Debug, Args)]
+struct DemoArgs {
+    /// Output directory.
+    #[arg(long, default_value = "loglio-demo", value_name = "DIR")]
+    out: PathBuf,
+    /// Length in seconds.
+    #[arg(long, default_value_t = 25.0, value_name = "S")]
+    seconds: f64,
 }
 
 #[derive(Debug, Args)]
@@ -209,7 +268,63 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Eval(a) => eval_cmd(a),
         Command::BagInfo(a) => bag_info_cmd(a),
         Command::Normals(a) => loglio_host::normals::run(&a),
+        Command::Sim(a) => sim_cmd(a),
+        Command::Demo(a) => demo_cmd(a),
     }
+}
+
+fn sim_run(opt: loglio_host::sim::SimOptions) -> anyhow::Result<()> {
+    let report = loglio_host::sim::run(&opt)?;
+    print(&loglio_host::sim::summary(&opt, &report))
+}
+
+fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
+    use loglio_firmware_sim::lidar::SensorModel;
+    use loglio_firmware_sim::scenario::ScenarioKind;
+    let kind = ScenarioKind::from_name(&a.scenario).ok_or_else(|| {
+        let known: Vec<&str> = ScenarioKind::ALL.iter().map(|k| k.name()).collect();
+        anyhow::anyhow!("unknown scenario \"{}\" (known: {})", a.scenario, known.join(", "))
+    })?;
+    let sensor =
+        SensorModel::ALL.into_iter().find(|m| m.name().eq_ignore_ascii_case(&a.sensor)).ok_or_else(|| {
+            let known: Vec<&str> = SensorModel::ALL.iter().map(|m| m.name()).collect();
+            anyhow::anyhow!("unknown simulated sensor \"{}\" (known: {})", a.sensor, known.join(", "))
+        })?;
+    if let Some(s) = a.seconds
+        && !(s > 0.0 && s <= 600.0)
+    {
+        bail!("--seconds must be in (0, 600], not {s}");
+    }
+    sim_run(loglio_host::sim::SimOptions {
+        kind,
+        sensor,
+        seed: a.seed,
+        duration_s: a.seconds,
+        mode: a.mode.map(ModeArg::host),
+        out: a.out,
+        progress: true,
+    })
+}
+
+fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
+    use loglio_firmware_sim::lidar::SensorModel;
+    use loglio_firmware_sim::scenario::ScenarioKind;
+    if !(a.seconds > 2.5 && a.seconds <= 600.0) {
+        bail!("--seconds must be in (2.5, 600] (the scenario starts with 2 s at rest), not {}", a.seconds);
+    }
+    eprintln!(
+        "loglio demo: {} s of a simulated Velodyne VLP-32C on a car driving through a town (firmware-sim, seed 1)",
+        a.seconds
+    );
+    sim_run(loglio_host::sim::SimOptions {
+        kind: ScenarioKind::Vehicle,
+        sensor: SensorModel::Vlp32c,
+        seed: 1,
+        duration_s: Some(a.seconds),
+        mode: None,
+        out: Some(a.out),
+        progress: true,
+    })
 }
 
 fn print(text: &str) -> anyhow::Result<()> {
