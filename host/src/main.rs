@@ -312,10 +312,10 @@ fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
     if !(a.seconds > 2.5 && a.seconds <= 600.0) {
         bail!("--seconds must be in (2.5, 600] (the scenario starts with 2 s at rest), not {}", a.seconds);
     }
-    eprintln!(
+    print(&format!(
         "loglio demo: {} s of a simulated Velodyne VLP-32C on a car driving through a town (firmware-sim, seed 1)",
         a.seconds
-    );
+    ))?;
     sim_run(loglio_host::sim::SimOptions {
         kind: ScenarioKind::Vehicle,
         sensor: SensorModel::Vlp32c,

@@ -179,6 +179,7 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
                 }
             }
         }
+        runner.process_ready(true, None)?;
         let gt = ground_truth(&sc, &runner.outputs.poses);
         if let Some(dir) = &opt.out {
             pipeline::write_tum(&dir.join("groundtruth.tum"), &gt)?;
