@@ -37,6 +37,9 @@ enum Command {
     /// Ring FALS normals of a real capture (the bundled Ouster OS-1-32 frame by default): valid
     /// normals, time per scan, agreement with kNN-PCA on planar points.
     Normals(loglio_host::normals::NormalsArgs),
+    /// Replay a pcap (Velodyne or Ouster) with the IMU from a CSV file, a serial capture or the
+    /// Ouster's IMU packets; writes the trajectory, map, per-scan CSV and plots.
+    Replay(ReplayArgs),
     /// Run a simulated scenario (firmware-sim) end to end and report the ATE against its ground truth.
     Sim(SimArgs),
     /// The built-in demo: 25 s of a simulated VLP-32C on a car in a town, no files needed; prints
@@ -86,6 +89,72 @@ struct SimArgs {
     /// without it.
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
+}
+
+/// What the commands that run the odometry share.
+#[derive(Debug, Args)]
+struct RunArgs {
+    /// Configuration file (see `loglio config --preset NAME`).
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Sensor preset when no configuration file is given: vlp16, vlp32c, hdl32e, os1-16, os1-32,
+    /// os1-64, os1-128.
+    #[arg(long, value_name = "NAME", conflicts_with = "config")]
+    preset: Option<String>,
+    /// Association mode (overrides the configuration's).
+    #[arg(long, value_enum)]
+    mode: Option<ModeArg>,
+    /// Ouster metadata JSON (overrides sensor.ouster_metadata).
+    #[arg(long, value_name = "FILE")]
+    metadata: Option<PathBuf>,
+    /// Velodyne calibration yaml (overrides sensor.calibration).
+    #[arg(long, value_name = "FILE")]
+    calibration: Option<PathBuf>,
+    /// Output directory (trajectory.tum, scans.csv, map.ply, map.pcd, plots).
+    #[arg(long, value_name = "DIR", default_value = "loglio-out")]
+    out: PathBuf,
+    /// Ground truth (TUM): the ATE and the error plot.
+    #[arg(long, value_name = "FILE.tum")]
+    gt: Option<PathBuf>,
+    /// Do not write the map and the plots.
+    #[arg(long)]
+    no_map: bool,
+}
+
+impl RunArgs {
+    fn setup(&self) -> loglio_host::replay::RunSetup {
+        loglio_host::replay::RunSetup {
+            config: self.config.clone(),
+            preset: self.preset.clone(),
+            mode: self.mode.map(ModeArg::host),
+            metadata: self.metadata.clone(),
+            calibration: self.calibration.clone(),
+            out: Some(self.out.clone()),
+            gt: self.gt.clone(),
+            no_map: self.no_map,
+        }
+    }
+}
+
+#[derive(Debug, Args)]
+struct ReplayArgs {
+    /// The capture (classic libpcap).
+    pcap: PathBuf,
+    /// IMU file: a CSV `t,gx,gy,gz,ax,ay,az` or a capture of loglio's serial IMU frames
+    /// (detected from the contents).
+    #[arg(long, value_name = "FILE", conflicts_with = "ouster_imu")]
+    imu: Option<PathBuf>,
+    /// Take the IMU from the Ouster IMU packets in the pcap.
+    #[arg(long)]
+    ouster_imu: bool,
+    /// Pace the replay by the capture times (real time).
+    #[arg(long)]
+    realtime: bool,
+    /// Speed-up over real time with --realtime.
+    #[arg(long, default_value_t = 1.0, requires = "realtime")]
+    rate: f64,
+    #[command(flatten)]
+    run: RunArgs,
 }
 
 #[derive(Debug, Args)]
@@ -268,9 +337,41 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Eval(a) => eval_cmd(a),
         Command::BagInfo(a) => bag_info_cmd(a),
         Command::Normals(a) => loglio_host::normals::run(&a),
+        Command::Replay(a) => replay_cmd(a),
         Command::Sim(a) => sim_cmd(a),
         Command::Demo(a) => demo_cmd(a),
     }
+}
+
+fn replay_cmd(a: ReplayArgs) -> anyhow::Result<()> {
+    use loglio_host::replay::{ImuInput, ReplayOptions};
+    if !(a.rate > 0.0 && a.rate.is_finite()) {
+        bail!("--rate must be a positive number, not {}", a.rate);
+    }
+    let imu = match (&a.imu, a.ouster_imu) {
+        (Some(p), _) => Some(ImuInput::detect(p)?),
+        (None, true) => Some(ImuInput::OusterPackets),
+        (None, false) => None,
+    };
+    let opt = ReplayOptions {
+        pcap: a.pcap,
+        imu,
+        realtime: a.realtime.then_some(a.rate),
+        setup: a.run.setup(),
+        progress: true,
+    };
+    let r = loglio_host::replay::run(&opt)?;
+    print(&format!(
+        "{}: {} LiDAR packets{}\n{}",
+        opt.pcap.display(),
+        r.stream.lidar_packets,
+        if r.stream.imu_packets > 0 {
+            format!(", {} IMU packets", r.stream.imu_packets)
+        } else {
+            String::new()
+        },
+        loglio_host::replay::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
+    ))
 }
 
 fn sim_run(opt: loglio_host::sim::SimOptions) -> anyhow::Result<()> {
