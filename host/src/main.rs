@@ -40,6 +40,9 @@ enum Command {
     /// Replay a pcap (Velodyne or Ouster) with the IMU from a CSV file, a serial capture or the
     /// Ouster's IMU packets; writes the trajectory, map, per-scan CSV and plots.
     Replay(ReplayArgs),
+    /// Will this computer keep up? Per-stage times and the real-time margin of a sensor preset on
+    /// a simulated drive, with the plain (FAST-LIO2-like) association as the baseline.
+    Bench(BenchArgs),
     /// Run a simulated scenario (firmware-sim) end to end and report the ATE against its ground truth.
     Sim(SimArgs),
     /// The built-in demo: 25 s of a simulated VLP-32C on a car in a town, no files needed; prints
@@ -155,6 +158,19 @@ struct ReplayArgs {
     rate: f64,
     #[command(flatten)]
     run: RunArgs,
+}
+
+#[derive(Debug, Args)]
+struct BenchArgs {
+    /// Sensor preset: vlp16, vlp32c, hdl32e, os1-16, os1-64.
+    #[arg(long, default_value = "vlp32c", value_name = "NAME")]
+    preset: String,
+    /// Seconds of simulated data (2 s at rest are not timed).
+    #[arg(long, default_value_t = 12.0, value_name = "S")]
+    seconds: f64,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
 }
 
 #[derive(Debug, Args)]
@@ -339,6 +355,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Normals(a) => loglio_host::normals::run(&a),
         Command::Replay(a) => replay_cmd(a),
         Command::Sim(a) => sim_cmd(a),
+        Command::Bench(a) => bench_cmd(a),
         Command::Demo(a) => demo_cmd(a),
     }
 }
@@ -372,6 +389,17 @@ fn replay_cmd(a: ReplayArgs) -> anyhow::Result<()> {
         },
         loglio_host::replay::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
     ))
+}
+
+fn bench_cmd(a: BenchArgs) -> anyhow::Result<()> {
+    let preset: Preset = a.preset.parse().map_err(|e: loglio_host::config::ConfigError| {
+        anyhow::anyhow!("{}", e.0.trim_start_matches("config: "))
+    })?;
+    if !(a.seconds >= 3.0 && a.seconds <= 120.0) {
+        bail!("--seconds must be in [3, 120], not {}", a.seconds);
+    }
+    let r = loglio_host::bench::run(preset, a.seconds, !a.json)?;
+    print(&if a.json { r.to_json() } else { r.to_text() })
 }
 
 fn sim_run(opt: loglio_host::sim::SimOptions) -> anyhow::Result<()> {

@@ -299,3 +299,44 @@ fn replay_bad_input_is_one_line() {
     assert!(e.contains("offset of"), "{e}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn bench_json_parses_and_is_consistent() {
+    let text = stdout(&loglio(&["bench", "--preset", "os1-16", "--seconds", "3", "--json"]));
+    let v: serde_json::Value = serde_json::from_str(&text).unwrap_or_else(|e| panic!("{e}: {text}"));
+    assert_eq!(v["preset"], "os1-16");
+    assert_eq!(v["scan_period_ms"], 100.0);
+    assert!(v["points_per_scan"].as_f64().unwrap() > 5_000.0, "{text}");
+    for (key, mode) in [("main", "full"), ("baseline", "plain")] {
+        let m = &v[key];
+        assert_eq!(m["mode"], mode);
+        // 3 s at 10 Hz, the first ~1 s spent initialising: 15-25 timed scans.
+        let scans = m["scans"].as_u64().unwrap();
+        assert!((15..=25).contains(&scans), "{text}");
+        let mean = m["scan_ms"]["mean"].as_f64().unwrap();
+        let median = m["scan_ms"]["median"].as_f64().unwrap();
+        let p95 = m["scan_ms"]["p95"].as_f64().unwrap();
+        assert!(mean > 0.0 && median > 0.0 && p95 >= median, "{text}");
+        // The stages are parts of the scan's time.
+        let stages: f64 = m["stage_mean_ms"].as_object().unwrap().values().map(|x| x.as_f64().unwrap()).sum();
+        assert_eq!(m["stage_mean_ms"].as_object().unwrap().len(), 6);
+        assert!(stages <= mean * 1.0001, "stages {stages} ms > scan {mean} ms");
+        let margin = m["realtime_margin"].as_f64().unwrap();
+        assert!((margin - 100.0 / mean).abs() <= 1e-9 * margin, "{text}");
+    }
+    let ratio = v["main_over_baseline"].as_f64().unwrap();
+    let means = [&v["main"], &v["baseline"]].map(|m| m["scan_ms"]["mean"].as_f64().unwrap());
+    assert!((ratio - means[0] / means[1]).abs() < 1e-9 * ratio);
+    assert_eq!(v["keeps_up"], v["main"]["realtime_margin"].as_f64().unwrap() >= 1.0);
+    // The human form names the verdict.
+    let text = stdout(&loglio(&["bench", "--preset", "vlp16", "--seconds", "3"]));
+    assert!(text.contains("this computer keeps up") || text.contains("does NOT keep up"), "{text}");
+    assert!(text.contains("margin"), "{text}");
+}
+
+#[test]
+fn bench_bad_presets_are_one_line() {
+    fails_with(&loglio(&["bench", "--preset", "vlp64"]), "error: unknown preset \"vlp64\" (known: vlp16,");
+    fails_with(&loglio(&["bench", "--preset", "os1-128"]), "error: the simulator has no os1-128 model");
+    fails_with(&loglio(&["bench", "--seconds", "1"]), "error: --seconds must be in [3, 120]");
+}
