@@ -38,9 +38,8 @@ use loglio_core::odometry::{
 };
 use loglio_core::output::{ScanResult, StageTimes, Status};
 use loglio_core::range_image::RangeImageLayout;
-use loglio_core::ring_fals::{RingFalsConfig, storage_pixels};
+use loglio_core::ring_fals::storage_pixels;
 use loglio_core::scan::{ScanPoint, ScanView};
-use loglio_core::voxel_map::MapConfig;
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
 use crate::config::{AssociationMode, Config, ConfigError, SensorFamily};
@@ -135,7 +134,10 @@ pub fn ouster_layout(
 pub fn odometry_config(cfg: &Config, layout: RangeImageLayout) -> Result<OdometryConfig, PipelineError> {
     cfg.validate()?;
     let ouster = cfg.preset.family() == SensorFamily::Ouster;
-    let mut map = if ouster { MapConfig::OS1_16 } else { MapConfig::VLP32C };
+    // The core's preset of the sensor family (association, filter and map settings the
+    // configuration does not expose), then every value the configuration sets.
+    let base = if ouster { OdometryConfig::os1_16(layout) } else { OdometryConfig::vlp32c(layout) };
+    let mut map = base.map;
     map.voxel_size = cfg.mapping.voxel_size as f32;
     let eskf = EskfConfig {
         noise: ImuNoise {
@@ -145,19 +147,14 @@ pub fn odometry_config(cfg: &Config, layout: RangeImageLayout) -> Result<Odometr
             acc_bias_walk: cfg.imu.acc_bias_walk,
         },
         max_iterations: cfg.filter.max_iterations as usize,
-        ..EskfConfig::default()
+        ..base.eskf
     };
-    let init = ImuInitConfig { gravity: cfg.imu.gravity, ..ImuInitConfig::default() };
+    let init = ImuInitConfig { gravity: cfg.imu.gravity, ..base.init };
     let [w, x, y, z] = cfg.extrinsics.quaternion_wxyz();
     let t = cfg.extrinsics.translation();
     Ok(OdometryConfig {
         mode: core_mode(cfg.mapping.association),
-        layout,
-        ring_fals: RingFalsConfig::DEFAULT,
-        downsample: DownsampleConfig {
-            voxel: cfg.mapping.scan_voxel_size as f32,
-            ..DownsampleConfig::default()
-        },
+        downsample: DownsampleConfig { voxel: cfg.mapping.scan_voxel_size as f32, ..base.downsample },
         map,
         eskf,
         init,
@@ -165,6 +162,7 @@ pub fn odometry_config(cfg: &Config, layout: RangeImageLayout) -> Result<Odometr
         ext_pos: Vector3::new(t[0], t[1], t[2]),
         blind: cfg.sensor.blind as f32,
         max_range: cfg.sensor.max_range as f32,
+        ..base
     })
 }
 
