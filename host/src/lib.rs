@@ -4,6 +4,7 @@
 //! | module | what |
 //! |---|---|
 //! | [`bag`] | ROS 1 bags, rosbag2 sqlite3 and MCAP in, a time-ordered event stream out; a ROS 1 bag writer |
+//! | [`bagrun`] | `loglio bag`: the odometry over a ROS 1 / rosbag2 / MCAP bag (clouds or packets) |
 //! | [`bench`] | `loglio bench`: per-stage times and real-time margin of a preset, with a baseline |
 //! | [`config`] | the TOML configuration: presets, overrides, validation, the commented template |
 //! | [`diag`] | one-line `warning: ...` diagnostics |
@@ -15,6 +16,7 @@
 //! | [`pipeline`] | the configuration onto the core odometry, its heap storage, input ordering and outputs |
 
 pub mod bag;
+pub mod bagrun;
 pub mod bench;
 pub mod config;
 pub mod diag;

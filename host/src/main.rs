@@ -43,6 +43,9 @@ enum Command {
     /// Will this computer keep up? Per-stage times and the real-time margin of a sensor preset on
     /// a simulated drive, with the plain (FAST-LIO2-like) association as the baseline.
     Bench(BenchArgs),
+    /// Run the odometry over a ROS bag: ROS 1 (.bag), rosbag2 (directory, .db3) or MCAP, with
+    /// PointCloud2 (Velodyne or Ouster driver) or raw Velodyne/Ouster packets, and sensor_msgs/Imu.
+    Bag(BagArgs),
     /// Run a simulated scenario (firmware-sim) end to end and report the ATE against its ground truth.
     Sim(SimArgs),
     /// The built-in demo: 25 s of a simulated VLP-32C on a car in a town, no files needed; prints
@@ -171,6 +174,20 @@ struct BenchArgs {
     /// Print JSON.
     #[arg(long)]
     json: bool,
+}
+
+#[derive(Debug, Args)]
+struct BagArgs {
+    /// The bag: a ROS 1 bag, a rosbag2 directory, a .db3 or an .mcap file.
+    bag: PathBuf,
+    /// The LiDAR topic (found by message type if not given).
+    #[arg(long, value_name = "TOPIC")]
+    lidar_topic: Option<String>,
+    /// The IMU topic (found by message type if not given).
+    #[arg(long, value_name = "TOPIC")]
+    imu_topic: Option<String>,
+    #[command(flatten)]
+    run: RunArgs,
 }
 
 #[derive(Debug, Args)]
@@ -354,6 +371,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::BagInfo(a) => bag_info_cmd(a),
         Command::Normals(a) => loglio_host::normals::run(&a),
         Command::Replay(a) => replay_cmd(a),
+        Command::Bag(a) => bag_cmd(a),
         Command::Sim(a) => sim_cmd(a),
         Command::Bench(a) => bench_cmd(a),
         Command::Demo(a) => demo_cmd(a),
@@ -400,6 +418,24 @@ fn bench_cmd(a: BenchArgs) -> anyhow::Result<()> {
     }
     let r = loglio_host::bench::run(preset, a.seconds, !a.json)?;
     print(&if a.json { r.to_json() } else { r.to_text() })
+}
+
+fn bag_cmd(a: BagArgs) -> anyhow::Result<()> {
+    let opt = loglio_host::bagrun::BagRunOptions {
+        bag: a.bag,
+        lidar_topic: a.lidar_topic,
+        imu_topic: a.imu_topic,
+        setup: a.run.setup(),
+        progress: true,
+    };
+    let r = loglio_host::bagrun::run(&opt)?;
+    print(&format!(
+        "{}: {}\n{}\n{}",
+        opt.bag.display(),
+        r.topics,
+        r.bag_stats,
+        loglio_host::replay::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
+    ))
 }
 
 fn sim_run(opt: loglio_host::sim::SimOptions) -> anyhow::Result<()> {
