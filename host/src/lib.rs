@@ -4,22 +4,34 @@
 //! | module | what |
 //! |---|---|
 //! | [`bag`] | ROS 1 bags, rosbag2 sqlite3 and MCAP in, a time-ordered event stream out; a ROS 1 bag writer |
+//! | [`bagrun`] | `loglio bag`: the odometry over a ROS 1 / rosbag2 / MCAP bag (clouds or packets) |
+//! | [`bench`] | `loglio bench`: per-stage times and real-time margin of a preset, with a baseline |
 //! | [`config`] | the TOML configuration: presets, overrides, validation, the commented template |
 //! | [`diag`] | one-line `warning: ...` diagnostics |
 //! | [`eval`] | ATE/RPE against a ground truth, evo-compatible |
 //! | [`output`] | TUM trajectory, PLY/PCD map, per-scan CSV, PNG/SVG plots, progress bar |
+//! | [`lidar_stream`] | raw Velodyne/Ouster packets to scans and IMU samples (decoders, time alignment, scan assembly) |
+//! | [`replay`] | `loglio replay`: pcap plus IMU CSV, serial capture or Ouster IMU packets |
+//! | [`sim`] | `loglio sim` / `demo`: a firmware-sim scenario end to end, ATE against its ground truth |
+//! | [`pipeline`] | the configuration onto the core odometry, its heap storage, input ordering and outputs |
 
 pub mod bag;
+pub mod bagrun;
+pub mod bench;
 pub mod config;
 pub mod diag;
 pub mod eval;
 pub mod imu_csv;
 pub mod knn_pca;
+pub mod lidar_stream;
 pub mod normals;
 pub mod ouster_meta;
 pub mod output;
 pub mod pcap;
+pub mod pipeline;
+pub mod replay;
 pub mod serial;
+pub mod sim;
 pub mod time_align;
 pub mod udp;
 pub mod velodyne_calib;

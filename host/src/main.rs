@@ -37,6 +37,167 @@ enum Command {
     /// Ring FALS normals of a real capture (the bundled Ouster OS-1-32 frame by default): valid
     /// normals, time per scan, agreement with kNN-PCA on planar points.
     Normals(loglio_host::normals::NormalsArgs),
+    /// Replay a pcap (Velodyne or Ouster) with the IMU from a CSV file, a serial capture or the
+    /// Ouster's IMU packets; writes the trajectory, map, per-scan CSV and plots.
+    Replay(ReplayArgs),
+    /// Will this computer keep up? Per-stage times and the real-time margin of a sensor preset on
+    /// a simulated drive, with the plain (FAST-LIO2-like) association as the baseline.
+    Bench(BenchArgs),
+    /// Run the odometry over a ROS bag: ROS 1 (.bag), rosbag2 (directory, .db3) or MCAP, with
+    /// PointCloud2 (Velodyne or Ouster driver) or raw Velodyne/Ouster packets, and sensor_msgs/Imu.
+    Bag(BagArgs),
+    /// Run a simulated scenario (firmware-sim) end to end and report the ATE against its ground truth.
+    Sim(SimArgs),
+    /// The built-in demo: 25 s of a simulated VLP-32C on a car in a town, no files needed; prints
+    /// the ATE against ground truth and writes the outputs into ./loglio-demo/.
+    Demo(DemoArgs),
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum ModeArg {
+    /// LOG-LIO: surfels and point-to-plane behind the normal checks.
+    Full,
+    /// LOG-C: point-to-plane behind the normal checks.
+    PlaneOnly,
+    /// FAST-LIO2-like point-to-plane, no normals.
+    Plain,
+}
+
+impl ModeArg {
+    fn host(self) -> loglio_host::config::AssociationMode {
+        use loglio_host::config::AssociationMode as M;
+        match self {
+            ModeArg::Full => M::Full,
+            ModeArg::PlaneOnly => M::PlaneOnly,
+            ModeArg::Plain => M::Plain,
+        }
+    }
+}
+
+#[derive(Debug, Args)]
+struct SimArgs {
+    /// Scenario: vehicle, handheld, corridor, drone, rotation.
+    #[arg(long, default_value = "vehicle", value_name = "NAME")]
+    scenario: String,
+    /// Simulated LiDAR: vlp16, vlp32c, hdl32e, os1-16, os1-64.
+    #[arg(long, default_value = "vlp32c", value_name = "NAME")]
+    sensor: String,
+    /// Seed of the world and every noise.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Length in seconds (default: the scenario's, 30-40 s).
+    #[arg(long, value_name = "S")]
+    seconds: Option<f64>,
+    /// Association mode.
+    #[arg(long, value_enum)]
+    mode: Option<ModeArg>,
+    /// Output directory (trajectory, ground truth, map, per-scan CSV, plots); nothing is written
+    /// without it.
+    #[arg(long, value_name = "DIR")]
+    out: Option<PathBuf>,
+}
+
+/// What the commands that run the odometry share.
+#[derive(Debug, Args)]
+struct RunArgs {
+    /// Configuration file (see `loglio config --preset NAME`).
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
+    /// Sensor preset when no configuration file is given: vlp16, vlp32c, hdl32e, os1-16, os1-32,
+    /// os1-64, os1-128.
+    #[arg(long, value_name = "NAME", conflicts_with = "config")]
+    preset: Option<String>,
+    /// Association mode (overrides the configuration's).
+    #[arg(long, value_enum)]
+    mode: Option<ModeArg>,
+    /// Ouster metadata JSON (overrides sensor.ouster_metadata).
+    #[arg(long, value_name = "FILE")]
+    metadata: Option<PathBuf>,
+    /// Velodyne calibration yaml (overrides sensor.calibration).
+    #[arg(long, value_name = "FILE")]
+    calibration: Option<PathBuf>,
+    /// Output directory (trajectory.tum, scans.csv, map.ply, map.pcd, plots).
+    #[arg(long, value_name = "DIR", default_value = "loglio-out")]
+    out: PathBuf,
+    /// Ground truth (TUM): the ATE and the error plot.
+    #[arg(long, value_name = "FILE.tum")]
+    gt: Option<PathBuf>,
+    /// Do not write the map and the plots.
+    #[arg(long)]
+    no_map: bool,
+}
+
+impl RunArgs {
+    fn setup(&self) -> loglio_host::replay::RunSetup {
+        loglio_host::replay::RunSetup {
+            config: self.config.clone(),
+            preset: self.preset.clone(),
+            mode: self.mode.map(ModeArg::host),
+            metadata: self.metadata.clone(),
+            calibration: self.calibration.clone(),
+            out: Some(self.out.clone()),
+            gt: self.gt.clone(),
+            no_map: self.no_map,
+        }
+    }
+}
+
+#[derive(Debug, Args)]
+struct ReplayArgs {
+    /// The capture (classic libpcap).
+    pcap: PathBuf,
+    /// IMU file: a CSV `t,gx,gy,gz,ax,ay,az` or a capture of loglio's serial IMU frames
+    /// (detected from the contents).
+    #[arg(long, value_name = "FILE", conflicts_with = "ouster_imu")]
+    imu: Option<PathBuf>,
+    /// Take the IMU from the Ouster IMU packets in the pcap.
+    #[arg(long)]
+    ouster_imu: bool,
+    /// Pace the replay by the capture times (real time).
+    #[arg(long)]
+    realtime: bool,
+    /// Speed-up over real time with --realtime.
+    #[arg(long, default_value_t = 1.0, requires = "realtime")]
+    rate: f64,
+    #[command(flatten)]
+    run: RunArgs,
+}
+
+#[derive(Debug, Args)]
+struct BenchArgs {
+    /// Sensor preset: vlp16, vlp32c, hdl32e, os1-16, os1-64.
+    #[arg(long, default_value = "vlp32c", value_name = "NAME")]
+    preset: String,
+    /// Seconds of simulated data (2 s at rest are not timed).
+    #[arg(long, default_value_t = 12.0, value_name = "S")]
+    seconds: f64,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Debug, Args)]
+struct BagArgs {
+    /// The bag: a ROS 1 bag, a rosbag2 directory, a .db3 or an .mcap file.
+    bag: PathBuf,
+    /// The LiDAR topic (found by message type if not given).
+    #[arg(long, value_name = "TOPIC")]
+    lidar_topic: Option<String>,
+    /// The IMU topic (found by message type if not given).
+    #[arg(long, value_name = "TOPIC")]
+    imu_topic: Option<String>,
+    #[command(flatten)]
+    run: RunArgs,
+}
+
+#[derive(Debug, Args)]
+struct DemoArgs {
+    /// Output directory.
+    #[arg(long, default_value = "loglio-demo", value_name = "DIR")]
+    out: PathBuf,
+    /// Length in seconds.
+    #[arg(long, default_value_t = 25.0, value_name = "S")]
+    seconds: f64,
 }
 
 #[derive(Debug, Args)]
@@ -209,7 +370,126 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Eval(a) => eval_cmd(a),
         Command::BagInfo(a) => bag_info_cmd(a),
         Command::Normals(a) => loglio_host::normals::run(&a),
+        Command::Replay(a) => replay_cmd(a),
+        Command::Bag(a) => bag_cmd(a),
+        Command::Sim(a) => sim_cmd(a),
+        Command::Bench(a) => bench_cmd(a),
+        Command::Demo(a) => demo_cmd(a),
     }
+}
+
+fn replay_cmd(a: ReplayArgs) -> anyhow::Result<()> {
+    use loglio_host::replay::{ImuInput, ReplayOptions};
+    if !(a.rate > 0.0 && a.rate.is_finite()) {
+        bail!("--rate must be a positive number, not {}", a.rate);
+    }
+    let imu = match (&a.imu, a.ouster_imu) {
+        (Some(p), _) => Some(ImuInput::detect(p)?),
+        (None, true) => Some(ImuInput::OusterPackets),
+        (None, false) => None,
+    };
+    let opt = ReplayOptions {
+        pcap: a.pcap,
+        imu,
+        realtime: a.realtime.then_some(a.rate),
+        setup: a.run.setup(),
+        progress: true,
+    };
+    let r = loglio_host::replay::run(&opt)?;
+    print(&format!(
+        "{}: {} LiDAR packets{}\n{}",
+        opt.pcap.display(),
+        r.stream.lidar_packets,
+        if r.stream.imu_packets > 0 {
+            format!(", {} IMU packets", r.stream.imu_packets)
+        } else {
+            String::new()
+        },
+        loglio_host::replay::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
+    ))
+}
+
+fn bench_cmd(a: BenchArgs) -> anyhow::Result<()> {
+    let preset: Preset = a.preset.parse().map_err(|e: loglio_host::config::ConfigError| {
+        anyhow::anyhow!("{}", e.0.trim_start_matches("config: "))
+    })?;
+    if !(a.seconds >= 3.0 && a.seconds <= 120.0) {
+        bail!("--seconds must be in [3, 120], not {}", a.seconds);
+    }
+    let r = loglio_host::bench::run(preset, a.seconds, !a.json)?;
+    print(&if a.json { r.to_json() } else { r.to_text() })
+}
+
+fn bag_cmd(a: BagArgs) -> anyhow::Result<()> {
+    let opt = loglio_host::bagrun::BagRunOptions {
+        bag: a.bag,
+        lidar_topic: a.lidar_topic,
+        imu_topic: a.imu_topic,
+        setup: a.run.setup(),
+        progress: true,
+    };
+    let r = loglio_host::bagrun::run(&opt)?;
+    print(&format!(
+        "{}: {}\n{}\n{}",
+        opt.bag.display(),
+        r.topics,
+        r.bag_stats,
+        loglio_host::replay::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
+    ))
+}
+
+fn sim_run(opt: loglio_host::sim::SimOptions) -> anyhow::Result<()> {
+    let report = loglio_host::sim::run(&opt)?;
+    print(&loglio_host::sim::summary(&opt, &report))
+}
+
+fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
+    use loglio_firmware_sim::lidar::SensorModel;
+    use loglio_firmware_sim::scenario::ScenarioKind;
+    let kind = ScenarioKind::from_name(&a.scenario).ok_or_else(|| {
+        let known: Vec<&str> = ScenarioKind::ALL.iter().map(|k| k.name()).collect();
+        anyhow::anyhow!("unknown scenario \"{}\" (known: {})", a.scenario, known.join(", "))
+    })?;
+    let sensor =
+        SensorModel::ALL.into_iter().find(|m| m.name().eq_ignore_ascii_case(&a.sensor)).ok_or_else(|| {
+            let known: Vec<&str> = SensorModel::ALL.iter().map(|m| m.name()).collect();
+            anyhow::anyhow!("unknown simulated sensor \"{}\" (known: {})", a.sensor, known.join(", "))
+        })?;
+    if let Some(s) = a.seconds
+        && !(s > 0.0 && s <= 600.0)
+    {
+        bail!("--seconds must be in (0, 600], not {s}");
+    }
+    sim_run(loglio_host::sim::SimOptions {
+        kind,
+        sensor,
+        seed: a.seed,
+        duration_s: a.seconds,
+        mode: a.mode.map(ModeArg::host),
+        out: a.out,
+        progress: true,
+    })
+}
+
+fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
+    use loglio_firmware_sim::lidar::SensorModel;
+    use loglio_firmware_sim::scenario::ScenarioKind;
+    if !(a.seconds > 2.5 && a.seconds <= 600.0) {
+        bail!("--seconds must be in (2.5, 600] (the scenario starts with 2 s at rest), not {}", a.seconds);
+    }
+    print(&format!(
+        "loglio demo: {} s of a simulated Velodyne VLP-32C on a car driving through a town (firmware-sim, seed 1)",
+        a.seconds
+    ))?;
+    sim_run(loglio_host::sim::SimOptions {
+        kind: ScenarioKind::Vehicle,
+        sensor: SensorModel::Vlp32c,
+        seed: 1,
+        duration_s: Some(a.seconds),
+        mode: None,
+        out: Some(a.out),
+        progress: true,
+    })
 }
 
 fn print(text: &str) -> anyhow::Result<()> {

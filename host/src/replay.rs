@@ -1,0 +1,332 @@
+//! `loglio replay`: a pcap (Velodyne or Ouster) plus the IMU from a CSV file, a serial capture
+//! (loglio's COBS frames) or the Ouster IMU packets in the same pcap, as fast as possible or in
+//! real time, with a progress bar; writes every output.
+
+use std::fs::File;
+use std::io::BufReader;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use loglio_core::imu::ImuSample;
+
+use crate::config::{AssociationMode, Config, ImuSource, Preset, SensorFamily};
+use crate::diag::warn;
+use crate::eval::{self, Format};
+use crate::lidar_stream::{self, Decoded, LidarStream, SensorDecoder};
+use crate::output::Progress;
+use crate::pipeline::{
+    self, Finished, OutputOptions, Outputs, PipelineError, RunStats, Runner, StorageClass,
+};
+use crate::serial::ImuFrameReader;
+
+/// What the run commands share: the configuration, the outputs and the evaluation.
+#[derive(Clone, Debug, Default)]
+pub struct RunSetup {
+    /// Configuration file.
+    pub config: Option<PathBuf>,
+    /// Preset (when no file).
+    pub preset: Option<String>,
+    /// Association mode override.
+    pub mode: Option<AssociationMode>,
+    /// Ouster metadata (overrides the configuration's).
+    pub metadata: Option<PathBuf>,
+    /// Velodyne calibration (overrides the configuration's).
+    pub calibration: Option<PathBuf>,
+    /// Output directory.
+    pub out: Option<PathBuf>,
+    /// Ground truth (TUM).
+    pub gt: Option<PathBuf>,
+    /// Skip the map and the plots.
+    pub no_map: bool,
+}
+
+impl RunSetup {
+    /// The configuration: the file, else the preset (default vlp16), with the overrides.
+    pub fn load_config(&self) -> Result<Config, PipelineError> {
+        let mut cfg = match (&self.config, &self.preset) {
+            (Some(p), _) => Config::load(p)?,
+            (None, Some(name)) => Config::preset(
+                name.parse::<Preset>()
+                    .map_err(|e| PipelineError(e.0.trim_start_matches("config: ").to_string()))?,
+            ),
+            (None, None) => Config::preset(Preset::Vlp16),
+        };
+        if let Some(m) = self.mode {
+            cfg.mapping.association = m;
+        }
+        if let Some(m) = &self.metadata {
+            cfg.sensor.ouster_metadata = Some(m.clone());
+        }
+        if let Some(c) = &self.calibration {
+            cfg.sensor.calibration = Some(c.clone());
+        }
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Output options (the ground truth read here).
+    pub fn outputs(&self) -> Result<OutputOptions, PipelineError> {
+        let gt = match &self.gt {
+            Some(p) => {
+                Some(eval::read_trajectory(p, Format::Tum, None).map_err(|e| PipelineError(e.to_string()))?)
+            }
+            None => None,
+        };
+        let write = self.out.is_some();
+        Ok(OutputOptions {
+            dir: self.out.clone(),
+            gt,
+            map: write && !self.no_map,
+            plots: write && !self.no_map,
+        })
+    }
+}
+
+/// Where the replay's IMU comes from.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum ImuInput {
+    /// A CSV file `t,gx,gy,gz,ax,ay,az`.
+    Csv(PathBuf),
+    /// A capture of loglio's serial IMU frames.
+    Serial(PathBuf),
+    /// The Ouster IMU packets in the pcap.
+    OusterPackets,
+}
+
+impl ImuInput {
+    /// The IMU input of a file: CSV if it starts like the CSV header, serial frames otherwise.
+    pub fn detect(path: &Path) -> Result<ImuInput, PipelineError> {
+        let mut head = [0u8; 64];
+        let n = {
+            use std::io::Read;
+            let mut f = File::open(path).map_err(|e| PipelineError(format!("{}: {e}", path.display())))?;
+            f.read(&mut head).map_err(|e| PipelineError(format!("{}: {e}", path.display())))?
+        };
+        let text = String::from_utf8_lossy(&head[..n]);
+        let csvish = text.trim_start().starts_with("t,") || text.trim_start().starts_with('#');
+        Ok(if csvish || path.extension().is_some_and(|e| e == "csv") {
+            ImuInput::Csv(path.to_path_buf())
+        } else {
+            ImuInput::Serial(path.to_path_buf())
+        })
+    }
+}
+
+/// A replay's settings.
+#[derive(Clone, Debug)]
+pub struct ReplayOptions {
+    /// The pcap.
+    pub pcap: PathBuf,
+    /// The IMU (`None`: the configuration's `imu.source`: Ouster packets or `imu.csv_path`).
+    pub imu: Option<ImuInput>,
+    /// Pace by the capture times (`rate` x real time).
+    pub realtime: Option<f64>,
+    /// The shared run settings.
+    pub setup: RunSetup,
+    /// Show the progress bar.
+    pub progress: bool,
+}
+
+/// A finished replay.
+#[derive(Debug)]
+pub struct ReplayReport {
+    /// Counts and times.
+    pub stats: RunStats,
+    /// What was written and the evaluation.
+    pub finished: Finished,
+    /// Packet counts.
+    pub stream: lidar_stream::StreamStats,
+    /// The scan period, s.
+    pub scan_period_s: f64,
+    /// Wall time, s.
+    pub wall_s: f64,
+}
+
+enum ImuFeed {
+    Samples(std::vec::IntoIter<ImuSample>),
+    Serial(Box<ImuFrameReader<BufReader<File>>>),
+    None,
+}
+
+impl ImuFeed {
+    fn next(&mut self) -> Result<Option<ImuSample>, PipelineError> {
+        match self {
+            ImuFeed::Samples(it) => Ok(it.next()),
+            ImuFeed::Serial(r) => r
+                .next_frame()
+                .map(|f| f.map(|f| f.sample()))
+                .map_err(|e| PipelineError(format!("IMU capture: {e}"))),
+            ImuFeed::None => Ok(None),
+        }
+    }
+}
+
+/// Runs a replay.
+pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
+    let wall = Instant::now();
+    let cfg = opt.setup.load_config()?;
+    let imu = match (&opt.imu, cfg.imu.source) {
+        (Some(i), _) => i.clone(),
+        (None, ImuSource::Ouster) => ImuInput::OusterPackets,
+        (None, ImuSource::Csv) => ImuInput::Csv(cfg.imu.csv_path.clone().unwrap_or_default()),
+        (None, ImuSource::Serial) => {
+            return Err(PipelineError(
+                "no IMU for the replay: pass --imu FILE (an IMU CSV or a serial capture), or use an Ouster's IMU packets (--ouster-imu)"
+                    .into(),
+            ));
+        }
+    };
+    if imu == ImuInput::OusterPackets && cfg.preset.family() != SensorFamily::Ouster {
+        return Err(PipelineError(format!(
+            "--ouster-imu needs an Ouster preset (os1-*), not {}",
+            cfg.preset
+        )));
+    }
+    let meta = match &cfg.sensor.ouster_metadata {
+        Some(p) => Some(crate::ouster_meta::load(p).map_err(|e| PipelineError(e.to_string()))?),
+        None => None,
+    };
+    let dec = SensorDecoder::new(&cfg, meta.as_ref().map(|m| &m.intrinsics))?;
+    let (lidar_port, imu_port) = match &meta {
+        Some(m) => (m.udp_port_lidar, m.udp_port_imu),
+        None => (cfg.network.lidar_port, cfg.network.imu_port),
+    };
+    let mut feed = match &imu {
+        ImuInput::Csv(p) => {
+            ImuFeed::Samples(crate::imu_csv::load(p).map_err(|e| PipelineError(e.to_string()))?.into_iter())
+        }
+        ImuInput::Serial(p) => {
+            let f = File::open(p).map_err(|e| PipelineError(format!("{}: {e}", p.display())))?;
+            ImuFeed::Serial(Box::new(ImuFrameReader::new(BufReader::new(f))))
+        }
+        ImuInput::OusterPackets => ImuFeed::None,
+    };
+    let layout = dec.layout();
+    let class = StorageClass::choose(layout.rows(), layout.cols(), cfg.mapping.map_capacity)?;
+    let core = pipeline::odometry_config(&cfg, layout)?;
+    let mut reader = crate::pcap::PcapReader::open(&opt.pcap)
+        .map_err(|e| PipelineError(format!("{}: {e}", opt.pcap.display())))?;
+    let total = std::fs::metadata(&opt.pcap).map(|m| m.len()).unwrap_or(0);
+    let progress = if opt.progress { Progress::new(total, "", true) } else { Progress::hidden() };
+    let outputs = Outputs::new(opt.setup.outputs()?)?;
+    let (a_len, _) = (dec.max_points(), ());
+    let mut a = vec![loglio_core::scan::ScanPoint::default(); a_len];
+    let mut b = vec![loglio_core::scan::ScanPoint::default(); a_len];
+    let mut stream = LidarStream::new(&cfg, dec, &mut a, &mut b, lidar_port, imu_port);
+    let offset_ns = (cfg.time.lidar_imu_offset * 1e9) as i64;
+    let res = pipeline::with_engine(&core, class, |engine| -> Result<_, PipelineError> {
+        let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
+        let mut next_imu = feed.next()?;
+        let mut bytes = 0u64;
+        let mut first_capture: Option<(u64, Instant)> = None;
+        let mut read_error = None;
+        loop {
+            let udp = match reader.next_udp() {
+                Ok(Some(u)) => u,
+                Ok(None) => break,
+                Err(e) => {
+                    read_error = Some(e.to_string());
+                    break;
+                }
+            };
+            bytes += udp.payload.len() as u64 + 58;
+            progress.set_position(bytes.min(total));
+            if let Some(rate) = opt.realtime {
+                let (t0, w0) = *first_capture.get_or_insert((udp.ts_ns, Instant::now()));
+                let due = Duration::from_secs_f64(udp.ts_ns.saturating_sub(t0) as f64 * 1e-9 / rate);
+                if let Some(wait) = due.checked_sub(w0.elapsed()) {
+                    std::thread::sleep(wait);
+                }
+            }
+            let (port, payload, ts) = (udp.dst_port, udp.payload, udp.ts_ns);
+            match stream.packet(port, payload, ts) {
+                Some(Decoded::Imu(s)) => runner.imu(s)?,
+                Some(Decoded::Scan(scan)) => {
+                    // The file IMU up to a little past this scan's end first.
+                    let until = scan.end_ns().saturating_add(200_000_000);
+                    while let Some(s) = next_imu {
+                        if s.t_ns.saturating_add_signed(offset_ns) > until {
+                            break;
+                        }
+                        runner.imu(s)?;
+                        next_imu = feed.next()?;
+                    }
+                    runner.scan(scan, 0)?;
+                }
+                None => {}
+            }
+        }
+        if let Some(Decoded::Scan(scan)) = stream.flush() {
+            runner.scan(scan, 0)?;
+        }
+        while let Some(s) = next_imu {
+            runner.imu(s)?;
+            next_imu = feed.next()?;
+        }
+        if let Some(e) = read_error {
+            if runner.stats.scans == 0 && runner.pending() == 0 {
+                return Err(PipelineError(format!("{}: {e}", opt.pcap.display())));
+            }
+            warn(format!("{}: {e}; replayed the packets before it", opt.pcap.display()));
+        }
+        let fin = runner.finish()?;
+        Ok(fin)
+    })??;
+    progress.finish();
+    let ps = reader.stats;
+    if ps.corrupt_records > 0 || ps.truncated_at_eof {
+        warn(format!(
+            "{}: {} corrupt records skipped{}",
+            opt.pcap.display(),
+            ps.corrupt_records,
+            if ps.truncated_at_eof { ", truncated at the end" } else { "" }
+        ));
+    }
+    if stream.stats.bad_packets > 0 {
+        warn(format!("{} LiDAR packets could not be decoded and were dropped", stream.stats.bad_packets));
+    }
+    let (stats, finished) = res;
+    Ok(ReplayReport {
+        stats,
+        finished,
+        stream: stream.stats,
+        scan_period_s: 1.0 / cfg.sensor.scan_rate_hz,
+        wall_s: wall.elapsed().as_secs_f64(),
+    })
+}
+
+/// The summary of a run: scans, timing, margin, ATE and files.
+pub fn summary(stats: &RunStats, fin: &Finished, scan_period_s: f64, wall_s: f64) -> String {
+    let mean = stats.mean_scan_s();
+    let mut s =
+        format!("{} scans ({}), {} IMU samples", stats.scans, pipeline::status_summary(stats), stats.imu_in);
+    if stats.imu_dropped + stats.imu_stale > 0 {
+        s.push_str(&format!(" ({} dropped, {} older than their scan)", stats.imu_dropped, stats.imu_stale));
+    }
+    if stats.scans_without_imu > 0 {
+        s.push_str(&format!("; {} scans without IMU up to their end", stats.scans_without_imu));
+    }
+    s.push('\n');
+    s.push_str(&format!(
+        "odometry: {:.1} ms per scan (mean), {:.1} ms (median); real-time margin {:.1}x (scan period {:.0} ms / mean)\n",
+        mean * 1e3,
+        stats.median_scan_s() * 1e3,
+        if mean > 0.0 { scan_period_s / mean } else { f64::INFINITY },
+        scan_period_s * 1e3
+    ));
+    if let Some(e) = &fin.eval {
+        s.push_str(&format!(
+            "ATE against ground truth (SE(3)-aligned, {} poses): rmse {:.3} m, max {:.3} m; rotation rmse {:.2} deg\n",
+            e.matched, e.ape_trans.rmse, e.ape_trans.max, e.ape_rot_deg.rmse
+        ));
+    }
+    s.push_str(&format!("wall time {wall_s:.1} s\n"));
+    if !fin.files.is_empty() {
+        s.push_str("wrote:");
+        for f in &fin.files {
+            s.push_str(&format!(" {}", f.display()));
+        }
+        s.push('\n');
+    }
+    s
+}

@@ -1,0 +1,344 @@
+//! The commands that run the odometry: `demo`, `sim`, `bench`, `replay`, `bag`: what they
+//! print and write, their accuracy against exact ground truth, and their one-line errors.
+//!
+//! The accuracy assertions need the real odometry (issue 7, branch `odom`, merged here): with
+//! the propagation-only skeleton no scan is ever `ok` and the map stays empty.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn loglio(args: &[&str]) -> Output {
+    let bin = env!("CARGO_BIN_EXE_loglio");
+    let runner = std::env::var("LOGLIO_TEST_RUNNER").unwrap_or_default();
+    let mut parts = runner.split_whitespace();
+    let mut c = match parts.next() {
+        Some(prog) => {
+            let mut c = Command::new(prog);
+            c.args(parts).arg(bin);
+            c
+        }
+        None => Command::new(bin),
+    };
+    c.args(args).env("RUST_BACKTRACE", "full");
+    c.output().unwrap_or_else(|e| panic!("cannot run {bin}: {e}"))
+}
+
+fn stdout(out: &Output) -> String {
+    assert!(out.status.success(), "stderr: {}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8(out.stdout.clone()).unwrap()
+}
+
+/// Asserts a failure whose one stderr line starts with `prefix`.
+fn fails_with(out: &Output, prefix: &str) -> String {
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(!out.status.success(), "should fail: {err}");
+    assert_eq!(err.lines().count(), 1, "one line: {err}");
+    assert!(err.starts_with(prefix), "{err}");
+    assert!(!err.contains("panicked") && !err.contains("stack backtrace"));
+    err
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("loglio-run-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// The number after `key` in `text` (e.g. "rmse 0.031 m").
+fn number_after(text: &str, key: &str) -> f64 {
+    let i = text.find(key).unwrap_or_else(|| panic!("no {key:?} in {text}"));
+    text[i + key.len()..].split_whitespace().next().unwrap().trim_end_matches(',').parse().unwrap()
+}
+
+/// The count of scans with `status` in the summary's "N scans (a ok, b imu-only, ...)".
+fn status_count(text: &str, status: &str) -> u64 {
+    let open = text.find(" scans (").expect("scan summary") + " scans (".len();
+    let close = open + text[open..].find(')').unwrap();
+    text[open..close]
+        .split(", ")
+        .filter_map(|part| part.split_once(' '))
+        .find(|(_, s)| *s == status)
+        .map_or(0, |(n, _)| n.parse().unwrap())
+}
+
+fn tum_poses(p: &Path) -> Vec<[f64; 8]> {
+    std::fs::read_to_string(p)
+        .unwrap()
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .map(|l| {
+            let v: Vec<f64> = l.split_whitespace().map(|x| x.parse().unwrap()).collect();
+            v.try_into().unwrap()
+        })
+        .collect()
+}
+
+fn ply_vertices(p: &Path) -> usize {
+    let bytes = std::fs::read(p).unwrap();
+    let head = String::from_utf8_lossy(&bytes[..bytes.len().min(400)]).to_string();
+    number_after(&head, "element vertex") as usize
+}
+
+#[test]
+fn demo_writes_every_output_and_tracks_the_ground_truth() {
+    let dir = scratch("demo");
+    let out = loglio(&["demo", "--seconds", "6", "--out", dir.to_str().unwrap()]);
+    let text = stdout(&out);
+    // 6 s at 10 Hz: 60 scans; the IMU initialises within the 2 s at rest.
+    assert!(text.contains("scenario vehicle (6 s, vlp32c, seed 1): 60 scans"), "{text}");
+    let ate = number_after(&text, "rmse");
+    assert!(ate.is_finite() && ate <= 0.10, "ATE {ate} m: {text}");
+    for f in [
+        "trajectory.tum",
+        "groundtruth.tum",
+        "scans.csv",
+        "map.ply",
+        "map.pcd",
+        "trajectory.png",
+        "trajectory.svg",
+        "error.png",
+        "error.svg",
+        "eval.json",
+    ] {
+        let p = dir.join(f);
+        assert!(p.metadata().is_ok_and(|m| m.len() > 0), "{} missing or empty", p.display());
+    }
+    // The trajectory: one pose per scan after the initialisation, at the scan ends, 0.1 s apart.
+    let est = tum_poses(&dir.join("trajectory.tum"));
+    let gt = tum_poses(&dir.join("groundtruth.tum"));
+    assert_eq!(est.len(), gt.len());
+    assert!(est.len() >= 48, "{} poses", est.len());
+    for w in est.windows(2) {
+        assert!((w[1][0] - w[0][0] - 0.1).abs() < 2e-3, "stamps {} {}", w[0][0], w[1][0]);
+    }
+    // Position error without alignment: the world frames agree up to yaw at start (both
+    // gravity-aligned, both start at the IMU's rest pose), so the first pose matches closely
+    // and the car's drive (tens of metres) is followed.
+    let travelled =
+        ((gt.last().unwrap()[1] - gt[0][1]).powi(2) + (gt.last().unwrap()[2] - gt[0][2]).powi(2)).sqrt();
+    assert!(travelled > 5.0, "the car moved {travelled} m");
+    // The per-scan CSV: a header and one row per scan; after the initialisation the scans
+    // update the state (status ok or degraded), not the IMU alone.
+    let csv = std::fs::read_to_string(dir.join("scans.csv")).unwrap();
+    let rows: Vec<&str> = csv.lines().skip(1).collect();
+    assert_eq!(rows.len(), 60);
+    let tracked = rows.iter().filter(|r| r.contains(",ok,") || r.contains(",degraded,")).count();
+    assert!(tracked >= 45, "{tracked} of 60 scans updated by the LiDAR");
+    // The map holds the town's surfaces seen over 6 s.
+    assert!(ply_vertices(&dir.join("map.ply")) > 5_000);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn sim_handheld_ouster_accuracy() {
+    let out =
+        loglio(&["sim", "--scenario", "handheld", "--sensor", "os1-16", "--seconds", "6", "--seed", "3"]);
+    let text = stdout(&out);
+    assert!(text.contains("scenario handheld (6 s, os1-16, seed 3): 60 scans"), "{text}");
+    let ate = number_after(&text, "rmse");
+    assert!(ate <= 0.10, "ATE {ate} m: {text}");
+    let tracked = status_count(&text, "ok") + status_count(&text, "degraded");
+    assert!(tracked >= 45, "scans updated by the LiDAR: {text}");
+}
+
+#[test]
+fn sim_and_demo_bad_arguments_are_one_line() {
+    fails_with(&loglio(&["sim", "--scenario", "moon"]), "error: unknown scenario \"moon\" (known: vehicle,");
+    fails_with(&loglio(&["sim", "--sensor", "os2-128"]), "error: unknown simulated sensor \"os2-128\"");
+    fails_with(&loglio(&["sim", "--seconds", "0"]), "error: --seconds must be in (0, 600]");
+    fails_with(&loglio(&["demo", "--seconds", "1"]), "error: --seconds must be in (2.5, 600]");
+    // An output directory that cannot be created: one line naming it.
+    let dir = scratch("demo-bad-out");
+    let file = dir.join("a-file");
+    std::fs::write(&file, b"x").unwrap();
+    let err = fails_with(
+        &loglio(&["demo", "--seconds", "3", "--out", file.join("sub").to_str().unwrap()]),
+        "error: ",
+    );
+    assert!(err.contains("a-file"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A short simulated drive written as files (pcap, IMU CSV and serial capture, ground
+/// truth) and a configuration with the simulator's extrinsic.
+fn sim_files(name: &str, sensor: loglio_firmware_sim::lidar::SensorModel, seconds: f64) -> PathBuf {
+    use loglio_firmware_sim::scenario::{Scenario, ScenarioConfig, ScenarioKind};
+    let dir = scratch(name);
+    let mut c = ScenarioConfig::new(ScenarioKind::Vehicle, sensor, 5);
+    c.duration_s = seconds;
+    let sc = Scenario::from_config(c).unwrap();
+    loglio_firmware_sim::files::write_all(&sc, &dir.join("sim")).unwrap();
+    let e = sc.extrinsic();
+    let q = e.rotation.quaternion();
+    let preset = sensor.name();
+    std::fs::write(
+        dir.join("config.toml"),
+        format!(
+            "preset = \"{preset}\"\n[extrinsics]\ntranslation = [{}, {}, {}]\nrotation_quat_wxyz = [{}, {}, {}, {}]\n",
+            e.translation.x, e.translation.y, e.translation.z, q.w, q.i, q.j, q.k
+        ),
+    )
+    .unwrap();
+    dir
+}
+
+#[test]
+fn replay_pcap_with_imu_csv_or_serial_capture() {
+    // A VLP-32C: on the simulated VLP-16 drives the odometry itself (direct scans, no packets)
+    // does not hold yet (ATE 0.56-0.67 m, reported to issue 7), so it cannot test the replay.
+    let dir = sim_files("replay", loglio_firmware_sim::lidar::SensorModel::Vlp32c, 4.0);
+    let p = |f: &str| dir.join(f).to_str().unwrap().to_string();
+    let (mut trajectories, mut tracked) = (Vec::new(), Vec::new());
+    for imu in ["sim/imu.csv", "sim/imu.bin"] {
+        let out = dir.join(format!("out-{}", imu.replace(['/', '.'], "-")));
+        let text = stdout(&loglio(&[
+            "replay",
+            &p("sim/lidar.pcap"),
+            "--imu",
+            &p(imu),
+            "--config",
+            &p("config.toml"),
+            "--gt",
+            &p("sim/groundtruth.tum"),
+            "--out",
+            out.to_str().unwrap(),
+        ]));
+        // 4 s at 10 Hz: 40 whole turns plus the partial first and last ones.
+        let scans = number_after(&text, "LiDAR packets\n") as u64;
+        assert!((40..=41).contains(&scans), "{text}");
+        let ate = number_after(&text, "rmse");
+        assert!(ate <= 0.10, "ATE {ate} m: {text}");
+        tracked.push((status_count(&text, "ok") + status_count(&text, "degraded"), text.clone()));
+        for f in
+            ["trajectory.tum", "scans.csv", "map.ply", "map.pcd", "trajectory.png", "error.svg", "eval.json"]
+        {
+            assert!(out.join(f).metadata().is_ok_and(|m| m.len() > 0), "{f} missing: {text}");
+        }
+        trajectories.push(std::fs::read_to_string(out.join("trajectory.tum")).unwrap());
+    }
+    // The CSV holds the serial frames' values: both IMU inputs give the same trajectory.
+    assert_eq!(trajectories[0], trajectories[1]);
+    // After the initialisation the scans update the state (needs the odometry of issue 7).
+    for (n, text) in tracked {
+        assert!(n >= 25, "scans updated by the LiDAR: {text}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn replay_bad_input_is_one_line() {
+    let dir = sim_files("replay-bad", loglio_firmware_sim::lidar::SensorModel::Vlp16, 3.0);
+    let p = |f: &str| dir.join(f).to_str().unwrap().to_string();
+    let out = p("out");
+    // Unknown preset.
+    let e =
+        fails_with(&loglio(&["replay", &p("sim/lidar.pcap"), "--preset", "vlp64", "--out", &out]), "error: ");
+    assert!(e.contains("unknown preset \"vlp64\" (known: vlp16,"), "{e}");
+    // A Velodyne without an IMU.
+    fails_with(
+        &loglio(&["replay", &p("sim/lidar.pcap"), "--preset", "vlp16", "--out", &out]),
+        "error: no IMU for the replay",
+    );
+    // Not a pcap.
+    let e = fails_with(
+        &loglio(&[
+            "replay",
+            &p("config.toml"),
+            "--imu",
+            &p("sim/imu.csv"),
+            "--config",
+            &p("config.toml"),
+            "--out",
+            &out,
+        ]),
+        "error: ",
+    );
+    assert!(e.contains("config.toml"), "{e}");
+    // A truncated pcap: the packets before the cut are replayed, with one warning.
+    let bytes = std::fs::read(dir.join("sim/lidar.pcap")).unwrap();
+    std::fs::write(dir.join("cut.pcap"), &bytes[..bytes.len() * 2 / 3 + 7]).unwrap();
+    let o = loglio(&[
+        "replay",
+        &p("cut.pcap"),
+        "--imu",
+        &p("sim/imu.csv"),
+        "--config",
+        &p("config.toml"),
+        "--out",
+        &out,
+    ]);
+    let text = stdout(&o);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.lines().all(|l| l.starts_with("warning: ")) && err.contains("truncated"), "{err}");
+    let scans = number_after(&text, "LiDAR packets\n");
+    assert!((18.0..=21.0).contains(&scans), "{text}");
+    // IMU and LiDAR that do not overlap: the IMU 1000 s later.
+    let csv = std::fs::read_to_string(dir.join("sim/imu.csv")).unwrap();
+    let shifted: String = csv
+        .lines()
+        .map(|l| match l.split_once(',') {
+            Some((t, rest)) if t.parse::<f64>().is_ok() => {
+                format!("{:.9},{rest}\n", t.parse::<f64>().unwrap() + 1000.0)
+            }
+            _ => format!("{l}\n"),
+        })
+        .collect();
+    std::fs::write(dir.join("late.csv"), shifted).unwrap();
+    let e = fails_with(
+        &loglio(&[
+            "replay",
+            &p("sim/lidar.pcap"),
+            "--imu",
+            &p("late.csv"),
+            "--config",
+            &p("config.toml"),
+            "--out",
+            &out,
+        ]),
+        "error: LiDAR and IMU streams do not overlap in time",
+    );
+    assert!(e.contains("offset of"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn bench_json_parses_and_is_consistent() {
+    let text = stdout(&loglio(&["bench", "--preset", "os1-16", "--seconds", "3", "--json"]));
+    let v: serde_json::Value = serde_json::from_str(&text).unwrap_or_else(|e| panic!("{e}: {text}"));
+    assert_eq!(v["preset"], "os1-16");
+    assert_eq!(v["scan_period_ms"], 100.0);
+    assert!(v["points_per_scan"].as_f64().unwrap() > 5_000.0, "{text}");
+    for (key, mode) in [("main", "full"), ("baseline", "plain")] {
+        let m = &v[key];
+        assert_eq!(m["mode"], mode);
+        // 3 s at 10 Hz, the first ~1 s spent initialising: 15-25 timed scans.
+        let scans = m["scans"].as_u64().unwrap();
+        assert!((15..=25).contains(&scans), "{text}");
+        let mean = m["scan_ms"]["mean"].as_f64().unwrap();
+        let median = m["scan_ms"]["median"].as_f64().unwrap();
+        let p95 = m["scan_ms"]["p95"].as_f64().unwrap();
+        assert!(mean > 0.0 && median > 0.0 && p95 >= median, "{text}");
+        // The stages are parts of the scan's time.
+        let stages: f64 = m["stage_mean_ms"].as_object().unwrap().values().map(|x| x.as_f64().unwrap()).sum();
+        assert_eq!(m["stage_mean_ms"].as_object().unwrap().len(), 6);
+        assert!(stages <= mean * 1.0001, "stages {stages} ms > scan {mean} ms");
+        let margin = m["realtime_margin"].as_f64().unwrap();
+        assert!((margin - 100.0 / mean).abs() <= 1e-9 * margin, "{text}");
+    }
+    let ratio = v["main_over_baseline"].as_f64().unwrap();
+    let means = [&v["main"], &v["baseline"]].map(|m| m["scan_ms"]["mean"].as_f64().unwrap());
+    assert!((ratio - means[0] / means[1]).abs() < 1e-9 * ratio);
+    assert_eq!(v["keeps_up"], v["main"]["realtime_margin"].as_f64().unwrap() >= 1.0);
+    // The human form names the verdict.
+    let text = stdout(&loglio(&["bench", "--preset", "vlp16", "--seconds", "3"]));
+    assert!(text.contains("this computer keeps up") || text.contains("does NOT keep up"), "{text}");
+    assert!(text.contains("margin"), "{text}");
+}
+
+#[test]
+fn bench_bad_presets_are_one_line() {
+    fails_with(&loglio(&["bench", "--preset", "vlp64"]), "error: unknown preset \"vlp64\" (known: vlp16,");
+    fails_with(&loglio(&["bench", "--preset", "os1-128"]), "error: the simulator has no os1-128 model");
+    fails_with(&loglio(&["bench", "--seconds", "1"]), "error: --seconds must be in [3, 120]");
+}
