@@ -17,7 +17,7 @@
 //! | packets to whole scans (cut angle, drops, duplicates) | [`scan_assembly`] |
 //! | IMU samples, initialisation and propagation | [`imu`] |
 //! | voxel map with incremental distributions | [`voxel_map`], [`surfel`] |
-//! | data association | `association` |
+//! | data association | [`association`] |
 //! | iterated error-state Kalman filter | [`eskf`] |
 //! | the per-scan pipeline | [`odometry`] |
 #![no_std]
@@ -26,6 +26,7 @@
 #[macro_use]
 mod fmt;
 
+pub mod association;
 pub mod downsample;
 pub mod eskf;
 pub mod imu;

@@ -12,26 +12,77 @@
 //!   per-stage times (the core has no clock).
 //! - [`AssociationMode`] selects `full` (LOG-LIO), `plane-only` (LOG-C) or `plain` (FAST-LIO2-like)
 //!   at run time.
+//! - [`OdometryConfig::vlp32c`] and [`OdometryConfig::os1_16`] are the paper's two setups; set
+//!   the extrinsic ([`OdometryConfig::with_extrinsic`]) and the IMU noise (`eskf.noise`) of the
+//!   actual rig.
+//!
+//! # One scan
+//!
+//! 1. The points are copied into the storage (at most `PTS`; the rest are counted in
+//!    [`OdometryStats::points_overflow`]). Ring FALS estimates their normals on the raw scan,
+//!    before undistortion, from the range image (skipped in [`AssociationMode::Plain`]).
+//! 2. Points with a non-finite position or time, a time outside `[0, MAX_SCAN_SPAN_S]`, or a
+//!    range outside `[blind, max_range]` are dropped (counted). The scan end is the latest kept
+//!    point time.
+//! 3. The IMU samples up to the scan end propagate the filter (or feed its initialisation); the
+//!    state after every sample is a knot of the scan's [`ImuTrajectory`]; the filter is then
+//!    propagated to the scan end, and every point and normal is moved to the LiDAR frame at the
+//!    scan end (backward propagation).
+//! 4. Voxel downsampling on the map's grid keeps one point per voxel with the averaged normal.
+//! 5. The first scan after initialisation only builds the map. Later scans run the iterated
+//!    update ([`Eskf::update`]) with the association of [`crate::association`]; the filter
+//!    handles degenerate directions (the status says [`Status::Degraded`]).
+//! 6. The scan goes into the voxel map at the updated pose (also when it had too few
+//!    correspondences: the map must grow into new space).
+//!
+//! # Faults
+//! - **IMU gaps** (spacing above `eskf.max_gap_s`): bridged holding the last sample, with
+//!   inflated process noise (flagged `GAP` in [`ScanResult::propagation`]).
+//! - **Forward jumps** (above `eskf.max_hold_s`): the filter is re-seeded at the sample after the
+//!   jump: the position moves on at the last velocity, the attitude at the last rate, and the
+//!   position, velocity and attitude uncertainties grow by the "rough start" sigmas of
+//!   `eskf.initial` (position by `rough_vel` times the gap), so the next scan can re-localise
+//!   in the map. The scan reports [`Status::Reinitialising`].
+//! - **Reversals**: single samples earlier than the last are dropped by the queue (counted in
+//!   its stats). A clock that went back for good (more than [`CLOCK_RESET_SAMPLES`] samples in a
+//!   row earlier than the last by over `max_hold_s`) restarts the odometry: queue, filter and map
+//!   are cleared and the IMU initialisation runs again.
+//! - **Too few correspondences** (fewer than `eskf.min_measurements`): the scan is IMU-only, the
+//!   covariance keeps growing, the status says [`Status::ImuOnly`].
+//! - **Empty scans** (nothing left after step 2 or 4): IMU-only, [`ImuOnlyReason::EmptyScan`].
+//! - **A non-finite state** (absurd IMU values): full restart, [`ReinitReason::NonFinite`].
+//!
+//! Nothing here allocates, reads a clock (the caller may lend one) or panics on any input.
 
-// SKELETON: the stages after propagation land with the association (issue 7); remove this then.
-#![allow(dead_code, missing_debug_implementations)]
+use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 
-use nalgebra::{UnitQuaternion, Vector3};
-
-use crate::downsample::{DownsampleConfig, VoxelDownsampler};
-use crate::eskf::{Eskf, EskfConfig, UpdateResult};
-use crate::imu::{ImuInitConfig, ImuInitializer, ImuPush, ImuQueue, ImuSample, InitStatus, WaitReason};
-use crate::output::{AssociationCounts, ImuOnlyReason, PoseEstimate, ScanResult, StageTimes, Status};
+use crate::association::{AssociationConfig, Correspondence, KNN_CHUNK, ScanAssociation};
+use crate::downsample::{DownsampleConfig, INVALID_NORMAL, VoxelDownsampler, normal_is_valid};
+use crate::eskf::{Eskf, EskfConfig, Predicted, PropagationFlags, UpdateOutcome, UpdateResult, idx};
+use crate::imu::{
+    ImuDrop, ImuInitConfig, ImuInitializer, ImuPush, ImuQueue, ImuSample, InitStatus, WaitReason,
+};
+use crate::output::{
+    AssociationCounts, ImuOnlyReason, PoseEstimate, ReinitReason, ScanResult, StageTimes, Status,
+};
 use crate::range_image::RangeImageLayout;
 use crate::ring_fals::{PointNormal, RingFals, RingFalsConfig, RingTable, TableError, storage_pixels};
 use crate::scan::{ScanPoint, ScanView};
+use crate::so3;
 use crate::undistort::ImuTrajectory;
-use crate::voxel_map::{MapConfig, MapError, MapStorage, PRESET_INDEX_SLOTS, PRESET_POOL_VOXELS, VoxelMap};
+use crate::voxel_map::{
+    MapConfig, MapError, MapPoint, MapStorage, Neighbours, PRESET_INDEX_SLOTS, PRESET_POOL_VOXELS, VoxelMap,
+};
 
 /// IMU samples queued between two scans (200 Hz x 1 s, or 1 kHz x 0.25 s).
 pub const IMU_QUEUE: usize = 256;
 /// IMU knots kept for the undistortion of one scan.
 pub const TRAJECTORY_KNOTS: usize = 64;
+/// Points later than this after the scan start are dropped (a scan lasts 0.1 s at 10 Hz), s.
+pub const MAX_SCAN_SPAN_S: f32 = 1.0;
+/// Consecutive samples that went back in time by more than `max_hold_s` before the odometry
+/// takes it as a clock reset and restarts.
+pub const CLOCK_RESET_SAMPLES: u32 = 10;
 
 /// Which association the update uses (the paper's ablation).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -61,6 +112,8 @@ pub struct OdometryConfig {
     pub downsample: DownsampleConfig,
     /// The voxel map.
     pub map: MapConfig,
+    /// The association (checks, hierarchy, residual test, noise).
+    pub association: AssociationConfig,
     /// The filter (noise, iterations, degeneracy, extrinsic estimation).
     pub eskf: EskfConfig,
     /// IMU initialisation.
@@ -73,6 +126,50 @@ pub struct OdometryConfig {
     pub blind: f32,
     /// Points farther than this are ignored, m.
     pub max_range: f32,
+}
+
+impl OdometryConfig {
+    /// Velodyne VLP-32C (the paper's M2DGR setup): 0.4 m voxels for the scan and the map, 80 m
+    /// range, full LOG-LIO association, identity extrinsic (set the rig's).
+    pub fn vlp32c(layout: RangeImageLayout) -> Self {
+        Self {
+            mode: AssociationMode::Full,
+            layout,
+            ring_fals: RingFalsConfig::DEFAULT,
+            downsample: DownsampleConfig { voxel: 0.4, ..DownsampleConfig::default() },
+            map: MapConfig::VLP32C,
+            association: AssociationConfig::DEFAULT,
+            eskf: EskfConfig { min_measurements: 20, ..EskfConfig::default() },
+            init: ImuInitConfig::default(),
+            ext_rot: UnitQuaternion::identity(),
+            ext_pos: Vector3::zeros(),
+            blind: 0.5,
+            max_range: 80.0,
+        }
+    }
+
+    /// Ouster OS1-16 (the paper's NTU VIRAL setup): 0.5 m voxels, 100 m range.
+    pub fn os1_16(layout: RangeImageLayout) -> Self {
+        Self {
+            downsample: DownsampleConfig { voxel: 0.5, ..DownsampleConfig::default() },
+            map: MapConfig::OS1_16,
+            max_range: 100.0,
+            ..Self::vlp32c(layout)
+        }
+    }
+
+    /// The same settings with the LiDAR-IMU extrinsic (IMU from LiDAR: `p_I = rot p_L + pos`).
+    pub fn with_extrinsic(mut self, rot: UnitQuaternion<f64>, pos: Vector3<f64>) -> Self {
+        self.ext_rot = rot;
+        self.ext_pos = pos;
+        self
+    }
+
+    /// The same settings in another association mode.
+    pub fn with_mode(mut self, mode: AssociationMode) -> Self {
+        self.mode = mode;
+        self
+    }
 }
 
 /// Why an [`Odometry`] cannot be built.
@@ -100,7 +197,8 @@ impl core::fmt::Display for OdometryError {
 impl core::error::Error for OdometryError {}
 
 /// The buffers of one scan and the pipeline's stages, sized at compile time: `PIX` range-image
-/// pixels (see [`storage_pixels`]), `PTS` points per scan, `DS` downsampling slots.
+/// pixels (see [`storage_pixels`]), `PTS` points per scan, `DS` downsampling slots (a power of
+/// two; at most `3 DS / 4` voxels per scan).
 pub struct ScanStorage<const PIX: usize, const PTS: usize, const DS: usize> {
     ring: RingFals<PIX>,
     table: RingTable,
@@ -110,6 +208,21 @@ pub struct ScanStorage<const PIX: usize, const PTS: usize, const DS: usize> {
     normals3: [[f32; 3]; PTS],
     imu: ImuQueue<IMU_QUEUE>,
     trajectory: ImuTrajectory<TRAJECTORY_KNOTS>,
+    corr: [Correspondence; DS],
+    queries: [[f32; 3]; KNN_CHUNK],
+    neighbours: [Neighbours; KNN_CHUNK],
+}
+
+impl<const PIX: usize, const PTS: usize, const DS: usize> core::fmt::Debug for ScanStorage<PIX, PTS, DS> {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.debug_struct("ScanStorage").field("pixels", &PIX).field("points", &PTS).field("slots", &DS).finish()
+    }
+}
+
+impl<const PIX: usize, const PTS: usize, const DS: usize> Default for ScanStorage<PIX, PTS, DS> {
+    fn default() -> Self {
+        Self::new()
+    }
 }
 
 impl<const PIX: usize, const PTS: usize, const DS: usize> ScanStorage<PIX, PTS, DS> {
@@ -125,6 +238,9 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> ScanStorage<PIX, PTS, 
             normals3: [[0.0; 3]; PTS],
             imu: ImuQueue::new(),
             trajectory: ImuTrajectory::new(),
+            corr: [Correspondence::NONE; DS],
+            queries: [[0.0; 3]; KNN_CHUNK],
+            neighbours: [Neighbours::new(); KNN_CHUNK],
         }
     }
 }
@@ -140,6 +256,22 @@ pub struct OdometryStorage<
 > {
     scan: ScanStorage<PIX, PTS, DS>,
     map: MapStorage<V, I>,
+}
+
+impl<const PIX: usize, const PTS: usize, const DS: usize, const V: usize, const I: usize> core::fmt::Debug
+    for OdometryStorage<PIX, PTS, DS, V, I>
+{
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.debug_struct("OdometryStorage").field("scan", &self.scan).field("voxels", &V).finish()
+    }
+}
+
+impl<const PIX: usize, const PTS: usize, const DS: usize, const V: usize, const I: usize> Default
+    for OdometryStorage<PIX, PTS, DS, V, I>
+{
+    fn default() -> Self {
+        Self::new()
+    }
 }
 
 impl<const PIX: usize, const PTS: usize, const DS: usize, const V: usize, const I: usize>
@@ -168,6 +300,30 @@ pub type Vlp32cStorage =
 pub type Os1_16Storage =
     OdometryStorage<{ storage_pixels(16, 1024) }, 16384, 16384, PRESET_POOL_VOXELS, PRESET_INDEX_SLOTS>;
 
+/// Counters over the odometry's life (and of the last scan).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct OdometryStats {
+    /// Scans processed.
+    pub scans: u32,
+    /// Points beyond the storage's `PTS` (not processed), all scans.
+    pub points_overflow: u64,
+    /// Points dropped for a non-finite or out-of-range position or time, all scans.
+    pub points_invalid: u64,
+    /// Points beyond `PTS` in the last scan.
+    pub last_overflow: u32,
+    /// Points dropped as invalid in the last scan.
+    pub last_invalid: u32,
+    /// Re-seeds after an IMU jump and full restarts.
+    pub reinitialisations: u32,
+    /// Scans that did not update the state (after initialisation, map building excluded).
+    pub imu_only: u32,
+    /// Scans with degenerate directions.
+    pub degraded: u32,
+    /// Samples that went back in time by more than `max_hold_s` in a row (clock reset watch).
+    pub reversed_run: u32,
+}
+
 /// The LiDAR-inertial odometry over caller-owned storage.
 pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     cfg: OdometryConfig,
@@ -176,7 +332,20 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     initializer: ImuInitializer,
     filter: Option<Eskf>,
     wait: WaitReason,
-    scans: u32,
+    stamp: u32,
+    restart_pending: bool,
+    stats: OdometryStats,
+}
+
+impl<const PIX: usize, const PTS: usize, const DS: usize> core::fmt::Debug for Odometry<'_, PIX, PTS, DS> {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.debug_struct("Odometry")
+            .field("mode", &self.cfg.mode)
+            .field("initialised", &self.filter.is_some())
+            .field("map_voxels", &self.map.len())
+            .field("stats", &self.stats)
+            .finish()
+    }
 }
 
 impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, PTS, DS> {
@@ -192,6 +361,18 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         if !(cfg.max_range.is_finite() && cfg.max_range > cfg.blind) {
             return Err(OdometryError::InvalidConfig("max_range"));
         }
+        if !(cfg.downsample.voxel.is_finite() && cfg.downsample.voxel > 0.0) {
+            return Err(OdometryError::InvalidConfig("downsample.voxel"));
+        }
+        if !DS.is_power_of_two() || DS < 4 {
+            return Err(OdometryError::InvalidConfig("storage: DS must be a power of two"));
+        }
+        cfg.association.validate().map_err(OdometryError::InvalidConfig)?;
+        let ext_ok =
+            cfg.ext_rot.coords.iter().all(|v| v.is_finite()) && cfg.ext_pos.iter().all(|v| v.is_finite());
+        if !ext_ok {
+            return Err(OdometryError::InvalidConfig("extrinsic"));
+        }
         scan.table.build(&cfg.layout, &cfg.ring_fals).map_err(OdometryError::RingTable)?;
         scan.imu.clear();
         let map = map.map(cfg.map).map_err(OdometryError::Map)?;
@@ -202,7 +383,9 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             initializer: ImuInitializer::new(cfg.init),
             filter: None,
             wait: WaitReason::Collecting { samples: 0, span_s: 0.0 },
-            scans: 0,
+            stamp: 0,
+            restart_pending: false,
+            stats: OdometryStats::default(),
         })
     }
 
@@ -221,9 +404,40 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         self.filter.as_ref()
     }
 
+    /// Counters.
+    pub fn stats(&self) -> OdometryStats {
+        self.stats
+    }
+
+    /// The IMU queue's counters (accepted, reversed, duplicate, non-finite, overwritten).
+    pub fn imu_stats(&self) -> crate::imu::ImuQueueStats {
+        self.scan.imu.stats()
+    }
+
+    /// Switches the association mode from the next scan on.
+    pub fn set_mode(&mut self, mode: AssociationMode) {
+        self.cfg.mode = mode;
+    }
+
     /// Queues one IMU sample (time order; dropped ones are counted in the queue's stats).
     pub fn push_imu(&mut self, s: ImuSample) -> ImuPush {
-        self.scan.imu.push(s)
+        let r = self.scan.imu.push(s);
+        let hold_ns = (self.cfg.eskf.max_hold_s.max(0.0) * 1e9) as u64;
+        let far_back = matches!(r, ImuPush::Dropped(ImuDrop::Reversed))
+            && self.scan.imu.last_time_ns().is_some_and(|last| s.t_ns.saturating_add(hold_ns) < last);
+        if far_back {
+            self.stats.reversed_run = self.stats.reversed_run.saturating_add(1);
+            if self.stats.reversed_run >= CLOCK_RESET_SAMPLES {
+                // The IMU clock went back for good: start over on the new clock.
+                self.scan.imu.clear();
+                self.restart_pending = true;
+                self.stats.reversed_run = 0;
+                return self.scan.imu.push(s);
+            }
+        } else if !matches!(r, ImuPush::Dropped(_)) {
+            self.stats.reversed_run = 0;
+        }
+        r
     }
 
     /// Processes one scan without stage timing.
@@ -231,59 +445,264 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         self.process_scan_timed(scan, &mut NoClock)
     }
 
+    /// Forgets the filter and the map; the IMU initialisation starts again.
+    fn restart(&mut self) {
+        self.filter = None;
+        self.initializer.reset();
+        self.map.clear();
+        self.wait = WaitReason::Collecting { samples: 0, span_s: 0.0 };
+        self.stats.reinitialisations = self.stats.reinitialisations.saturating_add(1);
+    }
+
     /// Processes one scan; `clock` is read around each stage for [`StageTimes`].
     pub fn process_scan_timed(&mut self, scan: ScanView<'_>, clock: &mut impl Clock) -> ScanResult {
         let t0 = clock.now_ns();
-        let end_ns = scan_end_ns(&scan);
         let mut times = StageTimes::default();
-        // Propagate (or initialise) through the IMU samples up to the scan end.
-        while let Some(s) = self.scan.imu.pop_until(end_ns) {
+        self.stats.scans = self.stats.scans.saturating_add(1);
+        let mut reinit: Option<ReinitReason> = None;
+        if self.restart_pending {
+            self.restart_pending = false;
+            self.restart();
+            reinit = Some(ReinitReason::ImuJump);
+        }
+        let use_normals = self.cfg.mode != AssociationMode::Plain;
+
+        // 1. Copy, normals on the raw scan.
+        let n_in = scan.points.len();
+        let n = n_in.min(PTS);
+        let overflow = (n_in - n).min(u32::MAX as usize) as u32;
+        let st = &mut *self.scan;
+        st.points[..n].copy_from_slice(&scan.points[..n]);
+        if use_normals && st.ring.estimate(&st.table, &st.points[..n], &mut st.normals[..n]).is_err() {
+            st.normals[..n].fill(PointNormal::INVALID);
+        }
+        let t1 = clock.now_ns();
+        times.normals_ns = t1.saturating_sub(t0);
+
+        // 2. Drop invalid points, keep the normals beside them.
+        let (blind2, max2) = (self.cfg.blind * self.cfg.blind, self.cfg.max_range * self.cfg.max_range);
+        let mut m = 0usize;
+        let mut t_max = 0.0f32;
+        for i in 0..n {
+            let p = st.points[i];
+            let [x, y, z] = p.xyz;
+            let r2 = x * x + y * y + z * z;
+            let ok = r2.is_finite() && r2 >= blind2 && r2 <= max2 && p.t >= 0.0 && p.t <= MAX_SCAN_SPAN_S;
+            if !ok {
+                continue;
+            }
+            st.points[m] = p;
+            st.normals3[m] =
+                if use_normals { st.normals[i].get().unwrap_or(INVALID_NORMAL) } else { INVALID_NORMAL };
+            if p.t > t_max {
+                t_max = p.t;
+            }
+            m += 1;
+        }
+        let invalid = (n - m) as u32;
+        self.stats.last_overflow = overflow;
+        self.stats.last_invalid = invalid;
+        self.stats.points_overflow = self.stats.points_overflow.saturating_add(u64::from(overflow));
+        self.stats.points_invalid = self.stats.points_invalid.saturating_add(u64::from(invalid));
+        let end_ns = scan.start_ns.saturating_add((f64::from(t_max) * 1e9) as u64);
+        let npoints = [n_in.min(u32::MAX as usize) as u32, 0];
+
+        // 3. Propagate (or initialise) through the IMU samples up to the scan end.
+        let mut flags = PropagationFlags::default();
+        st.trajectory.clear(scan.start_ns);
+        if let Some(f) = &self.filter {
+            st.trajectory.push(f.time_ns(), f.state());
+        }
+        while let Some(s) = st.imu.pop_until(end_ns) {
             match &mut self.filter {
                 Some(f) => {
-                    let _ = f.predict(&s);
+                    let before = f.time_ns();
+                    if let Predicted::Jump { .. } = f.predict(&s) {
+                        flags.0 |= f.take_flags().0;
+                        reseed_after_jump(f, before);
+                        st.trajectory.clear(scan.start_ns);
+                        reinit = Some(ReinitReason::ImuJump);
+                        self.stats.reinitialisations = self.stats.reinitialisations.saturating_add(1);
+                    }
+                    st.trajectory.push(f.time_ns(), f.state());
                 }
                 None => match self.initializer.push(&s) {
                     InitStatus::Ready(init) => {
-                        self.filter =
-                            Some(Eskf::new(self.cfg.eskf, &init, self.cfg.ext_rot, self.cfg.ext_pos));
+                        let f = Eskf::new(self.cfg.eskf, &init, self.cfg.ext_rot, self.cfg.ext_pos);
+                        st.trajectory.clear(scan.start_ns);
+                        st.trajectory.push(f.time_ns(), f.state());
+                        self.filter = Some(f);
                     }
                     InitStatus::Waiting(w) => self.wait = w,
                 },
             }
         }
-        self.scans = self.scans.wrapping_add(1);
-        let n = scan.points.len().min(PTS) as u32;
-        let (pose, status, propagation) = match &mut self.filter {
-            None => (PoseEstimate::identity(end_ns), Status::Initialising(self.wait), Default::default()),
-            Some(f) => {
-                let _ = f.predict_to(end_ns);
-                let flags = f.take_flags();
-                (PoseEstimate::from_filter(f), Status::ImuOnly(ImuOnlyReason::BuildingMap), flags)
-            }
+        let Some(f) = self.filter.as_mut() else {
+            times.total_ns = clock.now_ns().saturating_sub(t0);
+            let status = match reinit {
+                Some(r) => Status::Reinitialising(r),
+                None => Status::Initialising(self.wait),
+            };
+            return ScanResult {
+                scan_start_ns: scan.start_ns,
+                pose: PoseEstimate::identity(end_ns),
+                status,
+                times,
+                associations: AssociationCounts::default(),
+                update: UpdateResult::default(),
+                propagation: flags,
+                points: npoints,
+            };
         };
+        let before = f.time_ns();
+        if let Predicted::Jump { .. } = f.predict_to(end_ns) {
+            flags.0 |= f.take_flags().0;
+            reseed_after_jump(f, before);
+            st.trajectory.clear(scan.start_ns);
+            reinit = Some(ReinitReason::ImuJump);
+            self.stats.reinitialisations = self.stats.reinitialisations.saturating_add(1);
+        }
+        st.trajectory.push(f.time_ns(), f.state());
+        flags.0 |= f.take_flags().0;
+        if !f.state().is_finite() || !f.covariance().iter().all(|v| v.is_finite()) {
+            self.restart();
+            times.total_ns = clock.now_ns().saturating_sub(t0);
+            return ScanResult {
+                scan_start_ns: scan.start_ns,
+                pose: PoseEstimate::identity(end_ns),
+                status: Status::Reinitialising(ReinitReason::NonFinite),
+                times,
+                associations: AssociationCounts::default(),
+                update: UpdateResult::default(),
+                propagation: flags,
+                points: npoints,
+            };
+        }
+        if m > 0 {
+            // Cannot fail: the trajectory holds the end knot and the slices have equal lengths.
+            let _ = st.trajectory.undistort(f.state(), &mut st.points[..m], Some(&mut st.normals3[..m]));
+        }
+        let t2 = clock.now_ns();
+        times.undistort_ns = t2.saturating_sub(t1);
+
+        // 4. Downsample on the map's grid.
+        let kept = if m > 0 {
+            match st.downsampler.downsample(
+                &self.cfg.downsample,
+                &mut st.points[..m],
+                Some(&mut st.normals3[..m]),
+            ) {
+                Ok(s) => s.kept as usize,
+                Err(_) => 0,
+            }
+        } else {
+            0
+        };
+        let t3 = clock.now_ns();
+        times.downsample_ns = t3.saturating_sub(t2);
+        let npoints = [npoints[0], kept as u32];
+
+        // 5. Association and update.
+        let building = self.map.is_empty();
+        let mut update = UpdateResult::default();
+        let mut counts = AssociationCounts::default();
+        if kept > 0 && !building {
+            let mut assoc = ScanAssociation::new(
+                &self.map,
+                &self.cfg.association,
+                self.cfg.mode,
+                &st.points[..kept],
+                &st.normals3[..kept],
+                &mut st.corr[..],
+                &mut st.queries,
+                &mut st.neighbours,
+                clock,
+            );
+            update = f.update(&mut assoc);
+            counts = assoc.counts();
+            times.association_ns = assoc.elapsed_ns();
+        }
+        let t4 = clock.now_ns();
+        times.update_ns = t4.saturating_sub(t3).saturating_sub(times.association_ns);
+
+        // 6. Map insertion at the updated pose.
+        if kept > 0 && update.outcome != UpdateOutcome::NumericalFailure {
+            let x = f.state();
+            let r = x.rot.to_rotation_matrix().into_inner();
+            let r_wl: Matrix3<f64> = r * x.ext_rot.to_rotation_matrix().into_inner();
+            let p_wl = r * x.ext_pos + x.pos;
+            let origin = [p_wl.x as f32, p_wl.y as f32, p_wl.z as f32];
+            let pts = st.points[..kept].iter().zip(st.normals3[..kept].iter()).map(|(p, n)| {
+                let q =
+                    r_wl * Vector3::new(f64::from(p.xyz[0]), f64::from(p.xyz[1]), f64::from(p.xyz[2])) + p_wl;
+                let normal = if normal_is_valid(n) {
+                    let w = r_wl * Vector3::new(f64::from(n[0]), f64::from(n[1]), f64::from(n[2]));
+                    Some([w.x as f32, w.y as f32, w.z as f32])
+                } else {
+                    None
+                };
+                MapPoint { xyz: [q.x as f32, q.y as f32, q.z as f32], normal }
+            });
+            self.stamp = self.stamp.saturating_add(1);
+            // Cannot fail: the origin is finite (the state is) and stamps only increase.
+            let _ = self.map.insert(pts, origin, self.stamp);
+        }
+        let t5 = clock.now_ns();
+        times.map_ns = t5.saturating_sub(t4);
+
+        let status = if let Some(r) = reinit {
+            Status::Reinitialising(r)
+        } else if kept == 0 {
+            Status::ImuOnly(ImuOnlyReason::EmptyScan)
+        } else if building {
+            Status::ImuOnly(ImuOnlyReason::BuildingMap)
+        } else {
+            Status::from_update(&update, flags)
+        };
+        match status {
+            Status::ImuOnly(ImuOnlyReason::BuildingMap) => {}
+            Status::ImuOnly(_) => self.stats.imu_only = self.stats.imu_only.saturating_add(1),
+            Status::Degraded { .. } => self.stats.degraded = self.stats.degraded.saturating_add(1),
+            _ => {}
+        }
+        let pose = PoseEstimate::from_filter(f);
         times.total_ns = clock.now_ns().saturating_sub(t0);
         ScanResult {
             scan_start_ns: scan.start_ns,
             pose,
             status,
             times,
-            associations: AssociationCounts::default(),
-            update: UpdateResult::default(),
-            propagation,
-            points: [n, 0],
+            associations: counts,
+            update,
+            propagation: flags,
+            points: npoints,
         }
     }
 }
 
-/// The scan end: the latest point time (the start for an empty scan).
-fn scan_end_ns(scan: &ScanView<'_>) -> u64 {
-    let mut t_max = 0.0f32;
-    for p in scan.points {
-        if p.t.is_finite() && p.t > t_max {
-            t_max = p.t;
+/// Re-seeds the filter after an IMU jump that moved its time from `before_ns` without
+/// integrating (module docs): constant velocity and rate over the skipped time, larger
+/// position, velocity and attitude uncertainties.
+fn reseed_after_jump(f: &mut Eskf, before_ns: u64) {
+    let cfg = *f.config();
+    let s = cfg.initial;
+    let mut x = *f.state();
+    let mut p = *f.covariance();
+    let gap = (f.time_ns().saturating_sub(before_ns) as f64 * 1e-9).min(10.0);
+    x.pos += x.vel * gap;
+    if let Some(h) = f.held_sample() {
+        let w = (h.gyro_vec() - x.bg) * gap;
+        if w.iter().all(|v| v.is_finite()) {
+            x.rot *= so3::exp_quat(&w);
         }
     }
-    scan.start_ns.saturating_add((t_max as f64 * 1e9) as u64)
+    let dp = s.rough_vel * gap;
+    for k in 0..3 {
+        p[(idx::POS + k, idx::POS + k)] += dp * dp;
+        p[(idx::VEL + k, idx::VEL + k)] += s.rough_vel * s.rough_vel;
+        p[(idx::ROT + k, idx::ROT + k)] += s.rough_tilt * s.rough_tilt;
+    }
+    *f = Eskf::from_state(cfg, x, p, f.time_ns(), f.held_sample().copied(), f.acc_scale());
 }
 
 /// A monotonic clock the caller lends for stage timing (the core has none).
@@ -293,6 +712,7 @@ pub trait Clock {
 }
 
 /// A clock that always reads 0 (no timing).
+#[derive(Clone, Copy, Debug, Default)]
 pub struct NoClock;
 
 impl Clock for NoClock {

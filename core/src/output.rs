@@ -182,6 +182,8 @@ pub struct AssociationCounts {
     pub rejected_residual: u32,
     /// No neighbours in the map.
     pub no_neighbours: u32,
+    /// No surfel, and the neighbours were not coplanar (the plane fit failed).
+    pub no_plane: u32,
 }
 
 impl AssociationCounts {

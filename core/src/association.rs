@@ -1,0 +1,501 @@
+//! Data association (paper section IV-B): which map element each scan point is measured
+//! against, and the scalar residuals the iterated update consumes.
+//!
+//! For every downsampled scan point `p` (LiDAR frame at the scan end, with its Ring FALS normal
+//! `n_r` when it has one), at the filter's current iterate:
+//!
+//! 1. **Initial correspondence.** `p` goes to the world (`p_W`, `n_W`); the `k` nearest map
+//!    points within `max_dist` come from [`VoxelMap::knn_many`] (batched: the queries of a chunk
+//!    of points go to the map together so their cache misses overlap). Fewer than
+//!    `min_neighbours`: no correspondence (`no_neighbours`).
+//! 2. **Visibility check** (modes `Full`, `PlaneOnly`). A map point whose normal `m` (oriented
+//!    towards the sensor that saw it) makes more than 90 degrees with the ray from `p_W` to the
+//!    LiDAR origin, `m · (o_W - p_W) <= 0`, is on the back of a surface the LiDAR cannot see
+//!    from here (the double-side issue of thin walls): it is removed from the neighbours. The
+//!    ray starts at the LiDAR origin, not at the IMU as in the reference (notes C.1 / I.5).
+//!    Map points without a normal carry no evidence and stay. If fewer than `min_neighbours`
+//!    remain, the point is rejected (`rejected_visibility`).
+//! 3. **Consistency check** (modes `Full`, `PlaneOnly`). The mean angle between `n_W` and the
+//!    remaining neighbours' normals must be at most `max_mean_angle_deg` (60 degrees, the paper's
+//!    `alpha`), else the point is rejected (`rejected_consistency`). A query without a valid
+//!    normal skips this check (the reference drops such points altogether, notes A.6 step 7;
+//!    here they can still give a point-to-plane residual, which the plane-fit and residual tests
+//!    guard).
+//! 4. **Hierarchy** (mode `Full`): the large-scale surfel merged from the remaining neighbours'
+//!    voxels ([`VoxelMap::large_surfel`]: Eq. (5) with true counts, the surfel criteria and the
+//!    0.15 m mean-to-plane test), else the small-scale surfel of the voxel holding `p_W` if that
+//!    voxel has converged ([`VoxelMap::small_surfel_at`]) and `p_W` is within
+//!    `small_surfel_max_residual` of it, else the point-to-plane fallback. `PlaneOnly` (the
+//!    paper's LOG-C) and `Plain` go straight to point-to-plane: a plane fitted to the remaining
+//!    neighbours, accepted only if every one lies within `plane_max_dist` of it (`no_plane`
+//!    otherwise).
+//! 5. **Residual test.** With `r` the signed distance of `p_W` from the chosen element and `|p|`
+//!    the point's range, the residual is kept if `residual_gate · r² < |p|` (the reference's
+//!    `1 - 0.9 |r| / sqrt(|p|) > 0.9`, i.e. `81 r² < |p|`), else `rejected_residual`.
+//!
+//! `Plain` (FAST-LIO2-like) uses no normals and no checks: steps 1, point-to-plane, 5.
+//!
+//! The measurement is `r = n · p_W + d` with its Jacobian row from
+//! [`PointToPlane::row`]; surfel and plane residuals have their own noise variance
+//! (`surfel_variance`, `plane_variance`; the reference uses 0.001 m² for both, notes C.3).
+//!
+//! ## Iterations
+//! [`ScanAssociation`] implements [`Measurements`]. The search (steps 1-5) runs at the first
+//! iteration and again whenever the iterate has moved more than `research_pos` /
+//! `research_rot` since the last search; in between, the stored correspondences (world planes)
+//! are re-linearised at the new iterate, which costs a few products per point.
+//!
+//! Everything here is allocation-free: the caller lends the correspondence buffer and the k-NN
+//! chunk buffers.
+
+// `!(a <= b)` deliberately rejects NaN.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
+use nalgebra::Vector3;
+
+use crate::downsample::normal_is_valid;
+use crate::eskf::{InfoAccumulator, Measurements, PointToPlane, State};
+use crate::odometry::{AssociationMode, Clock};
+use crate::output::AssociationCounts;
+use crate::scan::ScanPoint;
+use crate::surfel;
+use crate::voxel_map::{KNN_MAX, KnnQuery, Neighbours, VoxelHandle, VoxelMap};
+
+type V3 = Vector3<f64>;
+
+/// Points whose k-NN queries go to the map together ([`VoxelMap::knn_many`]).
+pub const KNN_CHUNK: usize = 64;
+
+/// Association settings (defaults: the paper's and the reference's values).
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct AssociationConfig {
+    /// Neighbours searched per point (at most [`KNN_MAX`]). Default 5 (the reference's
+    /// `NUM_MATCH_POINTS`).
+    pub k: u8,
+    /// Fewest neighbours (after the visibility check) a point needs, at least 3. Default 4.
+    pub min_neighbours: u8,
+    /// Neighbours farther than this are not used, metres. Default 1.0 (the k-NN is exact
+    /// within the voxel size and searches the 27 voxels around the point beyond it).
+    pub max_dist: f32,
+    /// Consistency check: largest mean angle between the point's normal and its neighbours'
+    /// normals, degrees. Default 60 (the paper's `alpha`).
+    pub max_mean_angle_deg: f32,
+    /// Point-to-plane: every neighbour must lie within this of the fitted plane, metres.
+    /// Default 0.1 (the reference's `esti_plane`).
+    pub plane_max_dist: f32,
+    /// Small surfel: the point must lie within this of it, metres. Default 0.2 (reference).
+    pub small_surfel_max_residual: f32,
+    /// Residual test: keep a residual `r` of a point at range `|p|` if `gate · r² < |p|`.
+    /// Default 81 (the reference's `s > 0.9`).
+    pub residual_gate: f32,
+    /// Noise variance of a point-to-surfel residual, m². Default 0.001.
+    pub surfel_variance: f64,
+    /// Noise variance of a point-to-plane residual, m². Default 0.001.
+    pub plane_variance: f64,
+    /// Search again when the iterate's position moved more than this since the last search, m.
+    pub research_pos: f64,
+    /// ... or its rotation by more than this, rad.
+    pub research_rot: f64,
+}
+
+impl AssociationConfig {
+    /// The defaults documented on each field.
+    pub const DEFAULT: Self = Self {
+        k: 5,
+        min_neighbours: 4,
+        max_dist: 1.0,
+        max_mean_angle_deg: 60.0,
+        plane_max_dist: 0.1,
+        small_surfel_max_residual: 0.2,
+        residual_gate: 81.0,
+        surfel_variance: 0.001,
+        plane_variance: 0.001,
+        research_pos: 0.05,
+        research_rot: 0.005,
+    };
+
+    /// Whether every setting is usable (the name of the first that is not).
+    pub fn validate(&self) -> Result<(), &'static str> {
+        if self.k < 3 || usize::from(self.k) > KNN_MAX {
+            return Err("association.k");
+        }
+        if self.min_neighbours < 3 || self.min_neighbours > self.k {
+            return Err("association.min_neighbours");
+        }
+        if !(self.max_dist > 0.0 && self.max_dist.is_finite()) {
+            return Err("association.max_dist");
+        }
+        if !(self.max_mean_angle_deg >= 0.0 && self.max_mean_angle_deg <= 180.0) {
+            return Err("association.max_mean_angle_deg");
+        }
+        if !(self.plane_max_dist > 0.0 && self.plane_max_dist.is_finite()) {
+            return Err("association.plane_max_dist");
+        }
+        if !(self.small_surfel_max_residual >= 0.0 && self.small_surfel_max_residual.is_finite()) {
+            return Err("association.small_surfel_max_residual");
+        }
+        if !(self.residual_gate >= 0.0 && self.residual_gate.is_finite()) {
+            return Err("association.residual_gate");
+        }
+        if !(self.surfel_variance > 0.0 && self.surfel_variance.is_finite()) {
+            return Err("association.surfel_variance");
+        }
+        if !(self.plane_variance > 0.0 && self.plane_variance.is_finite()) {
+            return Err("association.plane_variance");
+        }
+        if !(self.research_pos >= 0.0 && self.research_rot >= 0.0) {
+            return Err("association.research");
+        }
+        Ok(())
+    }
+}
+
+impl Default for AssociationConfig {
+    fn default() -> Self {
+        Self::DEFAULT
+    }
+}
+
+/// Which map element a point is measured against.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Kind {
+    /// No correspondence.
+    #[default]
+    None,
+    /// A large-scale surfel (merged voxels).
+    LargeSurfel,
+    /// The small-scale surfel of the point's own voxel.
+    SmallSurfel,
+    /// A plane fitted to the nearest map points.
+    Plane,
+}
+
+/// Why a point got no correspondence.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Reject {
+    /// Fewer than `min_neighbours` map points near it.
+    NoNeighbours,
+    /// Too few visible neighbours.
+    Visibility,
+    /// The mean normal angle exceeds the limit.
+    Consistency,
+    /// No surfel, and the neighbours are not coplanar.
+    NoPlane,
+    /// The residual test failed.
+    Residual,
+}
+
+/// One point's correspondence: the world plane `{q : normal · q + d = 0}` it is measured
+/// against.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Correspondence {
+    /// Unit normal, world frame.
+    pub normal: [f32; 3],
+    /// Offset, metres (`-normal · q0` for a point `q0` on the element).
+    pub d: f64,
+    /// The element's kind ([`Kind::None`]: no correspondence).
+    pub kind: Kind,
+}
+
+impl Correspondence {
+    /// No correspondence.
+    pub const NONE: Self = Self { normal: [0.0; 3], d: 0.0, kind: Kind::None };
+
+    fn through(normal: [f32; 3], q: [f32; 3], kind: Kind) -> Self {
+        let d = -(f64::from(normal[0]) * f64::from(q[0])
+            + f64::from(normal[1]) * f64::from(q[1])
+            + f64::from(normal[2]) * f64::from(q[2]));
+        Self { normal, d, kind }
+    }
+
+    /// Signed distance of world point `p` from the element.
+    pub fn distance(&self, p: [f32; 3]) -> f64 {
+        f64::from(self.normal[0]) * f64::from(p[0])
+            + f64::from(self.normal[1]) * f64::from(p[1])
+            + f64::from(self.normal[2]) * f64::from(p[2])
+            + self.d
+    }
+}
+
+/// Associates one point (steps 2-5 of the module docs) given its neighbours `nb` (step 1).
+///
+/// `p_w` is the point in the world, `n_w` its world normal (`None` or any invalid value: no
+/// normal), `origin` the LiDAR origin in the world, `range` the point's range in the LiDAR frame.
+#[allow(clippy::too_many_arguments)]
+pub fn associate_point(
+    map: &VoxelMap<'_>,
+    cfg: &AssociationConfig,
+    mode: AssociationMode,
+    p_w: [f32; 3],
+    n_w: Option<[f32; 3]>,
+    origin: [f32; 3],
+    range: f32,
+    nb: &Neighbours,
+) -> Result<Correspondence, Reject> {
+    let min_nb = usize::from(cfg.min_neighbours.max(3));
+    if nb.len() < min_nb {
+        return Err(Reject::NoNeighbours);
+    }
+    let mut pts = [[0.0f32; 3]; KNN_MAX];
+    let mut voxels = [VoxelHandle(0); KNN_MAX];
+    let mut m = 0usize;
+    if mode == AssociationMode::Plain {
+        for n in nb.as_slice() {
+            pts[m] = n.point;
+            voxels[m] = n.voxel;
+            m += 1;
+        }
+    } else {
+        let ray = [origin[0] - p_w[0], origin[1] - p_w[1], origin[2] - p_w[2]];
+        let query_n = n_w.filter(normal_is_valid);
+        let mut angle_sum = 0.0f32;
+        let mut angle_n = 0u32;
+        let mut all_close = true; // every dot >= cos(max angle): the mean passes without acos
+        let cos_max = libm::cosf(cfg.max_mean_angle_deg.to_radians());
+        let mut dots = [0.0f32; KNN_MAX];
+        for n in nb.as_slice() {
+            if let Some(mn) = n.normal() {
+                if !(dot(mn, ray) > 0.0) {
+                    continue; // behind the surface as seen from here
+                }
+                if let Some(q) = query_n {
+                    let c = dot(q, mn).clamp(-1.0, 1.0);
+                    all_close &= c >= cos_max;
+                    dots[angle_n as usize] = c;
+                    angle_n += 1;
+                }
+            }
+            pts[m] = n.point;
+            voxels[m] = n.voxel;
+            m += 1;
+        }
+        if m < min_nb {
+            return Err(Reject::Visibility);
+        }
+        if angle_n > 0 && !all_close {
+            for c in &dots[..angle_n as usize] {
+                angle_sum += libm::acosf(*c);
+            }
+            if !(angle_sum / angle_n as f32 <= cfg.max_mean_angle_deg.to_radians()) {
+                return Err(Reject::Consistency);
+            }
+        }
+    }
+    let mut corr = None;
+    if mode == AssociationMode::Full {
+        if let Ok(s) = map.large_surfel(&voxels[..m]) {
+            corr = Some(Correspondence::through(s.normal, s.mean, Kind::LargeSurfel));
+        } else if let Ok(s) = map.small_surfel_at(p_w) {
+            let c = Correspondence::through(s.normal, s.mean, Kind::SmallSurfel);
+            if libm::fabs(c.distance(p_w)) <= f64::from(cfg.small_surfel_max_residual) {
+                corr = Some(c);
+            }
+        }
+    }
+    let corr = match corr {
+        Some(c) => c,
+        None => match surfel::fit_plane(&pts[..m], cfg.plane_max_dist) {
+            Ok(pl) => Correspondence::through(pl.normal, pl.centroid, Kind::Plane),
+            Err(_) => return Err(Reject::NoPlane),
+        },
+    };
+    let r = corr.distance(p_w);
+    if !(f64::from(cfg.residual_gate) * r * r < f64::from(range)) {
+        return Err(Reject::Residual);
+    }
+    Ok(corr)
+}
+
+#[inline]
+fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+#[inline]
+fn to32(v: &V3) -> [f32; 3] {
+    [v.x as f32, v.y as f32, v.z as f32]
+}
+
+/// The measurements of one scan for [`crate::eskf::Eskf::update`]: the downsampled points
+/// (LiDAR frame at the scan end) and their normals, associated with the map at each iterate.
+pub struct ScanAssociation<'a, 'm, C: Clock> {
+    map: &'a VoxelMap<'m>,
+    cfg: &'a AssociationConfig,
+    mode: AssociationMode,
+    points: &'a [ScanPoint],
+    normals: &'a [[f32; 3]],
+    corr: &'a mut [Correspondence],
+    queries: &'a mut [[f32; 3]; KNN_CHUNK],
+    nbrs: &'a mut [Neighbours; KNN_CHUNK],
+    counts: AssociationCounts,
+    searched: Option<State>,
+    searches: u32,
+    clock: &'a mut C,
+    elapsed_ns: u64,
+}
+
+impl<C: Clock> core::fmt::Debug for ScanAssociation<'_, '_, C> {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.debug_struct("ScanAssociation")
+            .field("mode", &self.mode)
+            .field("points", &self.points.len())
+            .field("counts", &self.counts)
+            .field("searches", &self.searches)
+            .finish()
+    }
+}
+
+impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
+    /// The measurements of `points` (with `normals`, the same length; [`crate::downsample::INVALID_NORMAL`]
+    /// where none) against `map`. `corr` must hold at least `points.len()` entries (extra points
+    /// are ignored); `queries` and `nbrs` are k-NN scratch; `clock` times the association.
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        map: &'a VoxelMap<'m>,
+        cfg: &'a AssociationConfig,
+        mode: AssociationMode,
+        points: &'a [ScanPoint],
+        normals: &'a [[f32; 3]],
+        corr: &'a mut [Correspondence],
+        queries: &'a mut [[f32; 3]; KNN_CHUNK],
+        nbrs: &'a mut [Neighbours; KNN_CHUNK],
+        clock: &'a mut C,
+    ) -> Self {
+        let n = points.len().min(normals.len()).min(corr.len());
+        Self {
+            map,
+            cfg,
+            mode,
+            points: &points[..n],
+            normals: &normals[..n],
+            corr,
+            queries,
+            nbrs,
+            counts: AssociationCounts::default(),
+            searched: None,
+            searches: 0,
+            clock,
+            elapsed_ns: 0,
+        }
+    }
+
+    /// The counts of the last search.
+    pub fn counts(&self) -> AssociationCounts {
+        self.counts
+    }
+
+    /// How many searches ran (the rest of the iterations reused the correspondences).
+    pub fn searches(&self) -> u32 {
+        self.searches
+    }
+
+    /// Time spent in [`Measurements::linearize`], ns (0 with a clock that reads 0).
+    pub fn elapsed_ns(&self) -> u64 {
+        self.elapsed_ns
+    }
+
+    /// The correspondences of the last search, one per point.
+    pub fn correspondences(&self) -> &[Correspondence] {
+        &self.corr[..self.points.len()]
+    }
+
+    fn needs_search(&self, x: &State) -> bool {
+        match &self.searched {
+            None => true,
+            Some(s) => {
+                let dp = (x.pos - s.pos).amax();
+                let dr = (s.rot.inverse() * x.rot).angle();
+                !(dp <= self.cfg.research_pos && dr <= self.cfg.research_rot)
+            }
+        }
+    }
+
+    fn search(&mut self, x: &State) {
+        let h = PointToPlane::new(x);
+        let r = x.rot.to_rotation_matrix().into_inner();
+        let r_wl = r * x.ext_rot.to_rotation_matrix().into_inner();
+        let origin = to32(&(r * x.ext_pos + x.pos));
+        let query = KnnQuery::new(usize::from(self.cfg.k).min(KNN_MAX), self.cfg.max_dist);
+        let mut counts = AssociationCounts::default();
+        let n = self.points.len();
+        let mut start = 0;
+        while start < n {
+            let len = (n - start).min(KNN_CHUNK);
+            for i in 0..len {
+                let [px, py, pz] = self.points[start + i].xyz;
+                self.queries[i] = to32(&h.to_world(&V3::new(f64::from(px), f64::from(py), f64::from(pz))));
+            }
+            self.map.knn_many(&self.queries[..len], &query, &mut self.nbrs[..len]);
+            for i in 0..len {
+                let j = start + i;
+                let p = &self.points[j];
+                let nl = self.normals[j];
+                let n_w = if self.mode != AssociationMode::Plain && normal_is_valid(&nl) {
+                    Some(to32(&(r_wl * V3::new(f64::from(nl[0]), f64::from(nl[1]), f64::from(nl[2])))))
+                } else {
+                    None
+                };
+                let res = associate_point(
+                    self.map,
+                    self.cfg,
+                    self.mode,
+                    self.queries[i],
+                    n_w,
+                    origin,
+                    p.range(),
+                    &self.nbrs[i],
+                );
+                self.corr[j] = match res {
+                    Ok(c) => {
+                        match c.kind {
+                            Kind::LargeSurfel => counts.large_surfel += 1,
+                            Kind::SmallSurfel => counts.small_surfel += 1,
+                            Kind::Plane | Kind::None => counts.plane += 1,
+                        }
+                        c
+                    }
+                    Err(e) => {
+                        match e {
+                            Reject::NoNeighbours => counts.no_neighbours += 1,
+                            Reject::Visibility => counts.rejected_visibility += 1,
+                            Reject::Consistency => counts.rejected_consistency += 1,
+                            Reject::NoPlane => counts.no_plane += 1,
+                            Reject::Residual => counts.rejected_residual += 1,
+                        }
+                        Correspondence::NONE
+                    }
+                };
+            }
+            start += len;
+        }
+        self.counts = counts;
+        self.searched = Some(*x);
+        self.searches += 1;
+    }
+}
+
+impl<C: Clock> Measurements for ScanAssociation<'_, '_, C> {
+    fn linearize(&mut self, x: &State, _iteration: usize, acc: &mut InfoAccumulator) {
+        let t0 = self.clock.now_ns();
+        if self.needs_search(x) {
+            self.search(x);
+        }
+        let h = PointToPlane::new(x);
+        for (p, c) in self.points.iter().zip(self.corr.iter()) {
+            let var = match c.kind {
+                Kind::None => continue,
+                Kind::LargeSurfel | Kind::SmallSurfel => self.cfg.surfel_variance,
+                Kind::Plane => self.cfg.plane_variance,
+            };
+            let [px, py, pz] = p.xyz;
+            let p_l = V3::new(f64::from(px), f64::from(py), f64::from(pz));
+            let n = V3::new(f64::from(c.normal[0]), f64::from(c.normal[1]), f64::from(c.normal[2]));
+            let (r, row) = h.row(&p_l, &n, c.d);
+            acc.add(&row, r, var);
+        }
+        self.elapsed_ns = self.elapsed_ns.saturating_add(self.clock.now_ns().saturating_sub(t0));
+    }
+}
