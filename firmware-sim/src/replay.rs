@@ -36,15 +36,12 @@
 
 use core::fmt;
 
-use loglio_core::downsample::DownsampleConfig;
-use loglio_core::eskf::EskfConfig;
-use loglio_core::imu::{ImuInitConfig, ImuSample};
-use loglio_core::odometry::{AssociationMode, OdometryConfig, OdometryStorage};
+use loglio_core::imu::ImuSample;
+use loglio_core::odometry::{OdometryConfig, OdometryStorage};
 use loglio_core::output::{ScanResult, Status};
 use loglio_core::range_image::{LayoutError, MAX_ROWS, RangeImageLayout};
-use loglio_core::ring_fals::{RingFalsConfig, storage_pixels};
+use loglio_core::ring_fals::storage_pixels;
 use loglio_core::scan::ScanPoint;
-use loglio_core::voxel_map::MapConfig;
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
 /// File magic.
@@ -65,10 +62,15 @@ pub const TAG_SCAN: u8 = 0x02;
 // ---- The firmware configuration (shared by the firmware and the host test) ------------------
 
 /// Range-image rows of the firmware configuration (a 16-beam LiDAR).
+///
+/// The firmware configuration is sized for QEMU's mps2-an386 (Cortex-M4F, 16 MiB of RAM): the
+/// storage below is about 8.7 MiB, the rest is the scan buffer, code data and the stack.
 pub const FW_ROWS: usize = 16;
-/// Range-image columns of the firmware configuration (Ouster OS1-16 in 1024 x 10 mode).
-pub const FW_COLS: usize = 1024;
-/// Points per scan the firmware keeps (a full 16 x 1024 frame).
+/// Range-image columns of the firmware configuration: Ouster OS1-16 in its 512 x 10 mode (8,192
+/// points per scan). The 1024 x 10 mode also runs (and fits the RAM with `FW_COLS = 1024`) but
+/// needs 1.4 times the instructions per scan (README, "Firmware").
+pub const FW_COLS: usize = 512;
+/// Points per scan the firmware keeps (a full 16 x 512 frame).
 pub const FW_POINTS: usize = FW_ROWS * FW_COLS;
 /// Downsampling slots (power of two; at most 3/4 of them are used per scan).
 pub const FW_DOWNSAMPLE_SLOTS: usize = 8192;
@@ -90,21 +92,14 @@ pub type FirmwareStorage = OdometryStorage<
 >;
 
 /// The odometry configuration of the firmware replay, from a recording's header: the OS1-16
-/// setup of the paper (0.5 m voxels) with the reduced map above; everything else at its default.
+/// preset ([`OdometryConfig::os1_16`], the paper's NTU VIRAL setup) with the recording's extrinsic
+/// and the reduced map above (eviction radius and range [`FW_EVICT_RADIUS`]).
 pub fn firmware_config(header: &Header) -> OdometryConfig {
-    OdometryConfig {
-        mode: AssociationMode::Full,
-        layout: header.layout.clone(),
-        ring_fals: RingFalsConfig::DEFAULT,
-        downsample: DownsampleConfig { voxel: 0.5, ..DownsampleConfig::default() },
-        map: MapConfig { evict_radius: FW_EVICT_RADIUS, ..MapConfig::OS1_16 },
-        eskf: EskfConfig::default(),
-        init: ImuInitConfig::default(),
-        ext_rot: header.ext_rot,
-        ext_pos: header.ext_pos,
-        blind: 0.5,
-        max_range: FW_EVICT_RADIUS,
-    }
+    let mut cfg =
+        OdometryConfig::os1_16(header.layout.clone()).with_extrinsic(header.ext_rot, header.ext_pos);
+    cfg.map.evict_radius = FW_EVICT_RADIUS;
+    cfg.max_range = FW_EVICT_RADIUS;
+    cfg
 }
 
 // ---- Pose lines --------------------------------------------------------------------------------

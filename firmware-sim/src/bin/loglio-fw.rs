@@ -83,6 +83,16 @@ mod fw {
         }
     }
 
+    /// The core's stage clock: SysTick ticks x 40, which under `-icount shift=0` is the number
+    /// of instructions (and the virtual time in ns).
+    struct TickClock;
+
+    impl loglio_core::odometry::Clock for TickClock {
+        fn now_ns(&mut self) -> u64 {
+            ticks() * 40
+        }
+    }
+
     /// A semihosting file as an `embedded_io` reader.
     struct HostFile(semihosting::fs::File);
 
@@ -165,11 +175,11 @@ mod fw {
         let mut path_buf = [0u8; 1024];
         let mut path_len = 0;
         for (i, a) in (&args).into_iter().enumerate() {
-            if let (true, Ok(a)) = (i > 0, a) {
-                if a.len() < path_buf.len() {
-                    path_buf[..a.len()].copy_from_slice(a.as_bytes());
-                    path_len = a.len();
-                }
+            if let (true, Ok(a)) = (i > 0, a)
+                && a.len() < path_buf.len()
+            {
+                path_buf[..a.len()].copy_from_slice(a.as_bytes());
+                path_len = a.len();
             }
         }
         if path_len == 0 {
@@ -214,12 +224,26 @@ mod fw {
                 }
                 Ok(Record::Scan { start_ns, points: n }) => {
                     let t0 = ticks();
-                    let r = odo.process_scan(ScanView { start_ns, points: &points[..n] });
+                    let r =
+                        odo.process_scan_timed(ScanView { start_ns, points: &points[..n] }, &mut TickClock);
                     let dt = ticks() - t0;
                     total_ticks += dt;
                     let _ = replay::write_pose_line(&mut line, scans, &r);
                     line.flush();
-                    let _ = write!(line, "ticks {scans} {dt}");
+                    // Whole call in ticks, then the stages in clock units (ticks x 40).
+                    let st = &r.times;
+                    let _ = write!(
+                        line,
+                        "ticks {scans} {dt} stages normals={} undistort={} downsample={} association={} update={} map={} points={}/{}",
+                        st.normals_ns,
+                        st.undistort_ns,
+                        st.downsample_ns,
+                        st.association_ns,
+                        st.update_ns,
+                        st.map_ns,
+                        r.points[0],
+                        r.points[1]
+                    );
                     line.flush();
                     scans += 1;
                 }
