@@ -113,7 +113,9 @@ impl Cell {
         nsum: [0.0; 3],
         ncount: 0,
         best: 0,
-        best_d2: f32::INFINITY,
+        // Zero, like every field, so that a `static` grid lives in .bss; a claimed cell starts
+        // from `f32::INFINITY` (see `downsample`).
+        best_d2: 0.0,
     };
 }
 
@@ -224,7 +226,8 @@ impl<const N: usize> VoxelDownsampler<N> {
                         stats.dropped_overflow += 1;
                         continue;
                     }
-                    self.cells[s] = Cell { key, generation: self.generation, ..Cell::EMPTY };
+                    self.cells[s] =
+                        Cell { key, generation: self.generation, best_d2: f32::INFINITY, ..Cell::EMPTY };
                     self.order[used] = s as u32;
                     used += 1;
                     s

@@ -354,7 +354,19 @@ impl RingTable {
         Self {
             rows: 0,
             cols: 0,
-            config: RingFalsConfig::DEFAULT,
+            // All zero (not a usable configuration: the table has no rows until `build`), so
+            // that a `static` holding a table lives in .bss.
+            config: RingFalsConfig {
+                min_range: 0.0,
+                max_range: 0.0,
+                max_incidence_deg: 0.0,
+                range_jump_abs: 0.0,
+                fit_tolerance_rel: 0.0,
+                min_points: 0,
+                min_conditioning: 0.0,
+                median: false,
+                median_min_valid: 0,
+            },
             shift: [0; MAX_ROWS],
             row: [RowCoeffs::ZERO; MAX_ROWS],
             col_cos: [0.0; MAX_COLS],
@@ -497,7 +509,7 @@ impl RingTable {
         self.cols as usize
     }
 
-    /// The configuration the table was built with.
+    /// The configuration the table was built with (all zero before the first build).
     pub fn config(&self) -> &RingFalsConfig {
         &self.config
     }

@@ -19,6 +19,7 @@ pub mod live;
 pub mod pcap_out;
 #[cfg(not(target_os = "none"))]
 pub mod raycast;
+pub mod replay;
 pub mod rng;
 #[cfg(not(target_os = "none"))]
 pub mod scenario;

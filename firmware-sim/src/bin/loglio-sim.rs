@@ -4,6 +4,7 @@
 //! loglio-sim file --scenario vehicle --sensor vlp32c --seed 1 --out out/vehicle
 //! loglio-sim live --scenario corridor --sensor os1-64 --rate 1
 //! loglio-sim bench --sensor vlp32c --seconds 30
+//! loglio-sim replay --scenario handheld --sensor os1-16 --duration 3.5 --out replay.bin
 //! ```
 
 use std::path::PathBuf;
@@ -50,6 +51,15 @@ enum Cmd {
         /// Added to every UDP destination port.
         #[arg(long, default_value_t = 0)]
         port_offset: u16,
+    },
+    /// Write a scenario as a replay recording for the Cortex-M firmware `loglio-fw` (IMU
+    /// samples and scans in time order; format: `loglio_firmware_sim::replay`).
+    Replay {
+        #[command(flatten)]
+        sc: ScenarioArgs,
+        /// Output file.
+        #[arg(long, default_value = "out/replay.bin")]
+        out: PathBuf,
     },
     /// Measure ray-casting throughput and sequence generation time.
     Bench {
@@ -185,6 +195,23 @@ fn main() -> anyhow::Result<()> {
                 sum.imu_frames,
                 sum.serial_bytes,
                 t.elapsed().as_secs_f64()
+            );
+        }
+        Cmd::Replay { sc, out } => {
+            let s = sc.build()?;
+            if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+                std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+            }
+            let file = std::fs::File::create(&out).with_context(|| format!("creating {}", out.display()))?;
+            let (_, st) = loglio_firmware_sim::replay::record_scenario(&s, std::io::BufWriter::new(file))
+                .with_context(|| format!("writing {}", out.display()))?;
+            println!(
+                "wrote {}: {} scans ({} points, largest {}), {} IMU samples",
+                out.display(),
+                st.scans,
+                st.points,
+                st.max_points,
+                st.imu
             );
         }
         Cmd::Live { sc, rate, pty_link, port_offset } => {
