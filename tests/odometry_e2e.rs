@@ -1,40 +1,66 @@
-//! End to end on the simulator's standard scenarios: each scenario is generated once and fed
-//! to the three association modes in lockstep; the ATE (RMSE after SE(3) alignment with the
-//! exact ground truth) of the full mode must stay within 0.10 m and beat plane-only.
+//! End to end on the simulator's standard scenarios (issue 7): each scenario is generated once
+//! and fed to the three association modes in lockstep. On every well-posed scenario (vehicle,
+//! handheld, fast rotation) the ATE (RMSE after SE(3) alignment with the exact ground truth) of
+//! the full mode must stay within 0.10 m and beat plane-only.
+//!
+//! The corridor (degenerate along its axis) and the drone (which climbs out of every return's
+//! range) are run too. What holds today is asserted: no divergence, no re-initialisation, the
+//! cross-axis directions held to centimetres, empty scans reported as IMU-only. What does not
+//! hold yet is written as `#[ignore]`d tests that state the requirement and the measured
+//! failure (run them with `cargo test --test odometry_e2e -- --ignored`): in both scenarios the
+//! scans drag the estimate along the weakly observed direction (issue 7 stays open for it).
+//!
+//! Every scenario runs for at least 30 s (the issue's minimum; the standard lengths are 40 s and
+//! 30 s), seed fixed, nothing tuned per scenario: the configuration is the sensor's preset with
+//! the rig's extrinsic and the IMU's noise figures (`config_for`).
 
 use std::sync::Mutex;
 
 use loglio_core::odometry::{AssociationMode, Odometry, Vlp32cStorage};
+use loglio_core::output::{ImuOnlyReason, Status};
 use loglio_firmware_sim::lidar::SensorModel;
-use loglio_firmware_sim::scenario::{Scenario, ScenarioConfig, ScenarioKind};
+use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKind};
 use loglio_tests::odom::{Trace, config_for, run_lockstep, summary};
+use nalgebra::{Isometry3, Vector3};
 
 const MODES: [AssociationMode; 3] =
     [AssociationMode::Full, AssociationMode::PlaneOnly, AssociationMode::Plain];
 
-/// One storage per mode, in statics (60 MB each: never on the stack).
+/// One storage per odometry, in statics (60 MB each: never on the stack). The tests of this
+/// binary share them, one scenario at a time.
 static STORES: [Mutex<Vlp32cStorage>; 3] = [const { Mutex::new(Vlp32cStorage::new()) }; 3];
+static LOCK: Mutex<()> = Mutex::new(());
 
-fn run_modes(kind: ScenarioKind, sensor: SensorModel, seed: u64, secs: f64) -> Vec<Trace> {
-    let mut c = ScenarioConfig::new(kind, sensor, seed);
+fn scenario(kind: ScenarioKind, secs: f64) -> Scenario {
+    let mut c = ScenarioConfig::new(kind, SensorModel::Vlp32c, 7);
     c.duration_s = secs;
-    let sc = Scenario::from_config(c).unwrap();
-    let mut guards: Vec<_> = STORES.iter().map(|m| m.lock().unwrap_or_else(|e| e.into_inner())).collect();
+    Scenario::from_config(c).unwrap()
+}
+
+/// Runs `modes` on `sc` in lockstep; `inject` may alter the events (for the IMU-only reference).
+fn run(sc: &Scenario, modes: &[AssociationMode], inject: impl FnMut(Event) -> Vec<Event>) -> Vec<Trace> {
+    let mut guards: Vec<_> =
+        STORES.iter().take(modes.len()).map(|m| m.lock().unwrap_or_else(|e| e.into_inner())).collect();
     let mut odos: Vec<Odometry<'_, _, _, _>> =
-        guards.iter_mut().zip(MODES).map(|(g, mode)| g.odometry(&config_for(&sc, mode)).unwrap()).collect();
-    let traces = run_lockstep(&sc, &mut odos, |e| vec![e]);
-    for (tr, mode) in traces.iter().zip(MODES) {
-        println!("{}", summary(kind.name(), mode, tr));
+        guards.iter_mut().zip(modes).map(|(g, &mode)| g.odometry(&config_for(sc, mode)).unwrap()).collect();
+    let traces = run_lockstep(sc, &mut odos, inject);
+    for (tr, mode) in traces.iter().zip(modes) {
+        println!("{}", summary(sc.config().kind.name(), *mode, tr));
     }
     traces
 }
 
-fn check(kind: ScenarioKind, traces: &[Trace]) {
-    let full = traces[0].ate();
-    let plane = traces[1].ate();
+/// The well-posed scenarios: full within 0.10 m, better than plane-only, no re-initialisation,
+/// and nearly every scan updated by the LiDAR.
+fn well_posed(kind: ScenarioKind) {
+    let _one = LOCK.lock().unwrap_or_else(|e| e.into_inner());
+    let sc = scenario(kind, kind.default_duration_s());
+    let traces = run(&sc, &MODES, |e| vec![e]);
+    let (full, plane, plain) = (traces[0].ate(), traces[1].ate(), traces[2].ate());
+    println!("{kind:?}: ATE full {full:.4} m, plane-only {plane:.4} m, plain {plain:.4} m");
     let [ok, deg, imu, _, reinit] = traces[0].status_counts();
-    assert!(full <= 0.10, "{kind:?}: full-mode ATE {full:.4} m exceeds 0.10 m");
-    println!("{kind:?}: full {full:.4} m, plane-only {plane:.4} m, plain {:.4} m", traces[2].ate());
+    assert!(full.is_finite() && full <= 0.10, "{kind:?}: full-mode ATE {full:.4} m exceeds 0.10 m");
+    assert!(full < plane, "{kind:?}: full {full:.4} m must beat plane-only {plane:.4} m");
     assert_eq!(reinit, 0, "{kind:?}: no re-initialisation on clean data");
     assert!(
         ok + deg > 9 * (ok + deg + imu) / 10,
@@ -44,6 +70,156 @@ fn check(kind: ScenarioKind, traces: &[Trace]) {
 
 #[test]
 fn vehicle_vlp32c() {
-    let traces = run_modes(ScenarioKind::Vehicle, SensorModel::Vlp32c, 7, 32.0);
-    check(ScenarioKind::Vehicle, &traces);
+    well_posed(ScenarioKind::Vehicle);
+}
+
+#[test]
+fn handheld_indoors() {
+    well_posed(ScenarioKind::Handheld);
+}
+
+/// The drone climbs 70 m out of a courtyard: from about 50 m up no return is within the
+/// preset's 80 m range (the VLP-32C looks at most 25 deg down), so the last ~15 s are IMU-only by
+/// necessity. The odometry must say so (empty scans, IMU-only), grow its covariance, and neither
+/// diverge nor restart.
+#[test]
+fn drone_into_open_sky_is_reported_and_survived() {
+    let _one = LOCK.lock().unwrap_or_else(|e| e.into_inner());
+    let kind = ScenarioKind::Drone;
+    let sc = scenario(kind, kind.default_duration_s());
+    let tr = run(&sc, &[AssociationMode::Full], |e| vec![e]).remove(0);
+    let [ok, deg, imu, _, reinit] = tr.status_counts();
+    println!("drone: ATE {:.3} m; ok {ok}, degraded {deg}, imu-only {imu}", tr.ate());
+    assert_eq!(reinit, 0, "no re-initialisation");
+    assert!(tr.results.iter().all(|r| r.pose.position.iter().all(|v| v.is_finite())), "finite poses");
+    // Lower in the climb the scans update; in open sky the scans are empty and IMU-only.
+    assert!(ok + deg > 150, "the climb among the buildings updates ({ok} ok, {deg} degraded)");
+    let empty: Vec<usize> = (0..tr.results.len())
+        .filter(|&i| matches!(tr.results[i].status, Status::ImuOnly(ImuOnlyReason::EmptyScan)))
+        .collect();
+    assert!(empty.len() > 100, "open sky must be reported as empty scans ({} found)", empty.len());
+    // The position covariance grows through the open-sky stretch.
+    let var = |i: usize| tr.results[i].pose.covariance.fixed_view::<3, 3>(0, 0).trace();
+    let (first, last) = (empty[0], *empty.last().unwrap());
+    assert!(var(last) > 10.0 * var(first), "covariance must grow: {:.3e} -> {:.3e}", var(first), var(last));
+}
+
+/// The issue's bound on the drone. Fails today: ATE 7.8 m (full), 7.9 m (plane-only), 5.0 m
+/// (plain). Most of it is the open-sky IMU-only stretch, but the climb already lags by 0.3 m
+/// vertically at 20 m altitude while thousands of residuals are in use.
+#[test]
+#[ignore = "known defect, issue 7: the estimate lags the climb; open sky leaves only the IMU"]
+fn drone_within_ten_centimetres() {
+    well_posed(ScenarioKind::Drone);
+}
+
+#[test]
+fn fast_rotation() {
+    well_posed(ScenarioKind::FastRotation);
+}
+
+/// The estimate expressed in the truth's frame, anchored at the first initialised pose (no
+/// alignment: drift along the corridor must show, not be fitted away).
+fn anchored_errors(tr: &Trace) -> Vec<(u64, Vector3<f64>)> {
+    let mut anchor: Option<Isometry3<f64>> = None;
+    let mut out = Vec::new();
+    for (r, t) in tr.results.iter().zip(&tr.truth) {
+        if matches!(r.status, Status::Initialising(_)) {
+            continue;
+        }
+        let est = Isometry3::from_parts(r.pose.position.into(), r.pose.rotation);
+        let a = *anchor.get_or_insert(t * est.inverse());
+        out.push((r.pose.t_ns, (a * est).translation.vector - t.translation.vector));
+    }
+    out
+}
+
+/// Worst anchored errors (along the corridor, across it, vertical) of the LIO and of an IMU-only
+/// run on the same data, and the LIO's status counts.
+fn corridor_errors() -> ([f64; 3], [f64; 3], [usize; 5]) {
+    let _one = LOCK.lock().unwrap_or_else(|e| e.into_inner());
+    let kind = ScenarioKind::Corridor;
+    let sc = scenario(kind, kind.default_duration_s());
+    let lio = run(&sc, &[AssociationMode::Full], |e| vec![e]).remove(0);
+    // The same IMU samples, every scan emptied: the filter's IMU-only propagation.
+    let imu_only = run(&sc, &[AssociationMode::Full], |e| match e {
+        Event::Scan(mut s) => {
+            s.points.clear();
+            vec![Event::Scan(s)]
+        }
+        e => vec![e],
+    })
+    .remove(0);
+
+    let counts = lio.status_counts();
+    println!("corridor: (ok, degraded, imu-only, init, reinit) = {counts:?}");
+
+    // The corridor's axis: the direction of travel, start to end.
+    let p0 = sc.pose_at(lio.results[0].pose.t_ns).translation.vector;
+    let p1 = sc.pose_at(lio.results.last().unwrap().pose.t_ns).translation.vector;
+    let axis = Vector3::new(p1.x - p0.x, p1.y - p0.y, 0.0).normalize();
+    let side = Vector3::z().cross(&axis);
+
+    let e_lio = anchored_errors(&lio);
+    let e_imu = anchored_errors(&imu_only);
+    let worst_of = |e: &[(u64, Vector3<f64>)]| {
+        let mut w = [0.0f64; 3];
+        for (_, a) in e {
+            for (k, d) in [axis, side, Vector3::z()].iter().enumerate() {
+                w[k] = w[k].max(a.dot(d).abs());
+            }
+        }
+        w
+    };
+    let (worst, worst_imu) = (worst_of(&e_lio), worst_of(&e_imu));
+    let last = e_lio.last().unwrap().1;
+    println!(
+        "corridor: worst error along / across / vertical: LIO {:.3} / {:.3} / {:.3} m, IMU only {:.3} / {:.3} / {:.3} m; \
+         final along-axis {:.3} m over {:.0} m",
+        worst[0],
+        worst[1],
+        worst[2],
+        worst_imu[0],
+        worst_imu[1],
+        worst_imu[2],
+        last.dot(&axis),
+        (p1 - p0).norm()
+    );
+    (worst, worst_imu, counts)
+}
+
+/// 40 s down a corridor with no feature along its axis: the status reports the degenerate axis,
+/// no divergence, no restart, and the walls, floor and ceiling hold the vehicle across the corridor and vertically (centimetres,
+/// where IMU-only drifts by metres).
+#[test]
+fn corridor_holds_the_observable_directions() {
+    let (worst, worst_imu, [ok, deg, imu, _, reinit]) = corridor_errors();
+    assert_eq!(reinit, 0, "no re-initialisation");
+    assert!(
+        deg > 8 * (ok + deg + imu) / 10,
+        "the axis must be reported degenerate ({deg} of {})",
+        ok + deg + imu
+    );
+    assert!(worst.iter().all(|w| w.is_finite()), "no divergence");
+    assert!(worst[1] < 0.10 && worst[2] < 0.10, "across {:.3} m, vertical {:.3} m", worst[1], worst[2]);
+    assert!(worst_imu[1] > worst[1], "the scans must beat the IMU across the corridor");
+}
+
+/// The issue's requirement: the axis left to the IMU, its error no worse than IMU-only. Fails
+/// today: the axis is flagged on every scan, yet the estimate ends 44 m behind over the 151 m
+/// drive, against 8.6 m for IMU-only on the same data. The along-axis velocity is still pulled
+/// down through the observed directions, and the along-axis accelerometer bias settles during
+/// the rest period at a value that depends on the association mode (0.089 m/s² full, 0.042
+/// plain), i.e. the scans' pitch is biased; with the old 1e-3 threshold the vehicle stayed put
+/// (146 m behind).
+#[test]
+#[ignore = "known defect, issue 7: the scans drag the estimate along the corridor's axis"]
+fn corridor_axis_left_to_the_imu() {
+    let (worst, worst_imu, _) = corridor_errors();
+    assert!(
+        worst[0] <= worst_imu[0] + 0.5,
+        "along the axis: {:.3} m, IMU-only {:.3} m: the scans must not drag the vehicle",
+        worst[0],
+        worst_imu[0]
+    );
 }
