@@ -84,6 +84,13 @@ pub struct AssociationConfig {
     /// Point-to-plane: every neighbour must lie within this of the fitted plane, metres.
     /// Default 0.1 (the reference's `esti_plane`).
     pub plane_max_dist: f32,
+    /// Point-to-plane (modes `Full`, `PlaneOnly`): the fitted plane's normal must lie within
+    /// this of the point's own normal (its Ring FALS normal; without one, the mean of the
+    /// neighbours' normals), degrees; 180 disables the test. Default 30. Neighbours from one
+    /// scan ring fit a plane *across* the surface they lie on (a ring crossing a corridor is a
+    /// U in one cross-section, accepted by the distance test with a normal along the axis):
+    /// such planes pin the estimate to the ring pattern the map was built from.
+    pub plane_max_normal_angle_deg: f32,
     /// Small surfel: the point must lie within this of it, metres. Default 0.2 (reference).
     pub small_surfel_max_residual: f32,
     /// Residual test: keep a residual `r` of a point at range `|p|` if `gate · r² < |p|`.
@@ -107,6 +114,7 @@ impl AssociationConfig {
         max_dist: 1.0,
         max_mean_angle_deg: 60.0,
         plane_max_dist: 0.1,
+        plane_max_normal_angle_deg: 30.0,
         small_surfel_max_residual: 0.2,
         residual_gate: 81.0,
         surfel_variance: 0.001,
@@ -131,6 +139,9 @@ impl AssociationConfig {
         }
         if !(self.plane_max_dist > 0.0 && self.plane_max_dist.is_finite()) {
             return Err("association.plane_max_dist");
+        }
+        if !(self.plane_max_normal_angle_deg >= 0.0 && self.plane_max_normal_angle_deg <= 180.0) {
+            return Err("association.plane_max_normal_angle_deg");
         }
         if !(self.small_surfel_max_residual >= 0.0 && self.small_surfel_max_residual.is_finite()) {
             return Err("association.small_surfel_max_residual");
@@ -242,6 +253,8 @@ pub fn associate_point(
     let mut pts = [[0.0f32; 3]; KNN_MAX];
     let mut voxels = [VoxelHandle(0); KNN_MAX];
     let mut m = 0usize;
+    // The direction a fitted plane's normal must agree with (point-to-plane check).
+    let mut expect: Option<[f32; 3]> = None;
     if mode == AssociationMode::Plain {
         for n in nb.as_slice() {
             pts[m] = n.point;
@@ -251,6 +264,7 @@ pub fn associate_point(
     } else {
         let ray = [origin[0] - p_w[0], origin[1] - p_w[1], origin[2] - p_w[2]];
         let query_n = n_w.filter(normal_is_valid);
+        let mut nb_sum = [0.0f32; 3];
         let mut angle_sum = 0.0f32;
         let mut angle_n = 0u32;
         let mut all_close = true; // every dot >= cos(max angle): the mean passes without acos
@@ -260,6 +274,9 @@ pub fn associate_point(
             if let Some(mn) = n.normal() {
                 if !(dot(mn, ray) > 0.0) {
                     continue; // behind the surface as seen from here
+                }
+                for a in 0..3 {
+                    nb_sum[a] += mn[a];
                 }
                 if let Some(q) = query_n {
                     let c = dot(q, mn).clamp(-1.0, 1.0);
@@ -275,6 +292,10 @@ pub fn associate_point(
         if m < min_nb {
             return Err(Reject::Visibility);
         }
+        expect = query_n.or_else(|| {
+            let l = libm::sqrtf(dot(nb_sum, nb_sum));
+            (l > 0.0).then(|| [nb_sum[0] / l, nb_sum[1] / l, nb_sum[2] / l])
+        });
         if angle_n > 0 && !all_close {
             for c in &dots[..angle_n as usize] {
                 angle_sum += libm::acosf(*c);
@@ -298,7 +319,16 @@ pub fn associate_point(
     let corr = match corr {
         Some(c) => c,
         None => match surfel::fit_plane(&pts[..m], cfg.plane_max_dist) {
-            Ok(pl) => Correspondence::through(pl.normal, pl.centroid, Kind::Plane),
+            Ok(pl) => {
+                if let Some(e) = expect {
+                    // Orientation-free: a plane's normal has no sign.
+                    let c = libm::fabsf(dot(e, pl.normal));
+                    if !(c >= libm::cosf(cfg.plane_max_normal_angle_deg.to_radians())) {
+                        return Err(Reject::NoPlane);
+                    }
+                }
+                Correspondence::through(pl.normal, pl.centroid, Kind::Plane)
+            }
             Err(_) => return Err(Reject::NoPlane),
         },
     };
@@ -497,5 +527,114 @@ impl<C: Clock> Measurements for ScanAssociation<'_, '_, C> {
             acc.add(&row, r, var);
         }
         self.elapsed_ns = self.elapsed_ns.saturating_add(self.clock.now_ns().saturating_sub(t0));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::voxel_map::{MapConfig, MapPoint, MapStorage};
+
+    /// One scan ring crossing a corridor 5 m ahead: a U of points at x = 5 (floor at z = -1,
+    /// walls at y = ±1.2), as a map built while standing still holds it.
+    fn ring_cross_section(map: &mut VoxelMap<'_>) {
+        let mut pts = [MapPoint { xyz: [0.0; 3], normal: None }; 64];
+        let mut n = 0;
+        for i in 0..24 {
+            let y = -1.15 + 0.1 * i as f32;
+            pts[n] = MapPoint { xyz: [5.0, y, -1.0], normal: Some([0.0, 0.0, 1.0]) };
+            n += 1;
+        }
+        for i in 0..20 {
+            let z = -0.95 + 0.1 * i as f32;
+            pts[n] = MapPoint { xyz: [5.0, -1.2, z], normal: Some([0.0, 1.0, 0.0]) };
+            pts[n + 1] = MapPoint { xyz: [5.0, 1.2, z], normal: Some([0.0, -1.0, 0.0]) };
+            n += 2;
+        }
+        map.insert(pts[..n].iter().copied(), [0.0; 3], 1).unwrap();
+    }
+
+    #[test]
+    fn a_plane_across_the_surface_is_refused_when_normals_are_known() {
+        let mut storage = MapStorage::<1024, 2048>::new();
+        let mut map = storage.map(MapConfig::VLP32C).unwrap();
+        ring_cross_section(&mut map);
+        let cfg = AssociationConfig::DEFAULT;
+        // A floor point near the corner, a little ahead of the ring the map holds.
+        let p = [5.05f32, -1.0, -1.0];
+        let range = libm::sqrtf(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
+        let mut nb = Neighbours::new();
+        assert!(map.knn(p, &KnnQuery::new(5, 1.0), &mut nb) >= 4);
+
+        // Without normals (FAST-LIO2-like) the U of floor and wall points fits the plane x = 5:
+        // a residual along the corridor's axis that the scene does not have.
+        let plain =
+            associate_point(&map, &cfg, AssociationMode::Plain, p, None, [0.0; 3], range, &nb).unwrap();
+        assert!(plain.normal[0].abs() > 0.9, "{:?}", plain.normal);
+
+        // With the point's own normal (the floor's) that plane is refused ...
+        let r = associate_point(
+            &map,
+            &cfg,
+            AssociationMode::PlaneOnly,
+            p,
+            Some([0.0, 0.0, 1.0]),
+            [0.0; 3],
+            range,
+            &nb,
+        );
+        assert_eq!(r, Err(Reject::NoPlane));
+        // ... also without it (the neighbours' mean normal) ...
+        let r = associate_point(&map, &cfg, AssociationMode::PlaneOnly, p, None, [0.0; 3], range, &nb);
+        assert_eq!(r, Err(Reject::NoPlane));
+        // ... and accepted when the check is switched off.
+        let off = AssociationConfig { plane_max_normal_angle_deg: 180.0, ..cfg };
+        let r = associate_point(
+            &map,
+            &off,
+            AssociationMode::PlaneOnly,
+            p,
+            Some([0.0, 0.0, 1.0]),
+            [0.0; 3],
+            range,
+            &nb,
+        );
+        assert!(r.is_ok_and(|c| c.normal[0].abs() > 0.9), "{r:?}");
+    }
+
+    #[test]
+    fn a_plane_along_the_surface_is_kept() {
+        let mut storage = MapStorage::<1024, 2048>::new();
+        let mut map = storage.map(MapConfig::VLP32C).unwrap();
+        // A floor patch seen by several rings.
+        let mut pts = [MapPoint { xyz: [0.0; 3], normal: None }; 100];
+        for (i, q) in pts.iter_mut().enumerate() {
+            let (x, y) = (4.0 + 0.1 * (i / 10) as f32, -0.5 + 0.1 * (i % 10) as f32);
+            *q = MapPoint { xyz: [x, y, -1.0 + 0.002 * ((i * 7) % 5) as f32], normal: Some([0.0, 0.0, 1.0]) };
+        }
+        map.insert(pts.iter().copied(), [0.0; 3], 1).unwrap();
+        let cfg = AssociationConfig::DEFAULT;
+        let p = [4.45f32, 0.0, -0.98];
+        let range = libm::sqrtf(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
+        let mut nb = Neighbours::new();
+        assert!(map.knn(p, &KnnQuery::new(5, 1.0), &mut nb) >= 4);
+        let c = associate_point(
+            &map,
+            &cfg,
+            AssociationMode::PlaneOnly,
+            p,
+            Some([0.05, 0.0, 0.998]),
+            [0.0; 3],
+            range,
+            &nb,
+        )
+        .unwrap();
+        assert_eq!(c.kind, Kind::Plane);
+        assert!(c.normal[2].abs() > 0.99, "{:?}", c.normal);
+        assert!(
+            (c.distance(p) - 0.02).abs() < 0.01 || (c.distance(p) + 0.02).abs() < 0.01,
+            "{}",
+            c.distance(p)
+        );
     }
 }

@@ -129,7 +129,7 @@ pub struct OdometryConfig {
 }
 
 impl OdometryConfig {
-    /// Velodyne VLP-32C (the paper's M2DGR setup): 0.4 m voxels for the scan and the map, 80 m
+    /// Velodyne VLP-32C (the paper's M2DGR setup): 0.4 m voxels for the scan and the map, 150 m
     /// range, full LOG-LIO association, identity extrinsic (set the rig's).
     pub fn vlp32c(layout: RangeImageLayout) -> Self {
         Self {
@@ -144,7 +144,7 @@ impl OdometryConfig {
             ext_rot: UnitQuaternion::identity(),
             ext_pos: Vector3::zeros(),
             blind: 0.5,
-            max_range: 80.0,
+            max_range: 150.0,
         }
     }
 
@@ -335,6 +335,7 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     stamp: u32,
     restart_pending: bool,
     stats: OdometryStats,
+    last_kept: usize,
 }
 
 impl<const PIX: usize, const PTS: usize, const DS: usize> core::fmt::Debug for Odometry<'_, PIX, PTS, DS> {
@@ -386,6 +387,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             stamp: 0,
             restart_pending: false,
             stats: OdometryStats::default(),
+            last_kept: 0,
         })
     }
 
@@ -412,6 +414,14 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
     /// The IMU queue's counters (accepted, reversed, duplicate, non-finite, overwritten).
     pub fn imu_stats(&self) -> crate::imu::ImuQueueStats {
         self.scan.imu.stats()
+    }
+
+    /// The last scan's downsampled points (LiDAR frame at the scan end) and the map element
+    /// each one was associated with in the last iteration ([`crate::association::Kind::None`]
+    /// where none was): for diagnostics and for tools that show what the scan matched.
+    pub fn last_association(&self) -> (&[ScanPoint], &[Correspondence]) {
+        let n = self.last_kept.min(PTS).min(DS);
+        (&self.scan.points[..n], &self.scan.corr[..n])
     }
 
     /// Switches the association mode from the next scan on.
@@ -601,6 +611,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         let t3 = clock.now_ns();
         times.downsample_ns = t3.saturating_sub(t2);
         let npoints = [npoints[0], kept as u32];
+        self.last_kept = 0;
 
         // 5. Association and update.
         let building = self.map.is_empty();
@@ -620,6 +631,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             );
             update = f.update(&mut assoc);
             counts = assoc.counts();
+            self.last_kept = kept;
             times.association_ns = assoc.elapsed_ns();
         }
         let t4 = clock.now_ns();

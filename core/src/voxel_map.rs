@@ -290,7 +290,8 @@ pub struct MapConfig {
 }
 
 impl MapConfig {
-    /// Velodyne VLP-32C (M2DGR): 0.4 m voxels, 80 m eviction radius.
+    /// Velodyne VLP-32C (M2DGR): 0.4 m voxels, 150 m eviction radius (the sensor reaches 200 m;
+    /// a drone 70 m up sees the ground only beyond 150 m, rooftops from 100 m on).
     pub const VLP32C: Self = Self {
         voxel_size: 0.4,
         eta: 25,
@@ -298,7 +299,7 @@ impl MapConfig {
         criteria: SurfelCriteria::DEFAULT,
         max_normal_angle_deg: 20.0,
         min_ring_coherence: 0.5,
-        evict_radius: 80.0,
+        evict_radius: 150.0,
         sweep_per_insert: 4096,
         evict_batch: 0,
         large: LargeSurfelConfig::DEFAULT,
