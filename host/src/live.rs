@@ -835,6 +835,12 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
         let stopped_by = stopped.map_or(StopReason::Signal, |(r, _)| r);
         runner.process_ready(true, None)?;
         let counts = snapshot(c, &runner.stats, &times.borrow());
+        if counts.lidar_packets == 0 {
+            return Err(PipelineError(format!(
+                "no LiDAR packets arrived on UDP {lidar_addr} during the run ({} datagrams)",
+                counts.datagrams
+            )));
+        }
         if runner.stats.imu_in == 0 {
             return Err(PipelineError(format!(
                 "no IMU data arrived from {imu_source_name} during the run ({} LiDAR packets, {} scans): check the device{}",
