@@ -302,7 +302,9 @@ fn live_tracks_the_simulator_and_ctrl_c_writes_every_output() {
     assert_eq!((socket, decoder), (0, 0), "{text}");
     assert!(imu_drops <= sent.imu_frames / 100 + sent.imu_dropped, "{text}\n{sent:?}");
     assert!(imu + imu_drops >= sent.imu_frames - sent.imu_dropped, "{text}\n{sent:?}");
-    assert!(decoded * 100 >= lidar_sent * 99 && decoded <= lidar_sent + 1, "{text}\n{sent:?}");
+    // Loopback loses nothing unless this machine starves the receive thread for longer than
+    // the kernel buffer lasts: allow a little.
+    assert!(decoded * 100 >= lidar_sent * 97 && decoded <= lidar_sent + 1, "{text}\n{sent:?}");
     // Scans dropped only if this machine could not keep up: allow a few, not many.
     assert!(scan_drops <= 5, "{text}");
 
@@ -472,6 +474,9 @@ fn live_bad_input_is_one_clear_line() {
     ]);
     let e = fails_with(&r, &format!("error: no LiDAR packets on UDP 127.0.0.1:{free} within 1 s"));
     assert!(e.contains("destination IP"), "{e}");
+    // Stopped (--seconds, as by Ctrl-C) before anything arrived.
+    let r = with(&["--lidar-port", &free, "--imu-serial", pty.path.to_str().unwrap(), "--seconds", "0.5"]);
+    fails_with(&r, &format!("error: no LiDAR packets arrived on UDP 127.0.0.1:{free} during the run"));
     drop(held);
     let _ = std::fs::remove_dir_all(&dir);
 }
