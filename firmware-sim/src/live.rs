@@ -55,15 +55,23 @@ impl Pty {
         }
     }
 
-    /// Writes `bytes` without blocking; returns false (nothing written) if the line is full.
+    /// Writes `bytes` without blocking; returns false if the line is full (nothing written, or
+    /// a partial frame that nobody read within 20 ms: the reader's decoder drops it and
+    /// resynchronises at the next delimiter).
     pub fn try_write(&self, bytes: &[u8]) -> io::Result<bool> {
         let mut rest = bytes;
+        let mut waited = Duration::ZERO;
         while !rest.is_empty() {
             match rustix::io::write(&self.master, rest) {
                 Ok(n) => rest = &rest[n..],
                 Err(rustix::io::Errno::AGAIN) if rest.len() == bytes.len() => return Ok(false),
-                // A partial frame was written: finish it (briefly) so the stream stays framed.
-                Err(rustix::io::Errno::AGAIN) => std::thread::sleep(Duration::from_micros(200)),
+                // A partial frame was written: finish it (briefly) so the stream stays framed,
+                // but never wait on a line nobody reads.
+                Err(rustix::io::Errno::AGAIN) if waited < Duration::from_millis(20) => {
+                    std::thread::sleep(Duration::from_micros(200));
+                    waited += Duration::from_micros(200);
+                }
+                Err(rustix::io::Errno::AGAIN) => return Ok(false),
                 Err(e) => return Err(e.into()),
             }
         }
@@ -160,5 +168,20 @@ mod tests {
             n += rustix::io::read(&reader, &mut got[n..]).unwrap();
         }
         assert_eq!(&got[..n], &data[..]);
+    }
+
+    #[test]
+    fn a_line_nobody_reads_never_blocks_the_writer() {
+        let pty = Pty::open().unwrap();
+        // Odd-sized frames until the line is full: the writer must come back each time, with
+        // a partial frame at the end at worst.
+        let frame = [0x5Au8; 37];
+        let mut refused = 0;
+        for _ in 0..10_000 {
+            if !pty.try_write(&frame).unwrap() {
+                refused += 1;
+            }
+        }
+        assert!(refused > 0);
     }
 }

@@ -71,7 +71,7 @@ fn time_mode(
             let mut runner = Runner::new(engine, Outputs::new(OutputOptions::default())?, 0.0);
             let timed = std::rc::Rc::new(std::cell::RefCell::new(Vec::new()));
             let sink = timed.clone();
-            runner.on_scan = Some(Box::new(move |res, _| {
+            runner.on_scan = Some(Box::new(move |res, _, _| {
                 if !matches!(res.status, loglio_core::output::Status::Initialising(_)) {
                     let t = &res.times;
                     sink.borrow_mut().push((

@@ -11,6 +11,7 @@
 //! | [`eval`] | ATE/RPE against a ground truth, evo-compatible |
 //! | [`output`] | TUM trajectory, PLY/PCD map, per-scan CSV, PNG/SVG plots, progress bar |
 //! | [`lidar_stream`] | raw Velodyne/Ouster packets to scans and IMU samples (decoders, time alignment, scan assembly) |
+//! | [`live`] | `loglio live`: UDP LiDAR and serial or Ouster IMU on their own threads, bounded queues, status line, Ctrl-C |
 //! | [`replay`] | `loglio replay`: pcap plus IMU CSV, serial capture or Ouster IMU packets |
 //! | [`sim`] | `loglio sim` / `demo`: a firmware-sim scenario end to end, ATE against its ground truth |
 //! | [`pipeline`] | the configuration onto the core odometry, its heap storage, input ordering and outputs |
@@ -24,6 +25,7 @@ pub mod eval;
 pub mod imu_csv;
 pub mod knn_pca;
 pub mod lidar_stream;
+pub mod live;
 pub mod normals;
 pub mod ouster_meta;
 pub mod output;

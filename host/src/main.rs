@@ -37,6 +37,9 @@ enum Command {
     /// Ring FALS normals of a real capture (the bundled Ouster OS-1-32 frame by default): valid
     /// normals, time per scan, agreement with kNN-PCA on planar points.
     Normals(loglio_host::normals::NormalsArgs),
+    /// Run live: LiDAR packets over UDP, the IMU from a serial port or the Ouster's IMU packets;
+    /// a status line each second; Ctrl-C stops and writes every output (as replay).
+    Live(LiveArgs),
     /// Replay a pcap (Velodyne or Ouster) with the IMU from a CSV file, a serial capture or the
     /// Ouster's IMU packets; writes the trajectory, map, per-scan CSV and plots.
     Replay(ReplayArgs),
@@ -159,6 +162,47 @@ struct ReplayArgs {
     /// Speed-up over real time with --realtime.
     #[arg(long, default_value_t = 1.0, requires = "realtime")]
     rate: f64,
+    #[command(flatten)]
+    run: RunArgs,
+}
+
+#[derive(Debug, Args)]
+struct LiveArgs {
+    /// The IMU's serial device (loglio's IMU frames): a UART, a USB serial adapter, a
+    /// pseudo-terminal or a FIFO (default: the configuration's imu.serial_device).
+    #[arg(long, value_name = "PATH", conflicts_with = "ouster_imu")]
+    imu_serial: Option<PathBuf>,
+    /// Serial baud rate (overrides imu.baud).
+    #[arg(long, value_name = "BAUD", value_parser = clap::value_parser!(u32).range(1200..=12_000_000))]
+    baud: Option<u32>,
+    /// Take the IMU from the Ouster's IMU packets (UDP --imu-port).
+    #[arg(long)]
+    ouster_imu: bool,
+    /// Local IP address to listen on (overrides network.bind, default 0.0.0.0).
+    #[arg(long, value_name = "IP")]
+    bind: Option<std::net::IpAddr>,
+    /// LiDAR data port (default: the Ouster metadata's, else network.lidar_port: 2368
+    /// Velodyne, 7502 Ouster).
+    #[arg(long, value_name = "PORT")]
+    lidar_port: Option<u16>,
+    /// Ouster IMU port with --ouster-imu (default: the metadata's, else network.imu_port, 7503).
+    #[arg(long, value_name = "PORT")]
+    imu_port: Option<u16>,
+    /// Velodyne position packet port (the GPS time).
+    #[arg(long, value_name = "PORT", default_value_t = 8308)]
+    position_port: u16,
+    /// Stop after this many seconds (as Ctrl-C does).
+    #[arg(long, value_name = "S")]
+    seconds: Option<f64>,
+    /// Fail when no LiDAR packet arrives within this many seconds of the start.
+    #[arg(long, value_name = "S", default_value_t = 10.0)]
+    lidar_timeout: f64,
+    /// Warn when no IMU sample arrives for this many seconds.
+    #[arg(long, value_name = "S", default_value_t = 3.0)]
+    imu_timeout: f64,
+    /// No status line.
+    #[arg(long)]
+    quiet: bool,
     #[command(flatten)]
     run: RunArgs,
 }
@@ -370,6 +414,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Eval(a) => eval_cmd(a),
         Command::BagInfo(a) => bag_info_cmd(a),
         Command::Normals(a) => loglio_host::normals::run(&a),
+        Command::Live(a) => live_cmd(a),
         Command::Replay(a) => replay_cmd(a),
         Command::Bag(a) => bag_cmd(a),
         Command::Sim(a) => sim_cmd(a),
@@ -407,6 +452,30 @@ fn replay_cmd(a: ReplayArgs) -> anyhow::Result<()> {
         },
         loglio_host::replay::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
     ))
+}
+
+fn live_cmd(a: LiveArgs) -> anyhow::Result<()> {
+    use loglio_host::live::{LiveImu, LiveOptions};
+    if !(a.imu_timeout > 0.0 && a.imu_timeout.is_finite()) {
+        bail!("--imu-timeout must be a positive number of seconds, not {}", a.imu_timeout);
+    }
+    let mut opt = LiveOptions::new(a.run.setup());
+    opt.imu = match (a.imu_serial, a.ouster_imu) {
+        (Some(p), _) => LiveImu::Serial(p),
+        (None, true) => LiveImu::OusterPackets,
+        (None, false) => LiveImu::Config,
+    };
+    opt.baud = a.baud;
+    opt.bind = a.bind;
+    opt.lidar_port = a.lidar_port;
+    opt.imu_port = a.imu_port;
+    opt.position_port = a.position_port;
+    opt.seconds = a.seconds;
+    opt.lidar_timeout_s = a.lidar_timeout;
+    opt.imu_timeout_s = a.imu_timeout;
+    opt.status = !a.quiet;
+    let r = loglio_host::live::run(&opt)?;
+    print(&loglio_host::live::summary(&r))
 }
 
 fn bench_cmd(a: BenchArgs) -> anyhow::Result<()> {

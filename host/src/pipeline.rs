@@ -633,8 +633,9 @@ fn widen(span: &mut Option<(u64, u64)>, t: u64) {
     *span = Some(span.map_or((t, t), |(a, b)| (a.min(t), b.max(t))));
 }
 
-/// A callback after each processed scan.
-pub type ScanCallback<'e> = Box<dyn FnMut(&ScanResult, &RunStats) + 'e>;
+/// A callback after each processed scan: its result, the counts so far and the `arrival` the
+/// scan was given to [`Runner::scan`] with (live: when its last packet was received).
+pub type ScanCallback<'e> = Box<dyn FnMut(&ScanResult, &RunStats, u64) + 'e>;
 
 /// Most scans held while waiting for the IMU before one is processed without it.
 pub const MAX_PENDING_SCANS: usize = 8;
@@ -734,16 +735,16 @@ impl<'e> Runner<'e> {
             if !(covered || force || waited || self.scans.len() > MAX_PENDING_SCANS) {
                 break;
             }
-            let Some((scan, _)) = self.scans.pop_front() else { break };
+            let Some((scan, arrival)) = self.scans.pop_front() else { break };
             if !covered {
                 self.stats.scans_without_imu += 1;
             }
-            self.process(scan)?;
+            self.process(scan, arrival)?;
         }
         Ok(())
     }
 
-    fn process(&mut self, scan: OwnedScan) -> Result<(), PipelineError> {
+    fn process(&mut self, scan: OwnedScan, arrival: u64) -> Result<(), PipelineError> {
         let end = scan.end_ns();
         let stale_before = scan.start_ns.saturating_sub(1_000_000_000);
         while let Some(s) = self.imu.front() {
@@ -788,7 +789,7 @@ impl<'e> Runner<'e> {
         st.scans += 1;
         self.outputs.record(index, &res, t.total_ns as f64 * 1e-6, self.engine.map_voxels())?;
         if let Some(cb) = &mut self.on_scan {
-            cb(&res, &self.stats);
+            cb(&res, &self.stats, arrival);
         }
         if self.spare.len() < 4 {
             self.spare.push(scan.points);

@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use loglio_core::imu::ImuSample;
+use loglio_core::odometry::OdometryConfig;
 
 use crate::config::{AssociationMode, Config, ImuSource, Preset, SensorFamily};
 use crate::diag::warn;
@@ -79,6 +80,42 @@ impl RunSetup {
             map: write && !self.no_map,
             plots: write && !self.no_map,
         })
+    }
+}
+
+/// What a run over raw sensor packets (a pcap, live UDP) needs besides the configuration: the
+/// decoder, the ports and the odometry's configuration and storage class.
+#[derive(Debug)]
+pub struct PacketSetup {
+    /// The sensor's decoder (with the Ouster metadata or Velodyne calibration of the
+    /// configuration).
+    pub dec: SensorDecoder,
+    /// The LiDAR data port: the Ouster metadata's, else `network.lidar_port`.
+    pub lidar_port: u16,
+    /// The Ouster IMU port: the Ouster metadata's, else `network.imu_port`.
+    pub imu_port: u16,
+    /// The storage class for the decoder's range image and `mapping.map_capacity`.
+    pub class: StorageClass,
+    /// The core odometry's configuration.
+    pub core: OdometryConfig,
+}
+
+impl PacketSetup {
+    /// The decoder, ports and odometry configuration of `cfg`.
+    pub fn new(cfg: &Config) -> Result<PacketSetup, PipelineError> {
+        let meta = match &cfg.sensor.ouster_metadata {
+            Some(p) => Some(crate::ouster_meta::load(p).map_err(|e| PipelineError(e.to_string()))?),
+            None => None,
+        };
+        let dec = SensorDecoder::new(cfg, meta.as_ref().map(|m| &m.intrinsics))?;
+        let (lidar_port, imu_port) = match &meta {
+            Some(m) => (m.udp_port_lidar, m.udp_port_imu),
+            None => (cfg.network.lidar_port, cfg.network.imu_port),
+        };
+        let layout = dec.layout();
+        let class = StorageClass::choose(layout.rows(), layout.cols(), cfg.mapping.map_capacity)?;
+        let core = pipeline::odometry_config(cfg, layout)?;
+        Ok(PacketSetup { dec, lidar_port, imu_port, class, core })
     }
 }
 
@@ -182,15 +219,7 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
             cfg.preset
         )));
     }
-    let meta = match &cfg.sensor.ouster_metadata {
-        Some(p) => Some(crate::ouster_meta::load(p).map_err(|e| PipelineError(e.to_string()))?),
-        None => None,
-    };
-    let dec = SensorDecoder::new(&cfg, meta.as_ref().map(|m| &m.intrinsics))?;
-    let (lidar_port, imu_port) = match &meta {
-        Some(m) => (m.udp_port_lidar, m.udp_port_imu),
-        None => (cfg.network.lidar_port, cfg.network.imu_port),
-    };
+    let PacketSetup { dec, lidar_port, imu_port, class, core } = PacketSetup::new(&cfg)?;
     let mut feed = match &imu {
         ImuInput::Csv(p) => {
             ImuFeed::Samples(crate::imu_csv::load(p).map_err(|e| PipelineError(e.to_string()))?.into_iter())
@@ -201,9 +230,6 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
         }
         ImuInput::OusterPackets => ImuFeed::None,
     };
-    let layout = dec.layout();
-    let class = StorageClass::choose(layout.rows(), layout.cols(), cfg.mapping.map_capacity)?;
-    let core = pipeline::odometry_config(&cfg, layout)?;
     let mut reader = crate::pcap::PcapReader::open(&opt.pcap)
         .map_err(|e| PipelineError(format!("{}: {e}", opt.pcap.display())))?;
     let total = std::fs::metadata(&opt.pcap).map(|m| m.len()).unwrap_or(0);

@@ -27,11 +27,11 @@ pub fn host_time_ns() -> u64 {
 }
 
 impl UdpSource {
-    /// Binds `addr` (e.g. `0.0.0.0:2368`) with address reuse, a receive buffer of `rcvbuf`
-    /// bytes and a read timeout.
+    /// Binds `addr` (e.g. `0.0.0.0:2368`) with a receive buffer of `rcvbuf` bytes and a read
+    /// timeout. No `SO_REUSEADDR`: a port another program listens on is an error
+    /// (`AddrInUse`), not two programs silently sharing (or splitting) the stream.
     pub fn bind(addr: SocketAddr, rcvbuf: usize, timeout: Duration) -> io::Result<Self> {
         let sock = Socket::new(Domain::for_address(addr), Type::DGRAM, Some(Protocol::UDP))?;
-        sock.set_reuse_address(true)?;
         if let Err(e) = sock.set_recv_buffer_size(rcvbuf) {
             log::warn!("udp {addr}: could not set SO_RCVBUF to {rcvbuf}: {e}");
         }
