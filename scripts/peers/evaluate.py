@@ -5,8 +5,9 @@
 
 BAGS holds one folder per scenario (from sim2bag: groundtruth.tum, scans.csv); RESULTS holds
 RESULTS/<peer>/<scenario>.tum and .json (from run_peer.py). Each --extra NAME=DIR adds a column
-NAME read from DIR/<scenario>.tum (or DIR/<scenario>/trajectory.tum), with its timing, when
-present, from DIR/<scenario>.json: {"ms_per_scan": .., "cpu_ms_per_scan": ..} (optional).
+NAME read from DIR/<scenario>.tum (or DIR/<scenario>/trajectory.tum), with its status and
+timing, when present, from DIR/<scenario>.json (as run_loglio.py writes it): {"status": ..,
+"ms_per_scan": .., "cpu_ms_per_scan": .., "process_cpu_ms_per_scan": ..} (all optional).
 
 The ATE is `loglio eval GT EST --align se3 --json` (evo's definitions: each estimated pose
 paired with the ground-truth pose nearest in time, SE(3) Umeyama alignment on the positions,
@@ -121,11 +122,16 @@ def main():
                 return None
             r = json.loads(j.read_text())
             return {
-                "status": "ok",
+                "status": r.get("status", "ok"),
+                "error": r.get("error"),
                 "timing": {
                     "wall_ms_per_scan_mean": r.get("ms_per_scan"),
+                    "wall_ms_per_scan_median": r.get("ms_per_scan_median"),
                     "cpu_ms_per_scan_mean": r.get("cpu_ms_per_scan"),
+                    # run_loglio.py: the whole process's CPU per scan (an upper bound).
+                    "process_cpu_ms_per_scan": r.get("process_cpu_ms_per_scan"),
                 },
+                "machine": {"load_avg_before": r.get("load_avg_before"), "load_avg_after": r.get("load_avg_after")},
             }
 
         columns.append((name, tum, timing))
@@ -169,9 +175,11 @@ def main():
                 row["wall_ms_per_scan"] = tm.get("wall_ms_per_scan_mean")
                 row["wall_ms_per_scan_median"] = tm.get("wall_ms_per_scan_median")
                 row["cpu_ms_per_scan"] = tm.get("cpu_ms_per_scan_mean")
+                if tm.get("process_cpu_ms_per_scan") is not None:
+                    row["process_cpu_ms_per_scan"] = tm["process_cpu_ms_per_scan"]
                 if "machine" in info:
-                    row["load_avg_before"] = info["machine"].get("load_avg_before", [None])[0]
-                    row["load_avg_after"] = info["machine"].get("load_avg_after", [None])[0]
+                    row["load_avg_before"] = (info["machine"].get("load_avg_before") or [None])[0]
+                    row["load_avg_after"] = (info["machine"].get("load_avg_after") or [None])[0]
             rows.append(row)
             print(
                 f"{s:9} {name:10} {row.get('status'):9} ATE {row.get('ate_rmse_m', float('nan')):.4f} m, "
@@ -200,6 +208,8 @@ def main():
         cpu = r.get("cpu_ms_per_scan")
         t = f" / {ms:.1f} ms" if ms is not None else ""
         t += f" ({cpu:.1f} CPU)" if cpu is not None else ""
+        if cpu is None and r.get("process_cpu_ms_per_scan") is not None:
+            t += f" (<= {r['process_cpu_ms_per_scan']:.1f} CPU, whole process)"
         partial = "" if r["matched"] >= 0.95 * r["scans"] else f" [{r['matched']}/{r['scans']} poses]"
         if r.get("stopped"):
             partial = f" [stopped at scan {r['stopped']['at_scan']}: {r['stopped']['error']}]"
