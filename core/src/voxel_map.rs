@@ -2131,7 +2131,8 @@ mod tests {
             MapPoint { xyz: [f32::NAN, 0.0, 0.0], normal: None },
             MapPoint { xyz: [1e9, 0.0, 0.0], normal: None },
             MapPoint { xyz: [f32::INFINITY, 0.0, 0.0], normal: None },
-            MapPoint { xyz: [81.0, 0.0, 0.0], normal: None },
+            // Just beyond the eviction radius: not inserted (counted).
+            MapPoint { xyz: [MapConfig::VLP32C.evict_radius + 1.0, 0.0, 0.0], normal: None },
             MapPoint { xyz: [1.0, 1.0, 1.0], normal: Some([0.0, 0.0, 0.0]) },
             MapPoint { xyz: [1.0, 1.0, 1.0], normal: Some([f32::NAN, 0.0, 1.0]) },
             MapPoint { xyz: [1.0, 1.0, 1.0], normal: Some([0.0, 0.0, 3.0]) },
