@@ -83,6 +83,11 @@ fn drone_into_open_sky() {
     well_posed(ScenarioKind::Drone);
 }
 
+#[test]
+fn fast_rotation() {
+    well_posed(ScenarioKind::FastRotation);
+}
+
 /// The estimate expressed in the truth's frame, anchored at the first initialised pose (no
 /// alignment: drift along the corridor must show, not be fitted away).
 fn anchored_errors(tr: &Trace) -> Vec<(u64, Vector3<f64>)> {

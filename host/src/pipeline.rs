@@ -43,7 +43,7 @@ use loglio_core::scan::{ScanPoint, ScanView};
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
 use crate::config::{AssociationMode, Config, ConfigError, SensorFamily};
-use crate::eval::{self, Alignment, DeltaUnit, EvalOptions, EvalReport, Trajectory};
+use crate::eval::{self, EvalOptions, EvalReport, Trajectory};
 use crate::output::{self, MapPoint, PcdEncoding, ScanCsvWriter, ScanRecord, ScanStatus, TumWriter};
 
 /// A pipeline error: one line.
@@ -498,15 +498,7 @@ impl Outputs {
         if let Some(gt) = &self.opt.gt {
             let est = self.trajectory();
             if est.len() >= 3 {
-                let opt = EvalOptions {
-                    align: Alignment::Se3,
-                    max_diff: 0.01,
-                    offset: 0.0,
-                    rpe_delta: 1.0,
-                    rpe_unit: DeltaUnit::Frames,
-                    all_pairs: false,
-                    pairs_from_gt: false,
-                };
+                let opt = EvalOptions::default(); // evo's defaults: SE(3), 10 ms pairing
                 match eval::evaluate(gt, &est, &opt) {
                     Ok(r) => out.eval = Some(r),
                     Err(e) => crate::diag::warn(format!("no evaluation against the ground truth: {e}")),

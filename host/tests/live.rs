@@ -22,7 +22,7 @@ use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::lidar::scanner::Firmware;
 use loglio_firmware_sim::live::{LiveConfig, LiveStats};
 use loglio_firmware_sim::scenario::{Scenario, ScenarioConfig, ScenarioKind};
-use loglio_host::eval::{self, Alignment, DeltaUnit, EvalOptions, Format};
+use loglio_host::eval::{self, EvalOptions, Format};
 
 /// The simulator runs are real time on a small machine: one at a time.
 static SERIAL: Mutex<()> = Mutex::new(());
@@ -319,15 +319,7 @@ fn live_tracks_the_simulator_and_ctrl_c_writes_every_output() {
     // The pose error against the simulator's exact ground truth (the IMU frame).
     let gt = eval::read_trajectory(&dir.join("gt.tum"), Format::Tum, None).unwrap();
     let est = eval::read_trajectory(&out.join("trajectory.tum"), Format::Tum, None).unwrap();
-    let opt = EvalOptions {
-        align: Alignment::Se3,
-        max_diff: 0.01,
-        offset: 0.0,
-        rpe_delta: 1.0,
-        rpe_unit: DeltaUnit::Frames,
-        all_pairs: false,
-        pairs_from_gt: false,
-    };
+    let opt = EvalOptions::default(); // evo's defaults: SE(3), 10 ms pairing
     let r = eval::evaluate(&gt, &est, &opt).unwrap();
     assert_eq!(r.matched, poses, "every pose matched a ground-truth stamp");
     assert!(r.ape_trans.rmse <= 0.10, "ATE {} m: {text}", r.ape_trans.rmse);
@@ -462,7 +454,19 @@ fn live_bad_input_is_one_clear_line() {
         "error: preset os1-16 reads Ouster packets, which need the sensor's metadata",
     );
     // Nothing arrives on the LiDAR port: a clear error after --lidar-timeout.
-    let pty = loglio_firmware_sim::live::Pty::open().unwrap();
+    let pty = match loglio_firmware_sim::live::Pty::open() {
+        Ok(p) => p,
+        // qemu-user does not emulate the pseudo-terminal ioctls the test process needs.
+        Err(e) if runner().is_some() => {
+            println!(
+                "live_bad_input_is_one_clear_line: the LiDAR-timeout part skipped under LOGLIO_TEST_RUNNER: {e}"
+            );
+            drop(held);
+            let _ = std::fs::remove_dir_all(&dir);
+            return;
+        }
+        Err(e) => panic!("pseudo-terminal: {e}"),
+    };
     let r = with(&[
         "--lidar-port",
         &free,
