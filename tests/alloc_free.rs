@@ -4,9 +4,10 @@
 //! [`count_allocations`] runs its closure. Set-up (rendering scans, building tables, creating
 //! output buffers) happens outside; the per-scan work happens inside and must count zero.
 //!
-//! To add a stage (the odometry, when it lands): prepare its inputs and caller-owned storage
-//! before the counted closure, call it inside the closure next to Ring FALS, and keep the
-//! `assert_eq!(allocations, 0)`.
+//! The whole odometry is counted too (`odometry_runs_a_sequence_without_allocating_and_repeats_bit_for_bit`):
+//! the scenario's events and the result buffer are made outside, IMU ingestion and every
+//! `process_scan` inside; the same test shows a second run over the same storage gives
+//! bit-identical poses.
 // A global allocator must implement the unsafe `GlobalAlloc` trait; it only forwards to the
 // system allocator and bumps a thread-local counter.
 #![allow(unsafe_code)]
@@ -15,9 +16,15 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 use std::sync::Mutex;
 
+use loglio_core::odometry::{AssociationMode, Os1_16Storage};
+use loglio_core::output::{ScanResult, Status};
 use loglio_core::ring_fals::{
     PointNormal, RingFals, RingFals32x1800, RingFalsConfig, RingLearner, RingTable,
 };
+use loglio_core::scan::ScanView;
+use loglio_firmware_sim::lidar::SensorModel;
+use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKind};
+use loglio_tests::odom::config_for;
 use loglio_tests::synth::{self, Rng, os1_16_layout, vlp32c_layout};
 
 struct Counting;
@@ -72,6 +79,8 @@ static FALS: Mutex<RingFals32x1800> = Mutex::new(RingFals::new());
 static TABLE_32: Mutex<RingTable> = Mutex::new(RingTable::new());
 static TABLE_16: Mutex<RingTable> = Mutex::new(RingTable::new());
 static LEARNER: Mutex<RingLearner> = Mutex::new(RingLearner::new());
+/// The odometry's storage (scan buffers, ring table, voxel pool: 58 MB), as firmware holds it.
+static ODOMETRY: Mutex<Os1_16Storage> = Mutex::new(Os1_16Storage::new());
 
 #[test]
 fn the_counter_counts() {
@@ -124,4 +133,57 @@ fn ring_fals_estimates_a_sequence_of_scans_without_allocating() {
     // The work was real: most points got normals.
     let total: usize = scans.iter().map(|s| s.1.len()).sum();
     assert!(valid as f64 > 0.8 * total as f64, "{valid} of {total} valid");
+}
+
+#[test]
+fn odometry_runs_a_sequence_without_allocating_and_repeats_bit_for_bit() {
+    // Set-up, allowed to allocate: 6 s of the handheld scenario with an OS1-16 (2 s at rest for
+    // the IMU initialisation, then walking), every event generated up front.
+    let mut c = ScenarioConfig::new(ScenarioKind::Handheld, SensorModel::Os1_16, 3);
+    c.duration_s = 6.0;
+    let sc = Scenario::from_config(c).unwrap();
+    let events: Vec<Event> = sc.events().collect();
+    let scans = events.iter().filter(|e| matches!(e, Event::Scan(_))).count();
+    let cfg = config_for(&sc, AssociationMode::Full);
+    let mut storage = ODOMETRY.lock().unwrap_or_else(|e| e.into_inner());
+
+    let mut runs: Vec<Vec<ScanResult>> = Vec::new();
+    for run in 0..2 {
+        let mut results: Vec<ScanResult> = Vec::with_capacity(scans);
+        let mut odo = storage.odometry(&cfg).unwrap();
+        // Counted: IMU ingestion and every scan through the whole pipeline.
+        let ((), allocations) = count_allocations(|| {
+            for ev in &events {
+                match ev {
+                    Event::Imu(s) => {
+                        odo.push_imu(*s);
+                    }
+                    Event::Scan(scan) => {
+                        // Within the capacity reserved above: no allocation.
+                        results.push(
+                            odo.process_scan(ScanView { start_ns: scan.start_ns, points: &scan.points }),
+                        );
+                    }
+                }
+            }
+        });
+        assert_eq!(allocations, 0, "run {run}: the odometry allocated {allocations} times");
+        runs.push(results);
+    }
+    // The work was real: after the initialisation the LiDAR updated the state.
+    let tracked = runs[0].iter().filter(|r| matches!(r.status, Status::Ok | Status::Degraded { .. })).count();
+    assert!(tracked >= 30, "{tracked} of {scans} scans updated");
+    // Same input, same storage, a fresh odometry: bit-identical poses and covariances.
+    let bits = |r: &ScanResult| {
+        let p = &r.pose;
+        let mut v: Vec<u64> =
+            p.position.iter().chain(p.rotation.coords.iter()).map(|x| x.to_bits()).collect();
+        v.extend(p.covariance.iter().map(|x| x.to_bits()));
+        (p.t_ns, v)
+    };
+    assert_eq!(runs[0].len(), runs[1].len());
+    for (i, (a, b)) in runs[0].iter().zip(&runs[1]).enumerate() {
+        assert_eq!(bits(a), bits(b), "scan {i} differs between two runs");
+        assert_eq!(a.status, b.status);
+    }
 }
