@@ -335,7 +335,6 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     stamp: u32,
     restart_pending: bool,
     stats: OdometryStats,
-    last_kept: usize,
 }
 
 impl<const PIX: usize, const PTS: usize, const DS: usize> core::fmt::Debug for Odometry<'_, PIX, PTS, DS> {
@@ -387,7 +386,6 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             stamp: 0,
             restart_pending: false,
             stats: OdometryStats::default(),
-            last_kept: 0,
         })
     }
 
@@ -414,14 +412,6 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
     /// The IMU queue's counters (accepted, reversed, duplicate, non-finite, overwritten).
     pub fn imu_stats(&self) -> crate::imu::ImuQueueStats {
         self.scan.imu.stats()
-    }
-
-    /// The last scan's downsampled points (LiDAR frame at the scan end) and the map element
-    /// each one was associated with in the last iteration ([`crate::association::Kind::None`]
-    /// where none was): for diagnostics and for tools that show what the scan matched.
-    pub fn last_association(&self) -> (&[ScanPoint], &[Correspondence]) {
-        let n = self.last_kept.min(PTS).min(DS);
-        (&self.scan.points[..n], &self.scan.corr[..n])
     }
 
     /// Switches the association mode from the next scan on.
@@ -611,7 +601,6 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         let t3 = clock.now_ns();
         times.downsample_ns = t3.saturating_sub(t2);
         let npoints = [npoints[0], kept as u32];
-        self.last_kept = 0;
 
         // 5. Association and update.
         let building = self.map.is_empty();
@@ -631,7 +620,6 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             );
             update = f.update(&mut assoc);
             counts = assoc.counts();
-            self.last_kept = kept;
             times.association_ns = assoc.elapsed_ns();
         }
         let t4 = clock.now_ns();
