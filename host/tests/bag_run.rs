@@ -4,38 +4,22 @@
 //! one-line errors for bad bags.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
 use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKind};
 use loglio_host::bag::msg::{Encoding, IMU, Imu, POINTCLOUD2, PointCloud2, PointField, datatype};
 use loglio_host::bag::ros1_writer::Ros1BagWriter;
 
-fn loglio(args: &[&str]) -> Output {
-    let bin = env!("CARGO_BIN_EXE_loglio");
-    let runner = std::env::var("LOGLIO_TEST_RUNNER").unwrap_or_default();
-    let mut parts = runner.split_whitespace();
-    let mut c = match parts.next() {
-        Some(prog) => {
-            let mut c = Command::new(prog);
-            c.args(parts).arg(bin);
-            c
-        }
-        None => Command::new(bin),
-    };
-    c.args(args).env("RUST_BACKTRACE", "full").output().unwrap()
-}
+mod common;
+use common::{extrinsic_config, number_after};
 
-fn number_after(text: &str, key: &str) -> f64 {
-    let i = text.find(key).unwrap_or_else(|| panic!("no {key:?} in {text}"));
-    text[i + key.len()..].split_whitespace().next().unwrap().trim_end_matches(',').parse().unwrap()
+fn loglio(args: &[&str]) -> Output {
+    common::loglio_command(args).output().unwrap()
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("loglio-bagrun-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    common::scratch("bagrun", name)
 }
 
 fn cloud(stamp_ns: u64, pts: &[loglio_core::scan::ScanPoint], rows: u16, ring_time: bool) -> PointCloud2 {
@@ -119,16 +103,7 @@ fn write_sim_bag(dir: &Path, ring_time: bool) {
     }
     w.finish().unwrap();
     std::fs::write(dir.join("gt.tum"), gt).unwrap();
-    let e = sc.extrinsic();
-    let q = e.rotation.quaternion();
-    std::fs::write(
-        dir.join("config.toml"),
-        format!(
-            "preset = \"vlp32c\"\n[extrinsics]\ntranslation = [{}, {}, {}]\nrotation_quat_wxyz = [{}, {}, {}, {}]\n",
-            e.translation.x, e.translation.y, e.translation.z, q.w, q.i, q.j, q.k
-        ),
-    )
-    .unwrap();
+    std::fs::write(dir.join("config.toml"), extrinsic_config("vlp32c", &sc.extrinsic())).unwrap();
 }
 
 fn run_bag(dir: &Path, extra: &[&str]) -> Output {

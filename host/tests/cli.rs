@@ -3,30 +3,21 @@
 //! they should.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
 use loglio_host::config::{Config, Preset};
+
+mod common;
 
 fn loglio(args: &[&str]) -> Output {
     loglio_env(args, &[])
 }
 
-/// Runs the binary, through `LOGLIO_TEST_RUNNER` when set (cross tests: the tests run under
-/// qemu-user, and the kernel cannot exec the foreign binary they spawn without binfmt_misc, so
-/// `.ci/run` sets it to `qemu-aarch64 -L /usr/aarch64-linux-gnu`).
+/// Runs the binary ([`common::loglio_command`]: through `LOGLIO_TEST_RUNNER` when set) with
+/// `env` added.
 fn loglio_env(args: &[&str], env: &[(&str, &str)]) -> Output {
     let bin = env!("CARGO_BIN_EXE_loglio");
-    let runner = std::env::var("LOGLIO_TEST_RUNNER").unwrap_or_default();
-    let mut parts = runner.split_whitespace();
-    let mut c = match parts.next() {
-        Some(prog) => {
-            let mut c = Command::new(prog);
-            c.args(parts).arg(bin);
-            c
-        }
-        None => Command::new(bin),
-    };
-    c.args(args).env("RUST_BACKTRACE", "full").env_remove("LOGLIO_TEST_INTERNAL_PANIC");
+    let mut c = common::loglio_command(args);
     for (k, v) in env {
         c.env(k, v);
     }
@@ -65,10 +56,7 @@ fn stdout(out: &Output) -> String {
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("loglio-cli-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    common::scratch("cli", name)
 }
 
 fn data(rel: &str) -> String {

@@ -27,9 +27,8 @@ use loglio_host::eval::{self, EvalOptions, Format};
 /// The simulator runs are real time on a small machine: one at a time.
 static SERIAL: Mutex<()> = Mutex::new(());
 
-fn runner() -> Option<String> {
-    std::env::var("LOGLIO_TEST_RUNNER").ok().filter(|r| !r.trim().is_empty())
-}
+mod common;
+use common::{extrinsic_config, loglio_command as loglio_cmd, number_after, runner};
 
 /// Skips (with the reason on stdout) under an emulating runner.
 fn skip_under_runner(test: &str) -> bool {
@@ -42,28 +41,8 @@ fn skip_under_runner(test: &str) -> bool {
     false
 }
 
-/// The `loglio` command, through `LOGLIO_TEST_RUNNER` when set (see `cli.rs`).
-fn loglio_cmd(args: &[&str]) -> Command {
-    let bin = env!("CARGO_BIN_EXE_loglio");
-    let runner = runner().unwrap_or_default();
-    let mut parts = runner.split_whitespace();
-    let mut c = match parts.next() {
-        Some(prog) => {
-            let mut c = Command::new(prog);
-            c.args(parts).arg(bin);
-            c
-        }
-        None => Command::new(bin),
-    };
-    c.args(args).env("RUST_BACKTRACE", "full").env_remove("LOGLIO_TEST_INTERNAL_PANIC");
-    c
-}
-
 fn scratch(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("loglio-live-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    common::scratch("live", name)
 }
 
 /// A loopback port offset under which `ports` (the simulator's destination ports) are free.
@@ -179,16 +158,7 @@ fn scenario(dir: &Path, seconds: f64) -> Scenario {
         serde_json::to_string(&loglio_firmware_sim::files::ouster_metadata(o)).unwrap(),
     )
     .unwrap();
-    let e = sc.extrinsic();
-    let q = e.rotation.quaternion();
-    std::fs::write(
-        dir.join("config.toml"),
-        format!(
-            "preset = \"os1-16\"\n[extrinsics]\ntranslation = [{}, {}, {}]\nrotation_quat_wxyz = [{}, {}, {}, {}]\n",
-            e.translation.x, e.translation.y, e.translation.z, q.w, q.i, q.j, q.k
-        ),
-    )
-    .unwrap();
+    std::fs::write(dir.join("config.toml"), extrinsic_config("os1-16", &sc.extrinsic())).unwrap();
     let times = (sc.start_ns()..=sc.end_ns()).step_by(5_000_000);
     std::fs::write(dir.join("gt.tum"), loglio_firmware_sim::tum::trajectory(times, |t| sc.pose_at(t)))
         .unwrap();
@@ -213,11 +183,6 @@ fn drops(text: &str) -> [u64; 4] {
         *slot = line[j..].split(|c: char| !c.is_ascii_digit()).next().unwrap().parse().unwrap();
     }
     v
-}
-
-fn number_after(text: &str, key: &str) -> f64 {
-    let i = text.find(key).unwrap_or_else(|| panic!("no {key:?} in {text}"));
-    text[i + key.len()..].split_whitespace().next().unwrap().trim_end_matches([',', ';']).parse().unwrap()
 }
 
 /// Checks that the streaming outputs are whole: every TUM line has 8 finite numbers, one per
@@ -247,41 +212,80 @@ fn check_outputs(out: &Path) -> (usize, usize, usize) {
     (poses.len(), rows.len(), tracked)
 }
 
-#[test]
-fn live_tracks_the_simulator_and_ctrl_c_writes_every_output() {
-    if skip_under_runner("live_tracks_the_simulator_and_ctrl_c_writes_every_output") {
-        return;
+/// A run against the simulator: the one-at-a-time lock, a scratch folder holding the
+/// scenario's files ([`scenario`]), loopback ports for the simulator to send to, and the
+/// arguments every such `loglio live` gets.
+struct SimRun {
+    _one: std::sync::MutexGuard<'static, ()>,
+    dir: PathBuf,
+    sc: Scenario,
+    offset: u16,
+}
+
+impl SimRun {
+    /// `seconds` of the scenario in the scratch folder `name`; `None` (the reason printed)
+    /// under an emulating runner.
+    fn start(test: &str, name: &str, seconds: f64) -> Option<SimRun> {
+        if skip_under_runner(test) {
+            return None;
+        }
+        let _one = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+        let dir = scratch(name);
+        let sc = scenario(&dir, seconds);
+        let offset = free_offset(&[7502, 7503]);
+        Some(SimRun { _one, dir, sc, offset })
     }
-    let _one = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let dir = scratch("e2e");
-    let sc = scenario(&dir, 6.0);
-    let offset = free_offset(&[7502, 7503]);
-    let lidar_port = (7502 + offset).to_string();
-    let out = dir.join("out");
-    let p = |f: &str| dir.join(f).to_str().unwrap().to_string();
-    let mut child = None;
-    let sent = stream(&sc, offset, |pty| {
-        let mut c = LiveChild::spawn(&[
+
+    /// A file of the scratch folder.
+    fn path(&self, f: &str) -> String {
+        self.dir.join(f).to_str().unwrap().to_string()
+    }
+
+    /// The loopback port the simulator sends the Ouster's `base` port to.
+    fn port(&self, base: u16) -> String {
+        (base + self.offset).to_string()
+    }
+
+    /// Starts `loglio live` on the scenario's configuration, metadata and LiDAR port with
+    /// `extra`, and waits until it listens.
+    fn spawn_live(&self, extra: &[&str]) -> LiveChild {
+        let (config, meta, lidar_port) = (self.path("config.toml"), self.path("meta.json"), self.port(7502));
+        let mut args = vec![
             "live",
             "--config",
-            &p("config.toml"),
+            &config,
             "--metadata",
-            &p("meta.json"),
-            "--imu-serial",
-            pty,
+            &meta,
             "--bind",
             "127.0.0.1",
             "--lidar-port",
             &lidar_port,
-            "--gt",
-            &p("gt.tum"),
-            "--out",
-            out.to_str().unwrap(),
-        ]);
+        ];
+        args.extend_from_slice(extra);
+        let mut c = LiveChild::spawn(&args);
         c.wait_ready();
-        child = Some(c);
+        c
+    }
+
+    /// Streams the scenario live; `loglio live` is started (by `start`, given the
+    /// pseudo-terminal's path) before the first byte is sent.
+    fn stream(&self, start: impl FnOnce(&str) -> LiveChild) -> (LiveStats, LiveChild) {
+        let mut child = None;
+        let sent = stream(&self.sc, self.offset, |pty| child = Some(start(pty)));
+        (sent, child.unwrap())
+    }
+}
+
+#[test]
+fn live_tracks_the_simulator_and_ctrl_c_writes_every_output() {
+    let Some(run) = SimRun::start("live_tracks_the_simulator_and_ctrl_c_writes_every_output", "e2e", 6.0)
+    else {
+        return;
+    };
+    let (sc, dir, out) = (&run.sc, &run.dir, run.dir.join("out"));
+    let (sent, child) = run.stream(|pty| {
+        run.spawn_live(&["--imu-serial", pty, "--gt", &run.path("gt.tum"), "--out", out.to_str().unwrap()])
     });
-    let child = child.unwrap();
     // Everything is sent and the pseudo-terminal drained; Ctrl-C stops, drains and writes.
     std::thread::sleep(Duration::from_millis(300));
     child.interrupt();
@@ -325,46 +329,28 @@ fn live_tracks_the_simulator_and_ctrl_c_writes_every_output() {
     assert!(r.ape_trans.rmse <= 0.10, "ATE {} m: {text}", r.ape_trans.rmse);
     assert!((number_after(&text, "rmse") - r.ape_trans.rmse).abs() < 1e-3, "{text}");
     println!("live e2e: {text}");
-    let _ = std::fs::remove_dir_all(&dir);
+    let _ = std::fs::remove_dir_all(dir);
 }
 
 #[test]
 fn live_stops_after_seconds_with_the_ouster_imu() {
-    if skip_under_runner("live_stops_after_seconds_with_the_ouster_imu") {
+    let Some(run) = SimRun::start("live_stops_after_seconds_with_the_ouster_imu", "seconds", 4.5) else {
         return;
-    }
-    let _one = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let dir = scratch("seconds");
-    let sc = scenario(&dir, 4.5);
-    let offset = free_offset(&[7502, 7503]);
-    let (lidar_port, imu_port) = ((7502 + offset).to_string(), (7503 + offset).to_string());
-    let out = dir.join("out");
-    let p = |f: &str| dir.join(f).to_str().unwrap().to_string();
-    let mut child = None;
+    };
+    let out = run.dir.join("out");
     // The simulator streams 4.5 s; loglio stops on its own 3.5 s after it starts listening.
-    stream(&sc, offset, |_pty| {
-        let mut c = LiveChild::spawn(&[
-            "live",
-            "--config",
-            &p("config.toml"),
-            "--metadata",
-            &p("meta.json"),
+    let (_, child) = run.stream(|_pty| {
+        run.spawn_live(&[
             "--ouster-imu",
             "--imu-port",
-            &imu_port,
-            "--bind",
-            "127.0.0.1",
-            "--lidar-port",
-            &lidar_port,
+            &run.port(7503),
             "--seconds",
             "3.5",
             "--out",
             out.to_str().unwrap(),
-        ]);
-        c.wait_ready();
-        child = Some(c);
+        ])
     });
-    let (status, text, err) = child.unwrap().finish();
+    let (status, text, err) = child.finish();
     assert!(status.success(), "{status}: {err:?}\n{text}");
     assert!(text.contains("live: stopped by --seconds"), "{text}");
     assert!(!err.iter().any(|l| l.contains("panicked") || l.contains("error:")), "{err:?}");
@@ -376,7 +362,7 @@ fn live_stops_after_seconds_with_the_ouster_imu() {
     // Whole outputs: the scans of 3.5 s or less, one pose per scan after the initialisation.
     let (poses, scans, _) = check_outputs(&out);
     assert!((5..=36).contains(&scans) && poses > 0, "{scans} scans, {poses} poses: {text}");
-    let _ = std::fs::remove_dir_all(&dir);
+    let _ = std::fs::remove_dir_all(&run.dir);
 }
 
 /// Runs `loglio live` to its end (bad input: it must not wait long).
@@ -487,44 +473,27 @@ fn live_bad_input_is_one_clear_line() {
 
 #[test]
 fn live_without_imu_data_warns_and_fails_clearly() {
-    if skip_under_runner("live_without_imu_data_warns_and_fails_clearly") {
+    let Some(run) = SimRun::start("live_without_imu_data_warns_and_fails_clearly", "no-imu", 3.0) else {
         return;
-    }
-    let _one = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
-    let dir = scratch("no-imu");
-    let sc = scenario(&dir, 3.0);
-    let offset = free_offset(&[7502, 7503]);
-    let lidar_port = (7502 + offset).to_string();
-    let p = |f: &str| dir.join(f).to_str().unwrap().to_string();
+    };
     // An IMU device that stays silent: a pseudo-terminal nobody writes.
     let silent = loglio_firmware_sim::live::Pty::open().unwrap();
     let silent_path = silent.path.to_str().unwrap().to_string();
-    let mut child = None;
-    stream(&sc, offset, |_pty| {
-        let mut c = LiveChild::spawn(&[
-            "live",
-            "--config",
-            &p("config.toml"),
-            "--metadata",
-            &p("meta.json"),
+    let out = run.dir.join("out");
+    let (_, child) = run.stream(|_pty| {
+        run.spawn_live(&[
             "--imu-serial",
             &silent_path,
-            "--bind",
-            "127.0.0.1",
-            "--lidar-port",
-            &lidar_port,
             "--imu-timeout",
             "1",
             "--seconds",
             "2.5",
             "--quiet",
             "--out",
-            dir.join("out").to_str().unwrap(),
-        ]);
-        c.wait_ready();
-        child = Some(c);
+            out.to_str().unwrap(),
+        ])
     });
-    let r = child.unwrap().finish();
+    let r = child.finish();
     let e = fails_with(&r, &format!("error: no IMU data arrived from {silent_path} during the run"));
     assert!(e.contains("--baud"), "{e}");
     assert!(
@@ -532,5 +501,5 @@ fn live_without_imu_data_warns_and_fails_clearly() {
         "{:?}",
         r.2
     );
-    let _ = std::fs::remove_dir_all(&dir);
+    let _ = std::fs::remove_dir_all(&run.dir);
 }

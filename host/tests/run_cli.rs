@@ -5,22 +5,13 @@
 //! the propagation-only skeleton no scan is ever `ok` and the map stays empty.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
+
+mod common;
+use common::{extrinsic_config, number_after};
 
 fn loglio(args: &[&str]) -> Output {
-    let bin = env!("CARGO_BIN_EXE_loglio");
-    let runner = std::env::var("LOGLIO_TEST_RUNNER").unwrap_or_default();
-    let mut parts = runner.split_whitespace();
-    let mut c = match parts.next() {
-        Some(prog) => {
-            let mut c = Command::new(prog);
-            c.args(parts).arg(bin);
-            c
-        }
-        None => Command::new(bin),
-    };
-    c.args(args).env("RUST_BACKTRACE", "full");
-    c.output().unwrap_or_else(|e| panic!("cannot run {bin}: {e}"))
+    common::loglio_command(args).output().unwrap_or_else(|e| panic!("cannot run loglio: {e}"))
 }
 
 fn stdout(out: &Output) -> String {
@@ -39,16 +30,7 @@ fn fails_with(out: &Output, prefix: &str) -> String {
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("loglio-run-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-/// The number after `key` in `text` (e.g. "rmse 0.031 m").
-fn number_after(text: &str, key: &str) -> f64 {
-    let i = text.find(key).unwrap_or_else(|| panic!("no {key:?} in {text}"));
-    text[i + key.len()..].split_whitespace().next().unwrap().trim_end_matches(',').parse().unwrap()
+    common::scratch("run", name)
 }
 
 /// The count of scans with `status` in the summary's "N scans (a ok, b imu-only, ...)".
@@ -169,17 +151,7 @@ fn sim_files(name: &str, sensor: loglio_firmware_sim::lidar::SensorModel, second
     c.duration_s = seconds;
     let sc = Scenario::from_config(c).unwrap();
     loglio_firmware_sim::files::write_all(&sc, &dir.join("sim")).unwrap();
-    let e = sc.extrinsic();
-    let q = e.rotation.quaternion();
-    let preset = sensor.name();
-    std::fs::write(
-        dir.join("config.toml"),
-        format!(
-            "preset = \"{preset}\"\n[extrinsics]\ntranslation = [{}, {}, {}]\nrotation_quat_wxyz = [{}, {}, {}, {}]\n",
-            e.translation.x, e.translation.y, e.translation.z, q.w, q.i, q.j, q.k
-        ),
-    )
-    .unwrap();
+    std::fs::write(dir.join("config.toml"), extrinsic_config(sensor.name(), &sc.extrinsic())).unwrap();
     dir
 }
 

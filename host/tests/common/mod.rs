@@ -1,0 +1,55 @@
+//! Helpers every test of the `loglio` binary needs (each test file is its own crate, so each
+//! compiles this module and uses a part of it).
+#![allow(dead_code)]
+
+use std::path::PathBuf;
+use std::process::Command;
+
+use nalgebra::Isometry3;
+
+/// The runner of a cross build's binary, from `LOGLIO_TEST_RUNNER` (e.g. `qemu-aarch64 -L
+/// /usr/aarch64-linux-gnu`: the tests run under qemu-user, and the kernel cannot exec the
+/// foreign binary they spawn without binfmt_misc); `None` when unset or blank.
+pub fn runner() -> Option<String> {
+    std::env::var("LOGLIO_TEST_RUNNER").ok().filter(|r| !r.trim().is_empty())
+}
+
+/// The `loglio` binary with `args`, through [`runner`] when set; backtraces on (a panic would
+/// show), the binary's internal test-panic hook off.
+pub fn loglio_command(args: &[&str]) -> Command {
+    let bin = env!("CARGO_BIN_EXE_loglio");
+    let mut c = match runner() {
+        Some(r) => {
+            let mut parts = r.split_whitespace();
+            let mut c = Command::new(parts.next().unwrap_or_default());
+            c.args(parts).arg(bin);
+            c
+        }
+        None => Command::new(bin),
+    };
+    c.args(args).env("RUST_BACKTRACE", "full").env_remove("LOGLIO_TEST_INTERNAL_PANIC");
+    c
+}
+
+/// A fresh folder `loglio-{group}-{name}-{pid}` in the temporary directory.
+pub fn scratch(group: &str, name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("loglio-{group}-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// The number that follows `key` in `text` (a trailing `,` or `;` removed).
+pub fn number_after(text: &str, key: &str) -> f64 {
+    let i = text.find(key).unwrap_or_else(|| panic!("no {key:?} in {text}"));
+    text[i + key.len()..].split_whitespace().next().unwrap().trim_end_matches([',', ';']).parse().unwrap()
+}
+
+/// A configuration file: `preset` with the rig's extrinsic (the LiDAR's pose in the IMU frame).
+pub fn extrinsic_config(preset: &str, e: &Isometry3<f64>) -> String {
+    let q = e.rotation.quaternion();
+    format!(
+        "preset = \"{preset}\"\n[extrinsics]\ntranslation = [{}, {}, {}]\nrotation_quat_wxyz = [{}, {}, {}, {}]\n",
+        e.translation.x, e.translation.y, e.translation.z, q.w, q.i, q.j, q.k
+    )
+}
