@@ -15,9 +15,10 @@ use std::sync::Mutex;
 
 use loglio_core::odometry::{AssociationMode, Odometry, Vlp32cStorage};
 use loglio_core::output::Status;
+use loglio_core::scan::{ScanPoint, ScanView};
 use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKind};
-use loglio_tests::odom::{Trace, config_for, run_lockstep, summary};
+use loglio_tests::odom::{StdClock, Trace, config_for, run_lockstep, summary};
 use nalgebra::{Isometry3, Vector3};
 
 const MODES: [AssociationMode; 3] =
@@ -34,13 +35,13 @@ fn scenario(kind: ScenarioKind, secs: f64) -> Scenario {
     Scenario::from_config(c).unwrap()
 }
 
-/// Runs `modes` on `sc` in lockstep; `inject` may alter the events (for the IMU-only reference).
-fn run(sc: &Scenario, modes: &[AssociationMode], inject: impl FnMut(Event) -> Vec<Event>) -> Vec<Trace> {
+/// Runs `modes` on `sc` in lockstep.
+fn run(sc: &Scenario, modes: &[AssociationMode]) -> Vec<Trace> {
     let mut guards: Vec<_> =
         STORES.iter().take(modes.len()).map(|m| m.lock().unwrap_or_else(|e| e.into_inner())).collect();
     let mut odos: Vec<Odometry<'_, _, _, _>> =
         guards.iter_mut().zip(modes).map(|(g, &mode)| g.odometry(&config_for(sc, mode)).unwrap()).collect();
-    let traces = run_lockstep(sc, &mut odos, inject);
+    let traces = run_lockstep(sc, &mut odos, |e| vec![e]);
     for (tr, mode) in traces.iter().zip(modes) {
         println!("{}", summary(sc.config().kind.name(), *mode, tr));
     }
@@ -52,7 +53,7 @@ fn run(sc: &Scenario, modes: &[AssociationMode], inject: impl FnMut(Event) -> Ve
 fn well_posed(kind: ScenarioKind) {
     let _one = LOCK.lock().unwrap_or_else(|e| e.into_inner());
     let sc = scenario(kind, kind.default_duration_s());
-    let traces = run(&sc, &MODES, |e| vec![e]);
+    let traces = run(&sc, &MODES);
     let (full, plane, plain) = (traces[0].ate(), traces[1].ate(), traces[2].ate());
     println!("{kind:?}: ATE full {full:.4} m, plane-only {plane:.4} m, plain {plain:.4} m");
     let [ok, deg, imu, _, reinit] = traces[0].status_counts();
@@ -110,16 +111,35 @@ fn corridor_errors() -> ([f64; 3], [f64; 3], [usize; 5]) {
     let _one = LOCK.lock().unwrap_or_else(|e| e.into_inner());
     let kind = ScenarioKind::Corridor;
     let sc = scenario(kind, kind.default_duration_s());
-    let lio = run(&sc, &[AssociationMode::Full], |e| vec![e]).remove(0);
-    // The same IMU samples, every scan emptied: the filter's IMU-only propagation.
-    let imu_only = run(&sc, &[AssociationMode::Full], |e| match e {
-        Event::Scan(mut s) => {
-            s.points.clear();
-            vec![Event::Scan(s)]
+    // The scenario is generated once: the LIO gets every event; beside it the same filter
+    // gets the same IMU samples and every scan emptied (its IMU-only propagation).
+    let (mut lio, mut imu_only) = (Trace::default(), Trace::default());
+    {
+        let mut guards = [&STORES[0], &STORES[1]].map(|m| m.lock().unwrap_or_else(|e| e.into_inner()));
+        let cfg = config_for(&sc, AssociationMode::Full);
+        let [a, b] = &mut guards;
+        let mut odos = [a.odometry(&cfg).unwrap(), b.odometry(&cfg).unwrap()];
+        let mut clock = StdClock::default();
+        for ev in sc.events() {
+            match ev {
+                Event::Imu(s) => odos.iter_mut().for_each(|o| {
+                    o.push_imu(s);
+                }),
+                Event::Scan(scan) => {
+                    let inputs: [(&mut Trace, &[ScanPoint]); 2] =
+                        [(&mut lio, &scan.points), (&mut imu_only, &[])];
+                    for (o, (tr, points)) in odos.iter_mut().zip(inputs) {
+                        let r =
+                            o.process_scan_timed(ScanView { start_ns: scan.start_ns, points }, &mut clock);
+                        tr.truth.push(sc.pose_at(r.pose.t_ns));
+                        tr.results.push(r);
+                    }
+                }
+            }
         }
-        e => vec![e],
-    })
-    .remove(0);
+    }
+    println!("{}", summary(kind.name(), AssociationMode::Full, &lio));
+    println!("{} (IMU only)", summary(kind.name(), AssociationMode::Full, &imu_only));
 
     let counts = lio.status_counts();
     println!("corridor: (ok, degraded, imu-only, init, reinit) = {counts:?}");
