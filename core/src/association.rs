@@ -293,7 +293,7 @@ pub fn associate_point(
             return Err(Reject::Visibility);
         }
         expect = query_n.or_else(|| {
-            let l = libm::sqrtf(dot(nb_sum, nb_sum));
+            let l = crate::math::sqrtf(dot(nb_sum, nb_sum));
             (l > 0.0).then(|| [nb_sum[0] / l, nb_sum[1] / l, nb_sum[2] / l])
         });
         if angle_n > 0 && !all_close {
@@ -562,7 +562,7 @@ mod tests {
         let cfg = AssociationConfig::DEFAULT;
         // A floor point near the corner, a little ahead of the ring the map holds.
         let p = [5.05f32, -1.0, -1.0];
-        let range = libm::sqrtf(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
+        let range = crate::math::sqrtf(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
         let mut nb = Neighbours::new();
         assert!(map.knn(p, &KnnQuery::new(5, 1.0), &mut nb) >= 4);
 
@@ -615,7 +615,7 @@ mod tests {
         map.insert(pts.iter().copied(), [0.0; 3], 1).unwrap();
         let cfg = AssociationConfig::DEFAULT;
         let p = [4.45f32, 0.0, -0.98];
-        let range = libm::sqrtf(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
+        let range = crate::math::sqrtf(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
         let mut nb = Neighbours::new();
         assert!(map.knn(p, &KnnQuery::new(5, 1.0), &mut nb) >= 4);
         let c = associate_point(

@@ -561,7 +561,7 @@ impl Degeneracy {
 pub fn analyse_degeneracy(omega_pp: &Matrix6<f64>, threshold: f64) -> (Degeneracy, Matrix6<f64>) {
     let tt = omega_pp[(0, 0)] + omega_pp[(1, 1)] + omega_pp[(2, 2)];
     let rr = omega_pp[(3, 3)] + omega_pp[(4, 4)] + omega_pp[(5, 5)];
-    let lever = if tt > 0.0 && rr > 0.0 && (rr / tt).is_finite() { libm::sqrt(rr / tt) } else { 1.0 };
+    let lever = if tt > 0.0 && rr > 0.0 && (rr / tt).is_finite() { crate::math::sqrt(rr / tt) } else { 1.0 };
     let mut dscale = [1.0; 6];
     for d in dscale.iter_mut().skip(3) {
         *d = 1.0 / lever;
@@ -710,9 +710,9 @@ impl Eskf {
             (s.rough_tilt, s.rough_vel, s.rough_bg.max(init.gyro_rms))
         } else {
             (
-                s.tilt.max(init.acc_std / (init.gravity * libm::sqrt(n))),
+                s.tilt.max(init.acc_std / (init.gravity * crate::math::sqrt(n))),
                 s.vel,
-                s.bg.max(init.gyro_std / libm::sqrt(n)),
+                s.bg.max(init.gyro_std / crate::math::sqrt(n)),
             )
         };
         let mut p = StateCov::zeros();

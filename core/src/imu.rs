@@ -481,9 +481,9 @@ impl ImuInitializer {
             let m = s / n;
             (ss / n - m.component_mul(&m)).map(|v| v.max(0.0))
         };
-        let std_g = libm::sqrt(var(&w.sg, &w.sgg).max());
-        let std_a_raw = libm::sqrt(var(&w.sa, &w.saa).max());
-        let gyro_rms = libm::sqrt(w.sw2 / n);
+        let std_g = crate::math::sqrt(var(&w.sg, &w.sgg).max());
+        let std_a_raw = crate::math::sqrt(var(&w.sa, &w.saa).max());
+        let gyro_rms = crate::math::sqrt(w.sw2 / n);
 
         // 1. Units.
         let norm_raw = mean_a_raw.norm();
@@ -535,7 +535,7 @@ impl ImuInitializer {
 /// with yaw 0).
 pub fn gravity_aligned_rotation(up: &Vector3<f64>) -> UnitQuaternion<f64> {
     let roll = libm::atan2(up.y, up.z);
-    let pitch = libm::atan2(-up.x, libm::sqrt(up.y * up.y + up.z * up.z));
+    let pitch = libm::atan2(-up.x, crate::math::sqrt(up.y * up.y + up.z * up.z));
     UnitQuaternion::from_euler_angles(roll, pitch, 0.0)
 }
 

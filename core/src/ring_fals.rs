@@ -694,7 +694,7 @@ impl RingLearner {
                 continue;
             }
             let [x, y, z] = p.xyz.map(|v| v as f64);
-            let el = libm::atan2(z, libm::sqrt(x * x + y * y));
+            let el = libm::atan2(z, crate::math::sqrt(x * x + y * y));
             let d = libm::atan2(y, x) - step * col as f64;
             self.n[row] = self.n[row].saturating_add(1);
             self.sum_el[row] += el;
@@ -715,7 +715,7 @@ impl RingLearner {
         Some(LearnedRow {
             points: self.n[row],
             elevation: el,
-            elevation_std: libm::sqrt(var),
+            elevation_std: crate::math::sqrt(var),
             azimuth0: libm::atan2(self.sum_s[row], self.sum_c[row]),
             azimuth_consistency: libm::hypot(self.sum_s[row], self.sum_c[row]) / n,
         })
@@ -1371,7 +1371,7 @@ impl<const P: usize> RingFals<P> {
             if self.owner[px] != i as u32 {
                 // A point that lost its pixel to a nearer one shares the pixel's normal only if
                 // it lies on the same surface: within the gate to a same-row neighbour.
-                let (ri, rp) = (libm::sqrtf(r2), libm::sqrtf(self.range2[px]));
+                let (ri, rp) = (crate::math::sqrtf(r2), crate::math::sqrtf(self.range2[px]));
                 let g = table.row[row].gate[CENTRE + 1];
                 if !(ri - rp <= g * rp + cfg.range_jump_abs) {
                     continue;

@@ -35,7 +35,7 @@ impl ScanPoint {
     #[inline]
     pub fn range(&self) -> f32 {
         let [x, y, z] = self.xyz;
-        libm::sqrtf(x * x + y * y + z * z)
+        crate::math::sqrtf(x * x + y * y + z * z)
     }
 
     /// Whether the point has a range-image pixel.

@@ -875,7 +875,7 @@ fn to32(a: [f64; 3]) -> [f32; 3] {
 }
 
 fn normalised(v: [f64; 3]) -> Option<[f64; 3]> {
-    let n = libm::sqrt(surfel::dot3(v, v));
+    let n = crate::math::sqrt(surfel::dot3(v, v));
     if n > 0.0 && n.is_finite() { Some([v[0] / n, v[1] / n, v[2] / n]) } else { None }
 }
 
@@ -1042,7 +1042,7 @@ impl<'a> VoxelMap<'a> {
             return None;
         }
         let s = to64(v.ring_sum);
-        let len = libm::sqrt(surfel::dot3(s, s)) / f64::from(v.normal_count);
+        let len = crate::math::sqrt(surfel::dot3(s, s)) / f64::from(v.normal_count);
         normalised(s).map(|d| (d, len))
     }
 
@@ -1220,7 +1220,7 @@ impl<'a> VoxelMap<'a> {
                 if (1.0 - 1e-5..=1.0 + 1e-5).contains(&l2) {
                     Some(n) // already unit (the usual case): no square root
                 } else if l2.is_finite() && (0.25..=2.25).contains(&l2) {
-                    let inv = 1.0 / libm::sqrtf(l2);
+                    let inv = 1.0 / crate::math::sqrtf(l2);
                     Some([n[0] * inv, n[1] * inv, n[2] * inv])
                 } else {
                     st.bad_normals += 1;
@@ -1390,7 +1390,7 @@ impl<'a> VoxelMap<'a> {
 
     #[inline]
     fn dist_bucket(&self, v: &Voxel, sensor: [f32; 3]) -> usize {
-        let d = libm::sqrtf(d2f(self.centre(v.key), sensor)) * self.d.bucket_scale;
+        let d = crate::math::sqrtf(d2f(self.centre(v.key), sensor)) * self.d.bucket_scale;
         if d < 255.0 { d as usize } else { 255 }
     }
 
@@ -1559,7 +1559,6 @@ impl<'a> VoxelMap<'a> {
                             if slot != NO_HINT {
                                 let v = &self.pool[slot as usize];
                                 prefetch(v); // line 0: key and representatives
-                                prefetch(&v.rep_normals); // line 1: their normals
                             }
                         }
                     }
@@ -1710,7 +1709,14 @@ impl<'a> VoxelMap<'a> {
             d2s[o] = dx * dx + dy * dy + dz * dz;
         }
         let mut best = (f32::INFINITY, 0u8);
-        let mut bits = v.occupied;
+        // Only representatives that can enter the list go on (a vector compare against the
+        // current k-th distance); `push_candidate` still decides, as the list shrinks.
+        let thr = if *n == k { cand[k - 1].0 } else { bound2 };
+        let mut pass = 0u8;
+        for (o, &d2) in d2s.iter().enumerate() {
+            pass |= u8::from(d2 <= thr) << o;
+        }
+        let mut bits = if one_per_voxel { v.occupied } else { v.occupied & pass };
         while bits != 0 {
             let o = bits.trailing_zeros() as usize;
             bits &= bits - 1;
@@ -1934,7 +1940,7 @@ fn rep_normal(q: [i8; 3]) -> Option<[f32; 3]> {
         return None;
     }
     let n = [f32::from(q[0]), f32::from(q[1]), f32::from(q[2])];
-    let inv = 1.0 / libm::sqrtf(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    let inv = 1.0 / crate::math::sqrtf(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
     Some([n[0] * inv, n[1] * inv, n[2] * inv])
 }
 
@@ -3101,7 +3107,7 @@ mod tests {
                     return true;
                 }
                 let c = to64(map.centre(*k));
-                let d = libm::sqrt(
+                let d = crate::math::sqrt(
                     (c[0] - sx) * (c[0] - sx) + (c[1] - sy) * (c[1] - sy) + (c[2] - 1.5) * (c[2] - 1.5),
                 );
                 assert!(d > intact_radius, "scan {t}: voxel {k:?} {d:.1} m from the sensor was evicted");
