@@ -2,7 +2,7 @@
 //!
 //! Points are binned into cubic voxels of side `voxel` (keys `floor(p / voxel)`) in a
 //! fixed-capacity open-addressing hash grid ([`VoxelDownsampler`], caller-owned,
-//! `const`-constructible; clearing it between scans is O(1) through a generation counter).
+//! `const`-constructible; it is emptied after each scan by clearing only the slots it used).
 //! Each voxel outputs one point: **the input point nearest to the voxel's centroid**, not the
 //! centroid itself. A real point keeps a coherent time (which undistortion needs), pixel and
 //! intensity, and it lies on the measured surface, where a centroid of points on a corner or a
@@ -91,10 +91,11 @@ pub struct DownsampleStats {
     pub normals_disagree: u32,
 }
 
+/// The accumulators of one voxel, kept dense in first-seen order (the index points here), so
+/// that a scan's voxels occupy a few hundred kilobytes instead of being spread over the table.
 #[derive(Clone, Copy, Debug)]
 struct Cell {
     key: [i32; 3],
-    generation: u32,
     count: u32,
     /// Sum of positions relative to the voxel's corner (small numbers: f32 is enough).
     sum: [f32; 3],
@@ -102,29 +103,38 @@ struct Cell {
     ncount: u32,
     best: u32,
     best_d2: f32,
+    /// The cell's position in the index, to clear it after the scan.
+    pos: u32,
 }
 
 impl Cell {
     const EMPTY: Cell = Cell {
         key: [0; 3],
-        generation: 0,
         count: 0,
         sum: [0.0; 3],
         nsum: [0.0; 3],
         ncount: 0,
         best: 0,
-        // Zero, like every field, so that a `static` grid lives in .bss; a claimed cell starts
-        // from `f32::INFINITY` (see `downsample`).
         best_d2: 0.0,
+        pos: 0,
     };
 }
 
-/// The hash grid: `N` slots (a power of two), at most `3N/4` voxels per scan. 60 bytes per slot.
+/// Rows of the per-row lookup cache (a point's row modulo this).
+const RECENT: usize = 128;
+
+/// The hash grid: `N` index slots (a power of two), at most `3N/4` voxels per scan. 60 bytes
+/// per slot.
+///
+/// The index (4 bytes per slot: the dense cell + 1, 0 when empty) is cleared after every scan
+/// by visiting only the slots the scan used. A point usually falls in the voxel of the previous
+/// point of its beam (consecutive columns are centimetres apart), so a per-row cache of the
+/// last voxel found skips most hash lookups; it is only a hint, checked by key.
 #[derive(Debug)]
 pub struct VoxelDownsampler<const N: usize> {
+    index: [u32; N],
     cells: [Cell; N],
-    order: [u32; N],
-    generation: u32,
+    recent: [([i32; 3], u32); RECENT],
 }
 
 impl<const N: usize> Default for VoxelDownsampler<N> {
@@ -144,10 +154,18 @@ fn hash(k: &[i32; 3]) -> u32 {
     h
 }
 
+/// `floor(v)` as an integer for finite `|v| < 2^31`, equal to `libm::floorf` there (an `f32`
+/// of magnitude 2^23 or more is an integer, so the truncation is exact) and cheaper.
+#[inline(always)]
+fn floor_i32(v: f32) -> i32 {
+    let i = v as i32;
+    if (i as f32) > v { i - 1 } else { i }
+}
+
 impl<const N: usize> VoxelDownsampler<N> {
-    /// An empty grid.
+    /// An empty grid (all zero bytes, so that a `static` lives in .bss).
     pub const fn new() -> Self {
-        Self { cells: [Cell::EMPTY; N], order: [0; N], generation: 0 }
+        Self { index: [0; N], cells: [Cell::EMPTY; N], recent: [([0; 3], 0); RECENT] }
     }
 
     /// Most voxels one scan may produce.
@@ -155,30 +173,40 @@ impl<const N: usize> VoxelDownsampler<N> {
         N - N / 4
     }
 
+    #[inline]
     fn key(p: &[f32; 3], inv: f32) -> Option<[i32; 3]> {
         let mut k = [0i32; 3];
         for a in 0..3 {
-            let v = libm::floorf(p[a] * inv);
+            let v = p[a] * inv;
             // Finite and within i32 (2^31 voxels of 0.1 m is 2e8 m: beyond any scan).
             if !v.is_finite() || v.abs() >= 2.0e9 {
                 return None;
             }
-            k[a] = v as i32;
+            k[a] = floor_i32(v);
         }
         Some(k)
     }
 
-    /// The slot of `key`: `Ok(slot)` if present, `Err(slot)` with the empty slot to insert at.
-    fn find(&self, key: &[i32; 3]) -> Result<usize, usize> {
+    /// The dense cell of `key`: `Ok(cell)` if present, `Err(pos)` with the empty index slot to
+    /// insert at. The per-row cache `row` is consulted first and updated.
+    #[inline]
+    fn find(&mut self, key: &[i32; 3], row: u16) -> Result<usize, usize> {
+        let r = usize::from(row) % RECENT;
+        let (k, c) = self.recent[r];
+        if c != 0 && k == *key {
+            return Ok(c as usize - 1);
+        }
         let mask = N - 1;
         let mut i = hash(key) as usize & mask;
         loop {
-            let c = &self.cells[i];
-            if c.generation != self.generation {
+            let e = self.index[i];
+            if e == 0 {
                 return Err(i);
             }
-            if c.key == *key {
-                return Ok(i);
+            let c = e as usize - 1;
+            if self.cells[c].key == *key {
+                self.recent[r] = (*key, e);
+                return Ok(c);
             }
             i = (i + 1) & mask;
         }
@@ -202,38 +230,33 @@ impl<const N: usize> VoxelDownsampler<N> {
         if normals.as_ref().is_some_and(|n| n.len() != points.len()) {
             return Err(DownsampleError::LengthMismatch);
         }
-        // New generation: every slot becomes empty without touching it.
-        self.generation = self.generation.wrapping_add(1);
-        if self.generation == 0 {
-            self.cells = [Cell::EMPTY; N];
-            self.generation = 1;
-        }
         let inv = 1.0 / cfg.voxel;
         let mut stats = DownsampleStats::default();
         let mut used = 0usize;
         let max = Self::max_voxels();
 
         // Pass 1: accumulate.
+        self.recent = [([0; 3], 0); RECENT];
         for (i, p) in points.iter().enumerate() {
             let Some(key) = Self::key(&p.xyz, inv) else {
                 stats.dropped_invalid += 1;
                 continue;
             };
-            let slot = match self.find(&key) {
-                Ok(s) => s,
-                Err(s) => {
+            let cell = match self.find(&key, p.row) {
+                Ok(c) => c,
+                Err(pos) => {
                     if used >= max {
                         stats.dropped_overflow += 1;
                         continue;
                     }
-                    self.cells[s] =
-                        Cell { key, generation: self.generation, best_d2: f32::INFINITY, ..Cell::EMPTY };
-                    self.order[used] = s as u32;
+                    self.cells[used] = Cell { key, best_d2: f32::INFINITY, pos: pos as u32, ..Cell::EMPTY };
+                    self.index[pos] = used as u32 + 1;
+                    self.recent[usize::from(p.row) % RECENT] = (key, used as u32 + 1);
                     used += 1;
-                    s
+                    used - 1
                 }
             };
-            let c = &mut self.cells[slot];
+            let c = &mut self.cells[cell];
             c.count += 1;
             for a in 0..3 {
                 c.sum[a] += p.xyz[a] - key[a] as f32 * cfg.voxel;
@@ -250,10 +273,11 @@ impl<const N: usize> VoxelDownsampler<N> {
         }
 
         // Pass 2: the point nearest to each centroid.
+        self.recent = [([0; 3], 0); RECENT];
         for (i, p) in points.iter().enumerate() {
             let Some(key) = Self::key(&p.xyz, inv) else { continue };
-            let Ok(slot) = self.find(&key) else { continue };
-            let c = &mut self.cells[slot];
+            let Ok(cell) = self.find(&key, p.row) else { continue };
+            let c = &mut self.cells[cell];
             let mut d2 = 0.0;
             for a in 0..3 {
                 let centroid = c.sum[a] / c.count as f32;
@@ -266,9 +290,10 @@ impl<const N: usize> VoxelDownsampler<N> {
             }
         }
 
-        // Output, compacted in first-seen order.
+        // Output, compacted in first-seen order; the index is emptied for the next scan.
         for k in 0..used {
-            let c = self.cells[self.order[k] as usize];
+            let c = self.cells[k];
+            self.index[c.pos as usize] = 0;
             points[k] = points[c.best as usize];
             if let Some(ns) = normals.as_deref_mut() {
                 ns[k] = if c.ncount == 0 {
@@ -276,7 +301,7 @@ impl<const N: usize> VoxelDownsampler<N> {
                     INVALID_NORMAL
                 } else {
                     let m = c.nsum.map(|v| v / c.ncount as f32);
-                    let len = libm::sqrtf(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
+                    let len = crate::math::sqrtf(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
                     let agree = len >= cfg.min_normal_agreement && len > 0.0; // false for NaN
                     if !agree {
                         stats.normals_invalid += 1;
@@ -374,7 +399,7 @@ mod tests {
         let mut a = std::boxed::Box::new(VoxelDownsampler::<4096>::new());
         let mut b = std::boxed::Box::new(VoxelDownsampler::<4096>::new());
         let first = run(&mut a);
-        // Same grid reused (generation bump) and a fresh grid give identical output.
+        // Same grid reused (emptied after each scan) and a fresh grid give identical output.
         assert_eq!(first, run(&mut a));
         assert_eq!(first, run(&mut b));
         assert!(first.2.kept > 1000);
