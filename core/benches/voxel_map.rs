@@ -427,7 +427,7 @@ fn bench_knn(c: &mut Criterion) {
     g.finish();
 
     // What the association pays per point on top of the k-NN: the large surfel of the 5
-    // distinct voxels nearest each query, and one 3x3 eigen-analysis.
+    // distinct voxels nearest each query, and one 3x3 eigen-analysis of a surfel's covariance.
     let mut handles = Vec::with_capacity(queries.len());
     map.knn_many(&queries, &one, &mut outs);
     for o in &outs {
@@ -446,7 +446,11 @@ fn bench_knn(c: &mut Criterion) {
         })
     });
     let cov: loglio_core::surfel::Sym3 = [0.0133, 0.0004, 0.0002, 0.0121, 0.0003, 2e-6];
+    // Jacobi (the fallback) and the closed form the surfels use (`Shape::of_covariance`).
     g.bench_function("eigen_sym3", |b| b.iter(|| loglio_core::surfel::eigen_sym3(black_box(&cov))));
+    g.bench_function("eigen_sym3_closed", |b| {
+        b.iter(|| loglio_core::surfel::eigen_sym3_closed(black_box(&cov)))
+    });
     g.finish();
 }
 
