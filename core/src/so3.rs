@@ -23,7 +23,7 @@ pub fn hat(v: &Vector3<f64>) -> Matrix3<f64> {
 
 /// `sin θ / θ` and `(1 - cos θ) / θ²` for `θ = |φ|`, small-angle safe.
 #[inline]
-fn rodrigues_coeffs(theta: f64) -> (f64, f64) {
+pub(crate) fn rodrigues_coeffs(theta: f64) -> (f64, f64) {
     if theta < SERIES_ANGLE {
         let t2 = theta * theta;
         (1.0 - t2 / 6.0 + t2 * t2 / 120.0, 0.5 - t2 / 24.0 + t2 * t2 / 720.0)

@@ -202,9 +202,49 @@ impl<const N: usize> ImuTrajectory<N> {
         Some((a.rot * so3::exp(&(b.omega * tau)), pos, false))
     }
 
+    /// The pose model that holds at time `t`: the knot segment around it (or the
+    /// extrapolation before the first / after the last knot) folded with the end state and the
+    /// extrinsic, so that a time inside it costs two coefficients instead of matrix products.
+    fn segment(&self, t: f64, f: &Frame) -> Segment {
+        let ks = &self.knots[..];
+        let (first, last) = (ks[0], ks[ks.len() - 1]);
+        // (valid from, valid to, reference knot, rate, Hermite end knot)
+        let (lo, hi, a, omega, hermite) = if ks.len() == 1 || t < first.t {
+            let hi = if ks.len() == 1 { f64::INFINITY } else { first.t };
+            (f64::NEG_INFINITY, hi, first, ks.get(1).map_or(V3::zeros(), |k| k.omega), None)
+        } else if t >= last.t {
+            (last.t, f64::INFINITY, last, last.omega, None)
+        } else {
+            let i = ks.partition_point(|k| k.t <= t);
+            (ks[i - 1].t, ks[i].t, ks[i - 1], ks[i].omega, Some(ks[i]))
+        };
+        // R(τ) = a.rot Exp(ω τ) = a.rot (I + c1(θ) τ W + c2(θ) τ² W²), W = hat(ω).
+        let w = so3::hat(&omega);
+        let nr = f.n * a.rot;
+        let (nrw, nrw2) = (nr * w, nr * w * w);
+        let np = match hermite {
+            Some(b) => [f.n * a.pos, f.n * a.vel, f.n * b.pos, f.n * b.vel],
+            None => [f.n * a.pos, f.n * a.vel, V3::zeros(), V3::zeros()],
+        };
+        Segment {
+            lo,
+            hi,
+            t0: a.t,
+            h: hermite.map(|b| b.t - a.t),
+            rate: omega.norm(),
+            m: [nr * f.r_il, nrw * f.r_il, nrw2 * f.r_il],
+            g: [nr * f.t_il + f.c0, nrw * f.t_il, nrw2 * f.t_il],
+            np,
+        }
+    }
+
     /// Moves `points` (and `normals`, if given: the same length, rotation only; invalid normals,
     /// i.e. non-finite or zero, are left as they are) in place to the LiDAR frame at the end
     /// state `end` (the filter state at the scan end), using each point's `t`.
+    ///
+    /// The transform of a time is that of [`Self::pose_at`] composed with the end state and
+    /// the extrinsic, evaluated through the time's [`Segment`] (the same formula regrouped:
+    /// results agree to rounding).
     pub fn undistort(
         &self,
         end: &State,
@@ -218,11 +258,12 @@ impl<const N: usize> ImuTrajectory<N> {
             return Err(UndistortError::LengthMismatch);
         }
         let r_e_t = end.rot.to_rotation_matrix().into_inner().transpose();
-        let p_e = end.pos;
         let r_il = end.ext_rot.to_rotation_matrix().into_inner();
         let r_il_t = r_il.transpose();
-        let t_il = end.ext_pos;
+        let n = r_il_t * r_e_t;
+        let frame = Frame { n, r_il, t_il: end.ext_pos, c0: -(n * end.pos) - r_il_t * end.ext_pos };
         let mut stats = UndistortStats::default();
+        let mut seg: Option<Segment> = None;
         let mut cached: Option<(u32, M3, V3)> = None;
         for (i, pt) in points.iter_mut().enumerate() {
             let [x, y, z] = pt.xyz;
@@ -233,16 +274,40 @@ impl<const N: usize> ImuTrajectory<N> {
             let (a, b) = match cached {
                 Some((bits, a, b)) if bits == pt.t.to_bits() => (a, b),
                 _ => {
-                    // Cannot fail: knots is not empty.
-                    let Some((r_t, p_t, extra)) = self.pose_at(pt.t as f64) else {
-                        return Err(UndistortError::NoPoses);
+                    let t = pt.t as f64;
+                    let sg = match seg {
+                        Some(s) if s.lo <= t && t < s.hi => s,
+                        _ => *seg.insert(self.segment(t, &frame)),
                     };
-                    if extra {
+                    let tau = t - sg.t0;
+                    if sg.h.is_none() && tau != 0.0 {
                         stats.extrapolated += 1;
                     }
                     stats.transforms += 1;
-                    let a = r_il_t * r_e_t * r_t * r_il;
-                    let b = r_il_t * (r_e_t * (r_t * t_il + p_t - p_e) - t_il);
+                    let (c1, c2) = so3::rodrigues_coeffs(sg.rate * tau.abs());
+                    let (s1, s2) = (c1 * tau, c2 * tau * tau);
+                    let a = sg.m[0] + sg.m[1] * s1 + sg.m[2] * s2;
+                    // Position: Hermite on the segment, constant velocity outside the knots.
+                    let wts = match sg.h {
+                        Some(h) => {
+                            let s = tau / h;
+                            let (s2, s3) = (s * s, s * s * s);
+                            [
+                                2.0 * s3 - 3.0 * s2 + 1.0,
+                                h * (s3 - 2.0 * s2 + s),
+                                3.0 * s2 - 2.0 * s3,
+                                h * (s3 - s2),
+                            ]
+                        }
+                        None => [1.0, tau, 0.0, 0.0],
+                    };
+                    let b = sg.g[0]
+                        + sg.g[1] * s1
+                        + sg.g[2] * s2
+                        + sg.np[0] * wts[0]
+                        + sg.np[1] * wts[1]
+                        + sg.np[2] * wts[2]
+                        + sg.np[3] * wts[3];
                     cached = Some((pt.t.to_bits(), a, b));
                     (a, b)
                 }
@@ -260,6 +325,31 @@ impl<const N: usize> ImuTrajectory<N> {
         }
         Ok(stats)
     }
+}
+
+/// The end state and extrinsic of an undistortion: `n = R_ILᵀ R_eᵀ` and
+/// `c0 = -n p_e - R_ILᵀ t_IL`, so that a world point `w` is `n w + c0` in the end LiDAR frame.
+struct Frame {
+    n: M3,
+    r_il: M3,
+    t_il: V3,
+    c0: V3,
+}
+
+/// One pose model of [`ImuTrajectory::undistort`], valid for `lo <= t < hi`: the transform of a
+/// point at `τ = t - t0` is `A = m0 + s1 m1 + s2 m2`, `b = g0 + s1 g1 + s2 g2 + Σ w_k np_k` with
+/// `s1 = c1(θ) τ`, `s2 = c2(θ) τ²` (Rodrigues, `θ = rate |τ|`) and `w` the Hermite weights
+/// (step `h`) or `(1, τ, 0, 0)` outside the knots.
+#[derive(Clone, Copy)]
+struct Segment {
+    lo: f64,
+    hi: f64,
+    t0: f64,
+    h: Option<f64>,
+    rate: f64,
+    m: [M3; 3],
+    g: [V3; 3],
+    np: [V3; 4],
 }
 
 #[cfg(test)]
@@ -418,6 +508,43 @@ mod tests {
         assert_eq!(st.moved, 14_400);
         assert_eq!(st.transforms, 900); // one per firing time
         assert_eq!(st.invalid, 0);
+    }
+
+    /// The segment evaluation is the documented formula with `pose_at`, regrouped: on times
+    /// before, between and after the knots (in scan order and shuffled) the two agree to f32
+    /// rounding, and extrapolated times are counted alike.
+    #[test]
+    fn segments_equal_the_pose_at_formula() {
+        let h = Helix::standard();
+        let t_start = 3.0;
+        let mut traj = ImuTrajectory::<64>::new();
+        let f = propagate(&h, t_start, &mut traj);
+        let x = f.state();
+        let mut rng = crate::testutil::Rng::new(3);
+        let mut pts: Vec<ScanPoint> = (0..4000)
+            .map(|i| ScanPoint {
+                xyz: [(rng.uniform() * 40.0 - 20.0) as f32, (rng.uniform() * 40.0 - 20.0) as f32, 1.5],
+                // -10 ms .. 110 ms: before the first knot, on the knots and after the last.
+                t: if i % 7 == 0 { (i / 7) as f32 * 0.005 } else { (rng.uniform() * 0.12 - 0.01) as f32 },
+                ..Default::default()
+            })
+            .collect();
+        let orig = pts.clone();
+        let st = traj.undistort(x, &mut pts, None).unwrap();
+        let r_e_t = x.rot.to_rotation_matrix().into_inner().transpose();
+        let r_il = x.ext_rot.to_rotation_matrix().into_inner();
+        let mut extrapolated = 0;
+        for (p, o) in pts.iter().zip(&orig) {
+            let (r_t, p_t, extra) = traj.pose_at(o.t as f64).unwrap();
+            extrapolated += u32::from(extra);
+            let q = V3::new(o.xyz[0] as f64, o.xyz[1] as f64, o.xyz[2] as f64);
+            let want = r_il.transpose() * (r_e_t * (r_t * (r_il * q + x.ext_pos) + p_t - x.pos) - x.ext_pos);
+            for a in 0..3 {
+                assert!((p.xyz[a] as f64 - want[a]).abs() < 1e-5, "t {}: {:?} vs {want:?}", o.t, p.xyz);
+            }
+        }
+        assert_eq!(st.extrapolated, extrapolated);
+        assert!(extrapolated > 100 && extrapolated < 4000);
     }
 
     #[test]
