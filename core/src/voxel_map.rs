@@ -1559,6 +1559,7 @@ impl<'a> VoxelMap<'a> {
                             if slot != NO_HINT {
                                 let v = &self.pool[slot as usize];
                                 prefetch(v); // line 0: key and representatives
+                                prefetch(&v.rep_normals); // line 2: their normals
                             }
                         }
                     }
