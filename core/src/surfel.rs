@@ -361,14 +361,8 @@ pub fn eigen_sym3_closed(m: &Sym3) -> Option<([f64; 3], [[f64; 3]; 3])> {
     let (au, aw) = (sym_mul(m, u), sym_mul(m, w));
     let (a, b, c) = (dot3(u, au), dot3(u, aw), dot3(w, aw));
     // One Jacobi rotation diagonalises it (see `jacobi_rotate`).
-    let (t, cs) = if b == 0.0 {
-        (0.0, 1.0)
-    } else {
-        let (d, e) = (c - a, 2.0 * b);
-        let sg = if d >= 0.0 { 1.0 } else { -1.0 };
-        let t = sg * e / (d.abs() + crate::math::sqrt(d * d + e * e));
-        (t, 1.0 / crate::math::sqrt(t * t + 1.0))
-    };
+    let t = if b == 0.0 { 0.0 } else { rotation_tan(c - a, 2.0 * b) };
+    let cs = 1.0 / crate::math::sqrt(t * t + 1.0);
     let sn = t * cs;
     let (la, lb) = (a - t * b, c + t * b);
     let xa = [cs * u[0] - sn * w[0], cs * u[1] - sn * w[1], cs * u[2] - sn * w[2]];
@@ -442,23 +436,7 @@ fn jacobi_rotate(a: &mut [[f64; 3]; 3], v: &mut [[f64; 3]; 3], p: usize, q: usiz
         a[q][p] = 0.0;
         return;
     }
-    // t = tan(angle), the smaller root of t² + 2 t theta - 1 = 0 with theta = d / e, written
-    // without the division: t = sign(d) e / (|d| + sqrt(d² + e²)).
-    let d = a[q][q] - a[p][p];
-    let e = 2.0 * apq;
-    let t = if d.abs() > 1e150 || e.abs() > 1e150 {
-        // Far from overflow only through the ratio.
-        let theta = d / e;
-        if theta.abs() > 1e150 {
-            0.5 / theta
-        } else {
-            let s = if theta >= 0.0 { 1.0 } else { -1.0 };
-            s / (theta.abs() + crate::math::sqrt(theta * theta + 1.0))
-        }
-    } else {
-        let s = if d >= 0.0 { 1.0 } else { -1.0 };
-        s * e / (d.abs() + crate::math::sqrt(d * d + e * e))
-    };
+    let t = rotation_tan(a[q][q] - a[p][p], 2.0 * apq);
     let c = 1.0 / crate::math::sqrt(t * t + 1.0);
     let s = t * c;
     a[p][p] -= t * apq;
@@ -475,6 +453,25 @@ fn jacobi_rotate(a: &mut [[f64; 3]; 3], v: &mut [[f64; 3]; 3], p: usize, q: usiz
         let (vp, vq) = (row[p], row[q]);
         row[p] = c * vp - s * vq;
         row[q] = s * vp + c * vq;
+    }
+}
+
+/// `tan` of the Jacobi rotation that zeroes the off-diagonal element of `[[a, e/2], [e/2, a+d]]`
+/// (`e != 0`): the smaller root of `t² + 2 t theta - 1 = 0`, `theta = d / e`, written without
+/// the division as `sign(d) e / (|d| + sqrt(d² + e²))`; through `theta` only where the squares
+/// could overflow.
+fn rotation_tan(d: f64, e: f64) -> f64 {
+    if d.abs() > 1e150 || e.abs() > 1e150 {
+        let theta = d / e;
+        if theta.abs() > 1e150 {
+            0.5 / theta
+        } else {
+            let s = if theta >= 0.0 { 1.0 } else { -1.0 };
+            s / (theta.abs() + crate::math::sqrt(theta * theta + 1.0))
+        }
+    } else {
+        let s = if d >= 0.0 { 1.0 } else { -1.0 };
+        s * e / (d.abs() + crate::math::sqrt(d * d + e * e))
     }
 }
 
@@ -578,12 +575,17 @@ mod tests {
 
     use crate::testutil::SplitMix as Rng;
 
-    fn mat_vec(m: &Sym3, v: [f64; 3]) -> [f64; 3] {
-        [
-            m[0] * v[0] + m[1] * v[1] + m[2] * v[2],
-            m[1] * v[0] + m[3] * v[1] + m[4] * v[2],
-            m[2] * v[0] + m[4] * v[1] + m[5] * v[2],
-        ]
+    /// `R diag(e) Rᵀ` for a random rotation `R`.
+    fn rotated(rng: &mut Rng, e: [f64; 3]) -> Sym3 {
+        let q = nalgebra::UnitQuaternion::from_euler_angles(
+            rng.uniform(-3.0, 3.0),
+            rng.uniform(-1.5, 1.5),
+            rng.uniform(-3.0, 3.0),
+        );
+        let r = q.to_rotation_matrix().into_inner();
+        let a =
+            r * nalgebra::Matrix3::from_diagonal(&nalgebra::Vector3::new(e[0], e[1], e[2])) * r.transpose();
+        [a[(0, 0)], a[(0, 1)], a[(0, 2)], a[(1, 1)], a[(1, 2)], a[(2, 2)]]
     }
 
     /// Checks `A v = λ v`, orthonormality and ascending order to `tol * scale`.
@@ -592,7 +594,7 @@ mod tests {
         let scale = m.iter().fold(0.0f64, |a, x| a.max(x.abs())).max(f64::MIN_POSITIVE);
         assert!(vals[0] <= vals[1] && vals[1] <= vals[2], "{vals:?}");
         for i in 0..3 {
-            let av = mat_vec(m, vecs[i]);
+            let av = sym_mul(m, vecs[i]);
             for a in 0..3 {
                 assert!((av[a] - vals[i] * vecs[i][a]).abs() <= tol * scale, "{m:?} {i}");
             }
@@ -617,16 +619,7 @@ mod tests {
                 2 => [0.3, 0.3, rng.uniform(0.0, 1.0)],
                 _ => [rng.uniform(0.0, 1e-6), 1e-3, 1e3],
             };
-            let q = nalgebra::UnitQuaternion::from_euler_angles(
-                rng.uniform(-3.0, 3.0),
-                rng.uniform(-1.5, 1.5),
-                rng.uniform(-3.0, 3.0),
-            );
-            let r = q.to_rotation_matrix().into_inner();
-            let a = r
-                * nalgebra::Matrix3::from_diagonal(&nalgebra::Vector3::new(e[0], e[1], e[2]))
-                * r.transpose();
-            let m: Sym3 = [a[(0, 0)], a[(0, 1)], a[(0, 2)], a[(1, 1)], a[(1, 2)], a[(2, 2)]];
+            let m = rotated(&mut rng, e);
             let (vals, _) = check_eigen(&m, 1e-13);
             let mut want = e;
             want.sort_by(|x, y| x.partial_cmp(y).unwrap());
@@ -661,16 +654,7 @@ mod tests {
                 3 => [rng.uniform(0.0, 1e-6), 1e-3, 1e3],
                 _ => [0.0, rng.uniform(0.0, 1.0), rng.uniform(0.0, 1.0)],
             };
-            let q = nalgebra::UnitQuaternion::from_euler_angles(
-                rng.uniform(-3.0, 3.0),
-                rng.uniform(-1.5, 1.5),
-                rng.uniform(-3.0, 3.0),
-            );
-            let r = q.to_rotation_matrix().into_inner();
-            let a = r
-                * nalgebra::Matrix3::from_diagonal(&nalgebra::Vector3::new(e[0], e[1], e[2]))
-                * r.transpose();
-            let m: Sym3 = [a[(0, 0)], a[(0, 1)], a[(0, 2)], a[(1, 1)], a[(1, 2)], a[(2, 2)]];
+            let m = rotated(&mut rng, e);
             let (jv, jvec) = eigen_sym3(&m);
             let spread = jv[2] - jv[0];
             let Some((cv, cvec)) = eigen_sym3_closed(&m) else {
@@ -873,7 +857,7 @@ mod tests {
             // f32 inputs: at 14 km they are quantised to ~1 mm, over a 0.5 m spread.
             let tol = if c[0] > 1000.0 { 5e-3 } else { 1e-6 };
             // sin(angle) = |nn x n| / |nn|.
-            let x = [nn[1] * n[2] - nn[2] * n[1], nn[2] * n[0] - nn[0] * n[2], nn[0] * n[1] - nn[1] * n[0]];
+            let x = cross3(nn, n);
             let sin = crate::math::sqrt(dot3(x, x)) / crate::math::sqrt(dot3(nn, nn));
             assert!(sin < tol, "normal {nn:?} vs {n:?}: sin {sin}");
             assert!(plane.max_residual < if c[0] > 1000.0 { 2e-3 } else { 1e-6 });
@@ -895,7 +879,7 @@ mod tests {
     }
 
     fn normalised_cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-        let c = [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+        let c = cross3(a, b);
         let n = crate::math::sqrt(dot3(c, c));
         [c[0] / n, c[1] / n, c[2] / n]
     }

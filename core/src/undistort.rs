@@ -172,52 +172,44 @@ impl<const N: usize> ImuTrajectory<N> {
         }
     }
 
-    /// The interpolated IMU pose (world from IMU) at `t` seconds since the scan start, and
-    /// whether it was extrapolated.
-    pub fn pose_at(&self, t: f64) -> Option<(M3, V3, bool)> {
+    /// The pose model that holds at `t`: `(valid from, valid to, reference knot a, rate ω,
+    /// end knot b)`. Between knots `a` and `b`: `R = a.rot Exp(ω τ)` with `ω = b.omega` and a
+    /// Hermite position; before the first knot (or with one knot) back along the first
+    /// segment's rate, after the last along its rate, both at constant velocity (`b` is `None`).
+    fn locate(&self, t: f64) -> Option<(f64, f64, Knot, V3, Option<Knot>)> {
         let ks = &self.knots[..];
-        let first = ks.first()?;
+        let first = *ks.first()?;
         let last = ks[ks.len() - 1];
-        if ks.len() == 1 || t < first.t {
-            // Before the first knot: back along the first segment's rate.
-            let omega = ks.get(1).map_or(V3::zeros(), |k| k.omega);
-            let dt = t - first.t;
-            return Some((first.rot * so3::exp(&(omega * dt)), first.pos + first.vel * dt, dt != 0.0));
-        }
-        if t >= last.t {
-            let dt = t - last.t;
-            return Some((last.rot * so3::exp(&(last.omega * dt)), last.pos + last.vel * dt, dt != 0.0));
-        }
-        // ks[i-1].t <= t < ks[i].t
-        let i = ks.partition_point(|k| k.t <= t);
-        let (a, b) = (&ks[i - 1], &ks[i]);
-        let h = b.t - a.t;
-        let tau = t - a.t;
-        let s = tau / h;
-        let (s2, s3) = (s * s, s * s * s);
-        let pos = a.pos * (2.0 * s3 - 3.0 * s2 + 1.0)
-            + a.vel * (h * (s3 - 2.0 * s2 + s))
-            + b.pos * (3.0 * s2 - 2.0 * s3)
-            + b.vel * (h * (s3 - s2));
-        Some((a.rot * so3::exp(&(b.omega * tau)), pos, false))
-    }
-
-    /// The pose model that holds at time `t`: the knot segment around it (or the
-    /// extrapolation before the first / after the last knot) folded with the end state and the
-    /// extrinsic, so that a time inside it costs two coefficients instead of matrix products.
-    fn segment(&self, t: f64, f: &Frame) -> Segment {
-        let ks = &self.knots[..];
-        let (first, last) = (ks[0], ks[ks.len() - 1]);
-        // (valid from, valid to, reference knot, rate, Hermite end knot)
-        let (lo, hi, a, omega, hermite) = if ks.len() == 1 || t < first.t {
+        Some(if ks.len() == 1 || t < first.t {
             let hi = if ks.len() == 1 { f64::INFINITY } else { first.t };
             (f64::NEG_INFINITY, hi, first, ks.get(1).map_or(V3::zeros(), |k| k.omega), None)
         } else if t >= last.t {
             (last.t, f64::INFINITY, last, last.omega, None)
         } else {
+            // ks[i-1].t <= t < ks[i].t
             let i = ks.partition_point(|k| k.t <= t);
             (ks[i - 1].t, ks[i].t, ks[i - 1], ks[i].omega, Some(ks[i]))
+        })
+    }
+
+    /// The interpolated IMU pose (world from IMU) at `t` seconds since the scan start, and
+    /// whether it was extrapolated.
+    pub fn pose_at(&self, t: f64) -> Option<(M3, V3, bool)> {
+        let (_, _, a, omega, end) = self.locate(t)?;
+        let tau = t - a.t;
+        let rot = a.rot * so3::exp(&(omega * tau));
+        let Some(b) = end else {
+            return Some((rot, a.pos + a.vel * tau, tau != 0.0));
         };
+        let w = hermite_weights(tau, b.t - a.t);
+        Some((rot, a.pos * w[0] + a.vel * w[1] + b.pos * w[2] + b.vel * w[3], false))
+    }
+
+    /// The pose model that holds at time `t` ([`Self::locate`]) folded with the end state and
+    /// the extrinsic, so that a time inside it costs two coefficients instead of matrix
+    /// products. `None` without knots.
+    fn segment(&self, t: f64, f: &Frame) -> Option<Segment> {
+        let (lo, hi, a, omega, hermite) = self.locate(t)?;
         // R(τ) = a.rot Exp(ω τ) = a.rot (I + c1(θ) τ W + c2(θ) τ² W²), W = hat(ω).
         let w = so3::hat(&omega);
         let nr = f.n * a.rot;
@@ -226,7 +218,7 @@ impl<const N: usize> ImuTrajectory<N> {
             Some(b) => [f.n * a.pos, f.n * a.vel, f.n * b.pos, f.n * b.vel],
             None => [f.n * a.pos, f.n * a.vel, V3::zeros(), V3::zeros()],
         };
-        Segment {
+        Some(Segment {
             lo,
             hi,
             t0: a.t,
@@ -235,7 +227,7 @@ impl<const N: usize> ImuTrajectory<N> {
             m: [nr * f.r_il, nrw * f.r_il, nrw2 * f.r_il],
             g: [nr * f.t_il + f.c0, nrw * f.t_il, nrw2 * f.t_il],
             np,
-        }
+        })
     }
 
     /// Moves `points` (and `normals`, if given: the same length, rotation only; invalid normals,
@@ -277,7 +269,8 @@ impl<const N: usize> ImuTrajectory<N> {
                     let t = pt.t as f64;
                     let sg = match seg {
                         Some(s) if s.lo <= t && t < s.hi => s,
-                        _ => *seg.insert(self.segment(t, &frame)),
+                        // Cannot fail: knots is not empty.
+                        _ => *seg.insert(self.segment(t, &frame).ok_or(UndistortError::NoPoses)?),
                     };
                     let tau = t - sg.t0;
                     if sg.h.is_none() && tau != 0.0 {
@@ -289,16 +282,7 @@ impl<const N: usize> ImuTrajectory<N> {
                     let a = sg.m[0] + sg.m[1] * s1 + sg.m[2] * s2;
                     // Position: Hermite on the segment, constant velocity outside the knots.
                     let wts = match sg.h {
-                        Some(h) => {
-                            let s = tau / h;
-                            let (s2, s3) = (s * s, s * s * s);
-                            [
-                                2.0 * s3 - 3.0 * s2 + 1.0,
-                                h * (s3 - 2.0 * s2 + s),
-                                3.0 * s2 - 2.0 * s3,
-                                h * (s3 - s2),
-                            ]
-                        }
+                        Some(h) => hermite_weights(tau, h),
                         None => [1.0, tau, 0.0, 0.0],
                     };
                     let b = sg.g[0]
@@ -325,6 +309,15 @@ impl<const N: usize> ImuTrajectory<N> {
         }
         Ok(stats)
     }
+}
+
+/// Cubic Hermite weights of `(a.pos, a.vel, b.pos, b.vel)` at `tau` into a segment of length
+/// `h`.
+#[inline]
+fn hermite_weights(tau: f64, h: f64) -> [f64; 4] {
+    let s = tau / h;
+    let (s2, s3) = (s * s, s * s * s);
+    [2.0 * s3 - 3.0 * s2 + 1.0, h * (s3 - 2.0 * s2 + s), 3.0 * s2 - 2.0 * s3, h * (s3 - s2)]
 }
 
 /// The end state and extrinsic of an undistortion: `n = R_ILᵀ R_eᵀ` and
