@@ -1758,11 +1758,20 @@ fn quantise_row(
     for j in 0..n {
         let v = state[j] == FULL || state[j] == GAP;
         // |n| <= 1, so the products lie in [-32000, 32000]; `as` truncates toward zero.
-        qx[j] = if v { (nx[j] * QSCALE) as i16 } else { QINVALID };
-        qy[j] = if v { (ny[j] * QSCALE) as i16 } else { QINVALID };
-        qz[j] = if v { (nz[j] * QSCALE) as i16 } else { QINVALID };
+        qx[j] = if v { round_small(nx[j] * QSCALE) as i16 } else { QINVALID };
+        qy[j] = if v { round_small(ny[j] * QSCALE) as i16 } else { QINVALID };
+        qz[j] = if v { round_small(nz[j] * QSCALE) as i16 } else { QINVALID };
         qinv[j] = if v { 0 } else { -1 };
     }
+}
+
+/// `x` rounded to the nearest integer (ties to even) for finite `|x| < 2^22`: adding 1.5 * 2^23
+/// leaves the integer in the low mantissa bits. Float and integer arithmetic only, so a loop of
+/// it vectorises, which a float-to-integer `as` (saturating, NaN to 0) does not.
+#[inline(always)]
+fn round_small(x: f32) -> i32 {
+    const MAGIC: f32 = 12_582_912.0;
+    (x + MAGIC).to_bits() as i32 - MAGIC.to_bits() as i32
 }
 
 /// Sorts every column's 5-row strip: `s[i][j]` is row i of column j, `d[k][j]` receives the
@@ -2003,6 +2012,20 @@ mod tests {
                 }
             }
             assert_eq!(median25_presorted(&mut p), want);
+        }
+    }
+
+    #[test]
+    fn round_small_rounds_to_nearest() {
+        for &x in
+            &[0.0f32, 0.49, 0.5, 0.51, 1.5, 2.5, -0.5, -0.51, -1.5, 31999.6, -31999.6, 32000.0, -32000.0]
+        {
+            assert_eq!(round_small(x), libm::rintf(x) as i32, "{x}");
+        }
+        let mut x = -32000.0f32;
+        while x <= 32000.0 {
+            assert_eq!(round_small(x), libm::rintf(x) as i32, "{x}");
+            x += 0.173;
         }
     }
 
