@@ -1067,7 +1067,9 @@ impl<const P: usize> RingFals<P> {
             let (w, key) =
                 (&self.inv[r * stride..(r + 1) * stride], &mut self.key[r * stride..(r + 1) * stride]);
             for (k, &w) in key.iter_mut().zip(w) {
-                *k = if w > 0.0 { (log2_approx(w) * KEY_SCALE) as i16 } else { KEY_EMPTY };
+                // Within +-32000 for any range the config allows; clamped all the same.
+                let key = round_small((log2_approx(w) * KEY_SCALE).clamp(-32000.0, 32000.0));
+                *k = if w > 0.0 { key as i16 } else { KEY_EMPTY };
             }
         }
 
@@ -1246,8 +1248,11 @@ impl<const P: usize> RingFals<P> {
         let kc = lane_load(&self.key[centre..]);
         // Absolute part of the gate: log2(1 + abs / r) <= abs / (r ln 2).
         let tc: Lane = core::array::from_fn(|l| {
-            (self.inv[centre + l] * (table.config.range_jump_abs * KEY_SCALE * core::f32::consts::LOG2_E))
-                .min(30000.0) as i16
+            round_small(
+                (self.inv[centre + l]
+                    * (table.config.range_jump_abs * KEY_SCALE * core::f32::consts::LOG2_E))
+                    .min(30000.0),
+            ) as i16
         });
         let mut masks = [[0i16; QLANES]; 25];
         let mut any: Lane = [0; QLANES];
