@@ -1762,7 +1762,7 @@ fn quantise_row(
     let (qx, qy, qz, qinv) = (&mut qx[..n], &mut qy[..n], &mut qz[..n], &mut qinv[..n]);
     for j in 0..n {
         let v = state[j] == FULL || state[j] == GAP;
-        // |n| <= 1, so the products lie in [-32000, 32000]; `as` truncates toward zero.
+        // |n| <= 1, so the products lie in [-32000, 32000], well within `round_small`'s range.
         qx[j] = if v { round_small(nx[j] * QSCALE) as i16 } else { QINVALID };
         qy[j] = if v { round_small(ny[j] * QSCALE) as i16 } else { QINVALID };
         qz[j] = if v { round_small(nz[j] * QSCALE) as i16 } else { QINVALID };
