@@ -100,6 +100,9 @@ pub struct AssociationConfig {
     pub surfel_variance: f64,
     /// Noise variance of a point-to-plane residual, m². Default 0.001.
     pub plane_variance: f64,
+    /// Measurement budget: at most this many downsampled points (evenly spread over the scan
+    /// order) are associated and measured; the map still receives them all. 0: no limit.
+    pub max_points: u32,
     /// Search again when the iterate's position moved more than this since the last search, m.
     pub research_pos: f64,
     /// ... or its rotation by more than this, rad.
@@ -119,6 +122,7 @@ impl AssociationConfig {
         residual_gate: 81.0,
         surfel_variance: 0.001,
         plane_variance: 0.001,
+        max_points: 0,
         research_pos: 0.05,
         research_rot: 0.005,
     };

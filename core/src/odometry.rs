@@ -31,7 +31,11 @@
 //! 4. Voxel downsampling on the map's grid keeps one point per voxel with the averaged normal.
 //! 5. The first scan after initialisation only builds the map. Later scans run the iterated
 //!    update ([`Eskf::update`]) with the association of [`crate::association`]; the filter
-//!    handles degenerate directions (the status says [`Status::Degraded`]).
+//!    handles degenerate directions (the status says [`Status::Degraded`]). With a
+//!    measurement budget (`association.max_points` > 0, off by default) at most that many
+//!    downsampled points, evenly spread over the scan order, are associated and measured:
+//!    the association's cost is per point, and a dense scan gives more constraints than the
+//!    update needs (the reference subsamples every 4th raw point for the same reason).
 //! 6. The scan goes into the voxel map at the updated pose (also when it had too few
 //!    correspondences: the map must grow into new space).
 //!
@@ -607,12 +611,18 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         let mut update = UpdateResult::default();
         let mut counts = AssociationCounts::default();
         if kept > 0 && !building {
+            // The measured points first; the map still gets them all (step 6).
+            let measured = select_measured(
+                &mut st.points[..kept],
+                &mut st.normals3[..kept],
+                self.cfg.association.max_points,
+            );
             let mut assoc = ScanAssociation::new(
                 &self.map,
                 &self.cfg.association,
                 self.cfg.mode,
-                &st.points[..kept],
-                &st.normals3[..kept],
+                &st.points[..measured],
+                &st.normals3[..measured],
                 &mut st.corr[..],
                 &mut st.queries,
                 &mut st.neighbours,
@@ -680,6 +690,24 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
     }
 }
 
+/// Moves an even selection of at most `budget` of `points` (and their normals) to the front,
+/// in their order, and returns how many: all of them when `budget` is 0 or not smaller. Element
+/// `floor(j n / budget)` goes to position `j`; those positions increase strictly, so each swap
+/// takes a point not yet moved.
+fn select_measured(points: &mut [ScanPoint], normals: &mut [[f32; 3]], budget: u32) -> usize {
+    let n = points.len().min(normals.len());
+    let b = budget as usize;
+    if b == 0 || b >= n {
+        return n;
+    }
+    for j in 0..b {
+        let src = (j as u64 * n as u64 / b as u64) as usize;
+        points.swap(j, src);
+        normals.swap(j, src);
+    }
+    b
+}
+
 /// Re-seeds the filter after an IMU jump that moved its time from `before_ns` without
 /// integrating (module docs): constant velocity and rate over the skipped time, larger
 /// position, velocity and attitude uncertainties.
@@ -718,5 +746,41 @@ pub struct NoClock;
 impl Clock for NoClock {
     fn now_ns(&mut self) -> u64 {
         0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The measurement budget takes `floor(j n / b)` for `j < b` (evenly spread, in scan order),
+    /// moves them to the front with their normals, and loses no point: the rest still go to the
+    /// map.
+    #[test]
+    fn measurement_budget_selects_evenly_and_keeps_every_point() {
+        for (n, b) in [(10usize, 3u32), (1000, 333), (1001, 1000), (7, 7), (7, 9), (5, 0), (0, 4), (4, 1)] {
+            let mut pts: [ScanPoint; 1001] = [ScanPoint::default(); 1001];
+            let mut nrm = [[0.0f32; 3]; 1001];
+            for i in 0..n {
+                pts[i].t = i as f32;
+                nrm[i] = [i as f32, 0.0, 1.0];
+            }
+            let m = select_measured(&mut pts[..n], &mut nrm[..n], b);
+            let want = if b == 0 || b as usize >= n { n } else { b as usize };
+            assert_eq!(m, want, "n {n} b {b}");
+            for j in 0..m {
+                let src = if m == n { j } else { j * n / m };
+                assert_eq!(pts[j].t, src as f32, "n {n} b {b} j {j}");
+                assert_eq!(nrm[j][0], src as f32);
+            }
+            // A permutation: every input point is still there, each with its own normal.
+            let mut seen = [false; 1001];
+            for i in 0..n {
+                let k = pts[i].t as usize;
+                assert!(!seen[k]);
+                seen[k] = true;
+                assert_eq!(nrm[i][0], pts[i].t);
+            }
+        }
     }
 }

@@ -41,6 +41,8 @@ pub const STAGES: [&str; 6] = ["normals", "undistort", "downsample", "associatio
 pub struct BenchReport {
     /// Preset.
     pub preset: String,
+    /// The measurement budget both modes ran with (0: none).
+    pub max_points: u64,
     /// Simulated seconds.
     pub seconds: f64,
     /// Points per scan (mean).
@@ -60,9 +62,11 @@ fn time_mode(
     sc: &loglio_firmware_sim::scenario::Scenario,
     preset: Preset,
     mode: AssociationMode,
+    max_points: u64,
     scan_period_s: f64,
 ) -> Result<ModeTimes, PipelineError> {
-    let cfg = sim::scenario_config(sc, preset, Some(mode));
+    let mut cfg = sim::scenario_config(sc, preset, Some(mode));
+    cfg.mapping.max_points = max_points;
     let layout = sc.layout().clone();
     let class = StorageClass::choose(layout.rows(), layout.cols(), cfg.mapping.map_capacity)?;
     let core = pipeline::odometry_config(&cfg, layout)?;
@@ -129,8 +133,14 @@ enum Event2 {
     Scan(OwnedScan),
 }
 
-/// Runs the bench for `preset` over `seconds` of a simulated drive.
-pub fn run(preset: Preset, seconds: f64, progress: bool) -> Result<BenchReport, PipelineError> {
+/// Runs the bench for `preset` over `seconds` of a simulated drive, both modes with the
+/// measurement budget `max_points` (0: every downsampled point).
+pub fn run(
+    preset: Preset,
+    seconds: f64,
+    max_points: u64,
+    progress: bool,
+) -> Result<BenchReport, PipelineError> {
     let sensor = sim::sensor_of(preset).ok_or_else(|| {
         PipelineError(format!(
             "the simulator has no {preset} model; bench one of vlp16, vlp32c, hdl32e, os1-16, os1-64 (the per-point cost scales with the points per scan)"
@@ -147,6 +157,7 @@ pub fn run(preset: Preset, seconds: f64, progress: bool) -> Result<BenchReport, 
         seed: 1,
         duration_s: Some(seconds),
         mode: None,
+        max_points,
         out: None,
         progress: false,
     };
@@ -173,10 +184,11 @@ pub fn run(preset: Preset, seconds: f64, progress: bool) -> Result<BenchReport, 
     bar.finish();
     let generate_s = t0.elapsed().as_secs_f64();
     let scan_period_s = 1.0 / crate::config::Config::preset(preset).sensor.scan_rate_hz;
-    let main = time_mode(&data, &sc, preset, AssociationMode::Full, scan_period_s)?;
-    let baseline = time_mode(&data, &sc, preset, AssociationMode::Plain, scan_period_s)?;
+    let main = time_mode(&data, &sc, preset, AssociationMode::Full, max_points, scan_period_s)?;
+    let baseline = time_mode(&data, &sc, preset, AssociationMode::Plain, max_points, scan_period_s)?;
     Ok(BenchReport {
         preset: preset.name().into(),
+        max_points,
         seconds,
         points_per_scan: points as f64 / scans.max(1) as f64,
         scan_period_s,
@@ -204,6 +216,7 @@ impl BenchReport {
         let cpu = std::thread::available_parallelism().map_or(1, |n| n.get());
         let v = json!({
             "preset": self.preset,
+            "max_points": self.max_points,
             "simulated_seconds": self.seconds,
             "points_per_scan": self.points_per_scan,
             "scan_period_ms": self.scan_period_s * 1e3,
@@ -227,6 +240,9 @@ impl BenchReport {
             std::env::consts::ARCH,
             std::thread::available_parallelism().map_or(1, |n| n.get())
         );
+        if self.max_points > 0 {
+            s.push_str(&format!("measurement budget: at most {} points per scan\n", self.max_points));
+        }
         s.push_str(&format!("{:<12} {:>10} {:>10}\n", "stage [ms]", self.main.mode, self.baseline.mode));
         for (i, name) in STAGES.iter().enumerate() {
             s.push_str(&format!(

@@ -29,6 +29,7 @@
 //! | `mapping.voxel_size` | the voxel map's voxel edge (the paper's map resolution) |
 //! | `mapping.scan_voxel_size` | the scan downsampling leaf size |
 //! | `mapping.map_capacity` | the voxel pool capacity (the hash index is sized from it) |
+//! | `mapping.max_points` | the association's measurement budget: at most this many downsampled points per scan are measured, evenly spread (0: all); the map still gets every one |
 //! | `mapping.association` | the association mode: `full` (LOG-LIO), `plane-only` (LOG-C), `plain` (FAST-LIO2-like) |
 //! | `filter.max_iterations` | the iterated ESKF's maximum number of passes per scan |
 //! | `imu.source`, `imu.serial_device`, `imu.baud`, `imu.csv_path`, `network.*` | the host's inputs (`serial.rs`, `imu_csv.rs`, `udp.rs`) |
@@ -364,6 +365,8 @@ pub struct MappingConfig {
     pub scan_voxel_size: f64,
     /// Most voxels the map holds (the preallocated pool).
     pub map_capacity: u64,
+    /// Most downsampled points measured per scan (0: all).
+    pub max_points: u64,
     /// Association mode.
     pub association: AssociationMode,
 }
@@ -583,6 +586,12 @@ static SPECS: &[Spec] = &[
         "Most voxels the map holds; the pool is allocated once at start-up (memory = capacity x bytes per voxel, see the README).",
     ),
     spec(
+        "mapping.max_points",
+        Kind::Int { min: 0, max: 10_000_000 },
+        "points",
+        "Measurement budget: at most this many downsampled points per scan are associated and measured, evenly spread over the scan (0 = all). The map still receives every point. Trades accuracy for time on slow computers (see the README).",
+    ),
+    spec(
         "mapping.association",
         Kind::Enum(&["full", "plane-only", "plain"]),
         "",
@@ -778,6 +787,7 @@ impl Config {
                 voxel_size: voxel,
                 scan_voxel_size: voxel,
                 map_capacity: 1_000_000,
+                max_points: 0,
                 association: AssociationMode::Full,
             },
             filter: FilterConfig { max_iterations: 4 },

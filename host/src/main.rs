@@ -94,6 +94,10 @@ struct SimArgs {
     /// Association mode.
     #[arg(long, value_enum)]
     mode: Option<ModeArg>,
+    /// Measurement budget (`mapping.max_points`): at most N downsampled points measured per
+    /// scan; 0 = all.
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    max_points: u64,
     /// Output directory (trajectory, ground truth, map, per-scan CSV, plots); nothing is written
     /// without it.
     #[arg(long, value_name = "DIR")]
@@ -215,6 +219,10 @@ struct BenchArgs {
     /// Seconds of simulated data (2 s at rest are not timed).
     #[arg(long, default_value_t = 12.0, value_name = "S")]
     seconds: f64,
+    /// Measurement budget (`mapping.max_points`): at most N downsampled points measured per
+    /// scan, in both modes; 0 = all.
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    max_points: u64,
     /// Print JSON.
     #[arg(long)]
     json: bool,
@@ -485,7 +493,7 @@ fn bench_cmd(a: BenchArgs) -> anyhow::Result<()> {
     if !(a.seconds >= 3.0 && a.seconds <= 120.0) {
         bail!("--seconds must be in [3, 120], not {}", a.seconds);
     }
-    let r = loglio_host::bench::run(preset, a.seconds, !a.json)?;
+    let r = loglio_host::bench::run(preset, a.seconds, a.max_points, !a.json)?;
     print(&if a.json { r.to_json() } else { r.to_text() })
 }
 
@@ -535,6 +543,7 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
         seed: a.seed,
         duration_s: a.seconds,
         mode: a.mode.map(ModeArg::host),
+        max_points: a.max_points,
         out: a.out,
         progress: true,
     })
@@ -556,6 +565,7 @@ fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
         seed: 1,
         duration_s: Some(a.seconds),
         mode: None,
+        max_points: 0,
         out: Some(a.out),
         progress: true,
     })

@@ -30,6 +30,7 @@ use std::io;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use loglio_core::association::AssociationConfig;
 use loglio_core::downsample::DownsampleConfig;
 use loglio_core::eskf::EskfConfig;
 use loglio_core::imu::{ImuInitConfig, ImuNoise, ImuPush, ImuSample};
@@ -162,6 +163,10 @@ pub fn odometry_config(cfg: &Config, layout: RangeImageLayout) -> Result<Odometr
         ext_pos: Vector3::new(t[0], t[1], t[2]),
         blind: cfg.sensor.blind as f32,
         max_range: cfg.sensor.max_range as f32,
+        association: AssociationConfig {
+            max_points: u32::try_from(cfg.mapping.max_points).unwrap_or(u32::MAX),
+            ..base.association
+        },
         ..base
     })
 }

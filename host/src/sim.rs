@@ -29,6 +29,8 @@ pub struct SimOptions {
     pub duration_s: Option<f64>,
     /// Association mode (`None`: the preset's).
     pub mode: Option<AssociationMode>,
+    /// Measurement budget (`mapping.max_points`; 0: every downsampled point).
+    pub max_points: u64,
     /// Output directory (`None`: write nothing).
     pub out: Option<PathBuf>,
     /// Show a progress bar (on a terminal).
@@ -159,7 +161,8 @@ fn to_trajectory(poses: &[EstPose]) -> Trajectory {
 pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
     let wall = Instant::now();
     let sc = scenario(opt)?;
-    let cfg = scenario_config(&sc, preset_of(opt.sensor), opt.mode);
+    let mut cfg = scenario_config(&sc, preset_of(opt.sensor), opt.mode);
+    cfg.mapping.max_points = opt.max_points;
     let layout = sc.layout().clone();
     let class = StorageClass::choose(layout.rows(), layout.cols(), cfg.mapping.map_capacity)?;
     let core = pipeline::odometry_config(&cfg, layout)?;
@@ -274,5 +277,12 @@ mod tests {
         assert_eq!(core.init.gravity, loglio_firmware_sim::trajectory::GRAVITY);
         let t = sc.extrinsic().translation.vector;
         assert_eq!(cfg.extrinsics.translation, [t.x, t.y, t.z]);
+        // No measurement budget unless asked for; `mapping.max_points` reaches the association.
+        assert_eq!(core.association.max_points, 0);
+        let file = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nmax_points = 5000\n").unwrap();
+        let core = crate::pipeline::odometry_config(&file, sc.layout().clone()).unwrap();
+        assert_eq!(core.association.max_points, 5000);
+        let err = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nmax_points = -1\n").unwrap_err();
+        assert!(err.0.contains("mapping.max_points"), "{}", err.0);
     }
 }
