@@ -120,6 +120,9 @@ impl Cell {
     };
 }
 
+/// A point in no voxel (dropped), in the scratch of [`VoxelDownsampler::downsample_with_scratch`].
+const NO_CELL: u32 = u32::MAX;
+
 /// Rows of the per-row lookup cache (a point's row modulo this).
 const RECENT: usize = 128;
 
@@ -218,7 +221,34 @@ impl<const N: usize> VoxelDownsampler<N> {
         &mut self,
         cfg: &DownsampleConfig,
         points: &mut [ScanPoint],
+        normals: Option<&mut [[f32; 3]]>,
+    ) -> Result<DownsampleStats, DownsampleError> {
+        self.run(cfg, points, normals, None)
+    }
+
+    /// [`Self::downsample`] with a caller's scratch of at least `points.len()` entries
+    /// (else [`DownsampleError::LengthMismatch`]): the first pass notes each point's voxel
+    /// there, so the second (the point nearest to each centroid) neither recomputes keys nor
+    /// searches the grid again. The output is the same, bit for bit.
+    pub fn downsample_with_scratch(
+        &mut self,
+        cfg: &DownsampleConfig,
+        points: &mut [ScanPoint],
+        normals: Option<&mut [[f32; 3]]>,
+        scratch: &mut [u32],
+    ) -> Result<DownsampleStats, DownsampleError> {
+        if scratch.len() < points.len() {
+            return Err(DownsampleError::LengthMismatch);
+        }
+        self.run(cfg, points, normals, Some(&mut scratch[..points.len()]))
+    }
+
+    fn run(
+        &mut self,
+        cfg: &DownsampleConfig,
+        points: &mut [ScanPoint],
         mut normals: Option<&mut [[f32; 3]]>,
+        mut cell_of: Option<&mut [u32]>,
     ) -> Result<DownsampleStats, DownsampleError> {
         if !N.is_power_of_two() || N < 4 {
             return Err(DownsampleError::Capacity);
@@ -238,6 +268,9 @@ impl<const N: usize> VoxelDownsampler<N> {
         // Pass 1: accumulate.
         self.recent = [([0; 3], 0); RECENT];
         for (i, p) in points.iter().enumerate() {
+            if let Some(co) = cell_of.as_deref_mut() {
+                co[i] = NO_CELL;
+            }
             let Some(key) = Self::key(&p.xyz, inv) else {
                 stats.dropped_invalid += 1;
                 continue;
@@ -256,6 +289,9 @@ impl<const N: usize> VoxelDownsampler<N> {
                     used - 1
                 }
             };
+            if let Some(co) = cell_of.as_deref_mut() {
+                co[i] = cell as u32;
+            }
             let c = &mut self.cells[cell];
             c.count += 1;
             for a in 0..3 {
@@ -273,20 +309,30 @@ impl<const N: usize> VoxelDownsampler<N> {
         }
 
         // Pass 2: the point nearest to each centroid.
-        self.recent = [([0; 3], 0); RECENT];
-        for (i, p) in points.iter().enumerate() {
-            let Some(key) = Self::key(&p.xyz, inv) else { continue };
-            let Ok(cell) = self.find(&key, p.row) else { continue };
-            let c = &mut self.cells[cell];
+        let nearest = |c: &mut Cell, p: &ScanPoint, i: usize| {
             let mut d2 = 0.0;
             for a in 0..3 {
                 let centroid = c.sum[a] / c.count as f32;
-                let d = (p.xyz[a] - key[a] as f32 * cfg.voxel) - centroid;
+                let d = (p.xyz[a] - c.key[a] as f32 * cfg.voxel) - centroid;
                 d2 += d * d;
             }
             if d2 < c.best_d2 {
                 c.best_d2 = d2;
                 c.best = i as u32;
+            }
+        };
+        if let Some(co) = cell_of.as_deref() {
+            for (i, (p, &cell)) in points.iter().zip(co.iter()).enumerate() {
+                if let Some(c) = self.cells[..used].get_mut(cell as usize) {
+                    nearest(c, p, i);
+                }
+            }
+        } else {
+            self.recent = [([0; 3], 0); RECENT];
+            for (i, p) in points.iter().enumerate() {
+                let Some(key) = Self::key(&p.xyz, inv) else { continue };
+                let Ok(cell) = self.find(&key, p.row) else { continue };
+                nearest(&mut self.cells[cell], p, i);
             }
         }
 
@@ -403,6 +449,27 @@ mod tests {
         assert_eq!(first, run(&mut a));
         assert_eq!(first, run(&mut b));
         assert!(first.2.kept > 1000);
+        // With the scratch (no second search): the same output, bit for bit, also with
+        // invalid points among the input; a short scratch is refused.
+        let mut bad = pts.clone();
+        bad[17].xyz[1] = f32::NAN;
+        bad[4000].xyz = [f32::INFINITY; 3];
+        for input in [pts.clone(), bad] {
+            let (mut p1, mut n1) = (input.clone(), ns.clone());
+            let s1 = a.downsample(&cfg(0.4), &mut p1, Some(&mut n1)).unwrap();
+            let (mut p2, mut n2) = (input.clone(), ns.clone());
+            let mut scratch = std::vec![0u32; input.len() + 3];
+            let s2 = b.downsample_with_scratch(&cfg(0.4), &mut p2, Some(&mut n2), &mut scratch).unwrap();
+            assert_eq!(s1, s2);
+            let k = s1.kept as usize;
+            assert_eq!(p1[..k], p2[..k]);
+            assert_eq!(n1[..k], n2[..k]);
+        }
+        let mut short = std::vec![0u32; pts.len() - 1];
+        assert_eq!(
+            b.downsample_with_scratch(&cfg(0.4), &mut pts.clone(), None, &mut short),
+            Err(DownsampleError::LengthMismatch)
+        );
     }
 
     #[test]

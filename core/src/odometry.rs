@@ -210,6 +210,8 @@ pub struct ScanStorage<const PIX: usize, const PTS: usize, const DS: usize> {
     points: [ScanPoint; PTS],
     normals: [PointNormal; PTS],
     normals3: [[f32; 3]; PTS],
+    /// Each point's downsampling voxel (the downsampler's scratch).
+    cell_of: [u32; PTS],
     imu: ImuQueue<IMU_QUEUE>,
     trajectory: ImuTrajectory<TRAJECTORY_KNOTS>,
     corr: [Correspondence; DS],
@@ -240,6 +242,7 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> ScanStorage<PIX, PTS, 
                 PTS],
             normals: [PointNormal::INVALID; PTS],
             normals3: [[0.0; 3]; PTS],
+            cell_of: [0; PTS],
             imu: ImuQueue::new(),
             trajectory: ImuTrajectory::new(),
             corr: [Correspondence::NONE; DS],
@@ -591,10 +594,11 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
 
         // 4. Downsample on the map's grid.
         let kept = if m > 0 {
-            match st.downsampler.downsample(
+            match st.downsampler.downsample_with_scratch(
                 &self.cfg.downsample,
                 &mut st.points[..m],
                 Some(&mut st.normals3[..m]),
+                &mut st.cell_of[..m],
             ) {
                 Ok(s) => s.kept as usize,
                 Err(_) => 0,
