@@ -1163,6 +1163,7 @@ impl<'a> VoxelMap<'a> {
                         let v = &self.pool[s as usize];
                         prefetch(v); // line 0: key, state, representatives
                         prefetch(&v.last_seen); // line 1: the sums
+                        prefetch(&v.rep_normals); // line 2: the representatives' normals
                     }
                 }
             }
