@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 
 
-def config_toml(info: dict, mode: str) -> str:
+def config_toml(info: dict, mode: str, max_points: int = 0) -> str:
     e = info["extrinsic_imu_lidar"]
     x, y, z, w = e["quaternion_xyzw"]
     t = e["translation_m"]
@@ -50,6 +50,7 @@ def config_toml(info: dict, mode: str) -> str:
         f"rotation_quat_wxyz = [{w!r}, {x!r}, {y!r}, {z!r}]\n"
         "[mapping]\n"
         f'association = "{mode}"\n'
+        f"max_points = {max_points}\n"
     )
 
 
@@ -59,6 +60,7 @@ def main():
     ap.add_argument("scenario_dir", type=Path)
     ap.add_argument("out_dir", type=Path)
     ap.add_argument("--mode", default="full", choices=("full", "plane-only", "plain"))
+    ap.add_argument("--max-points", type=int, default=0, help="measurement budget (mapping.max_points; 0 = all)")
     a = ap.parse_args()
     info = json.loads((a.scenario_dir / "scenario.json").read_text())
     name = info["scenario"]
@@ -69,7 +71,7 @@ def main():
         shutil.rmtree(run_dir)
     run_dir.mkdir()
     toml = run_dir / "config.toml"
-    toml.write_text(config_toml(info, a.mode))
+    toml.write_text(config_toml(info, a.mode, a.max_points))
     cmd = [
         a.loglio, "bag", str(bag), "--lidar-topic", info["bag"]["lidar_topic"], "--imu-topic", info["bag"]["imu_topic"],
         "--config", str(toml), "--mode", a.mode, "--out", str(run_dir), "--no-map",
@@ -84,7 +86,7 @@ def main():
     (run_dir / "stdout.txt").write_text(p.stdout)
     (run_dir / "stderr.txt").write_text(p.stderr)
     result = {
-        "method": f"loglio ({a.mode})",
+        "method": f"loglio ({a.mode})" if a.max_points == 0 else f"loglio ({a.mode}, max_points {a.max_points})",
         "scenario": name,
         "bag": str(bag),
         "command": cmd,
