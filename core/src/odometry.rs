@@ -18,12 +18,12 @@
 //!
 //! # One scan
 //!
-//! 1. The points are copied into the storage (at most `PTS`; the rest are counted in
-//!    [`OdometryStats::points_overflow`]). Ring FALS estimates their normals on the raw scan,
-//!    before undistortion, from the range image (skipped in [`AssociationMode::Plain`]).
+//! 1. Ring FALS estimates the normals of the first `PTS` points (the rest are counted in
+//!    [`OdometryStats::points_overflow`]) on the raw scan, read in place, before undistortion,
+//!    from the range image (skipped in [`AssociationMode::Plain`]).
 //! 2. Points with a non-finite position or time, a time outside `[0, MAX_SCAN_SPAN_S]`, or a
-//!    range outside `[blind, max_range]` are dropped (counted). The scan end is the latest kept
-//!    point time.
+//!    range outside `[blind, max_range]` are dropped (counted); the others are copied into the
+//!    storage with their normals. The scan end is the latest kept point time.
 //! 3. The IMU samples up to the scan end propagate the filter (or feed its initialisation); the
 //!    state after every sample is a knot of the scan's [`ImuTrajectory`]; the filter is then
 //!    propagated to the scan end, and every point and normal is moved to the LiDAR frame at the
@@ -474,24 +474,23 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         }
         let use_normals = self.cfg.mode != AssociationMode::Plain;
 
-        // 1. Copy, normals on the raw scan.
+        // 1. Normals on the raw scan (the caller's points, not copied).
         let n_in = scan.points.len();
         let n = n_in.min(PTS);
         let overflow = (n_in - n).min(u32::MAX as usize) as u32;
         let st = &mut *self.scan;
-        st.points[..n].copy_from_slice(&scan.points[..n]);
-        if use_normals && st.ring.estimate(&st.table, &st.points[..n], &mut st.normals[..n]).is_err() {
+        let input = &scan.points[..n];
+        if use_normals && st.ring.estimate(&st.table, input, &mut st.normals[..n]).is_err() {
             st.normals[..n].fill(PointNormal::INVALID);
         }
         let t1 = clock.now_ns();
         times.normals_ns = t1.saturating_sub(t0);
 
-        // 2. Drop invalid points, keep the normals beside them.
+        // 2. Copy the valid points into the storage, their normals beside them.
         let (blind2, max2) = (self.cfg.blind * self.cfg.blind, self.cfg.max_range * self.cfg.max_range);
         let mut m = 0usize;
         let mut t_max = 0.0f32;
-        for i in 0..n {
-            let p = st.points[i];
+        for (i, &p) in input.iter().enumerate() {
             let [x, y, z] = p.xyz;
             let r2 = x * x + y * y + z * z;
             let ok = r2.is_finite() && r2 >= blind2 && r2 <= max2 && p.t >= 0.0 && p.t <= MAX_SCAN_SPAN_S;
