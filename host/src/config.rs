@@ -1169,7 +1169,7 @@ mod tests {
     fn unknown_keys_and_presets_are_errors() {
         assert_eq!(
             err("preset = \"vlp16\"\n[mapping]\nvoxl_size = 0.4\n"),
-            "config: unknown key mapping.voxl_size (keys of [mapping]: voxel_size, scan_voxel_size, map_capacity, association)"
+            "config: unknown key mapping.voxl_size (keys of [mapping]: voxel_size, scan_voxel_size, map_capacity, max_points, association)"
         );
         assert_eq!(
             err("preset = \"vlp16\"\n[maping]\nvoxel_size = 0.4\n"),
