@@ -73,7 +73,11 @@
 //! the hash keeps the 8 voxels of each 2x2x2 block in adjacent index slots (one index line
 //! serves a neighbourhood); and [`VoxelMap::insert`] and [`VoxelMap::knn_many`] run software
 //! pipelines that fetch the index lines, then the voxels, of the next points while the current
-//! ones are processed (prefetch hints on x86; elsewhere the same code without hints).
+//! ones are processed (prefetch hints on x86; elsewhere the same code without hints). The k-NN
+//! search itself avoids unpredictable jumps: the query's 27 box distances are computed at once
+//! in its search order, the 19 boxes outside its octant are picked by one pass of compares, and
+//! the candidate list is a sorted array of `distance << 32 | position` keys kept by min/max
+//! over the whole array (vector code) instead of an insertion loop.
 // `!(x > t)` rejects NaN as well as small values, on purpose; indexed loops over the three
 // axes read like the maths.
 #![allow(clippy::neg_cmp_op_on_partial_ord, clippy::needless_range_loop)]
@@ -679,44 +683,45 @@ pub struct VoxelMap<'a> {
 const NEAR_ORDER: [[i32; 3]; 8] =
     [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, 0, 1], [0, 1, 1], [1, 1, 1]];
 
-/// The order a k-NN search visits the 27 boxes, per side of the voxel centre the query lies on
-/// (index: bit `a` set when the query is on the + side of axis `a`): the octant's 8 boxes
-/// ([`NEAR_ORDER`]), then the other 19 in [`NEIGHBOURS`] order.
-const SIDE_ORDERS: [[[i32; 3]; 27]; 8] = side_orders();
+/// The order a k-NN search visits the 27 boxes, in "side" coordinates (per axis, +1 is the
+/// neighbour on the query's side of its voxel centre, -1 the one on the other side): the
+/// octant's 8 boxes ([`NEAR_ORDER`]), then the other 19 in [`NEIGHBOURS`] order (faces, edges,
+/// corners). A query's offsets are these times its side per axis.
+const SEARCH_ORDER: [[i32; 3]; 27] = search_order();
 
-const fn side_orders() -> [[[i32; 3]; 27]; 8] {
-    let mut out = [[[0i32; 3]; 27]; 8];
-    let mut si = 0;
-    while si < 8 {
-        let side = [
-            if si & 1 != 0 { 1 } else { -1 },
-            if si & 2 != 0 { 1 } else { -1 },
-            if si & 4 != 0 { 1 } else { -1 },
-        ];
-        let mut n = 0;
-        let mut i = 0;
-        while i < 8 {
-            let b = NEAR_ORDER[i];
-            out[si][n] = [b[0] * side[0], b[1] * side[1], b[2] * side[2]];
+const fn search_order() -> [[i32; 3]; 27] {
+    let mut out = [[0i32; 3]; 27];
+    let mut n = 0;
+    while n < 8 {
+        out[n] = NEAR_ORDER[n];
+        n += 1;
+    }
+    let mut j = 0;
+    while j < 27 {
+        let off = NEIGHBOURS[j];
+        if off[0] < 0 || off[1] < 0 || off[2] < 0 {
+            out[n] = off;
             n += 1;
-            i += 1;
         }
-        let mut j = 0;
-        while j < 27 {
-            let off = NEIGHBOURS[j];
-            let in_octant = (off[0] == 0 || off[0] == side[0])
-                && (off[1] == 0 || off[1] == side[1])
-                && (off[2] == 0 || off[2] == side[2]);
-            if !in_octant {
-                out[si][n] = off;
-                n += 1;
-            }
-            j += 1;
-        }
-        si += 1;
+        j += 1;
     }
     out
 }
+
+/// [`SEARCH_ORDER`] per axis as indices into `[other side, own, query's side]`.
+const SEARCH_IDX: [[usize; 27]; 3] = {
+    let mut out = [[0usize; 27]; 3];
+    let mut i = 0;
+    while i < 27 {
+        let mut a = 0;
+        while a < 3 {
+            out[a][i] = (SEARCH_ORDER[i][a] + 1) as usize;
+            a += 1;
+        }
+        i += 1;
+    }
+    out
+};
 
 /// The 27 voxel offsets of a neighbourhood, the centre first, then faces, edges and corners.
 const NEIGHBOURS: [[i32; 3]; 27] = neighbour_order();
@@ -1509,10 +1514,9 @@ impl<'a> VoxelMap<'a> {
         // nearest points almost always: their index entries are probed together, so their
         // cache misses overlap (queries are bound by memory latency). The other boxes are
         // probed only if the search gets to them.
-        for bits in NEAR_ORDER {
-            let off = [bits[0] * pre.side[0], bits[1] * pre.side[1], bits[2] * pre.side[2]];
-            if pre.box_d2(off) <= bound2 {
-                self.probe(&mut pre, off);
+        for i in 0..OCTANTS {
+            if pre.bd[i] <= bound2 {
+                self.probe(&mut pre, i);
             }
         }
         self.finish_knn(&mut pre, q, query.one_per_voxel, k, bound2, out)
@@ -1553,10 +1557,9 @@ impl<'a> VoxelMap<'a> {
             // Stage 2, group g - 1: probe the octants, prefetch their voxels.
             if g >= 1 && g - 1 < groups {
                 for p in ring[(g - 1) % 3].iter_mut().flatten() {
-                    for bits in NEAR_ORDER {
-                        let off = [bits[0] * p.side[0], bits[1] * p.side[1], bits[2] * p.side[2]];
-                        if p.box_d2(off) <= bound2 {
-                            let slot = self.probe(p, off);
+                    for i in 0..OCTANTS {
+                        if p.bd[i] <= bound2 {
+                            let slot = self.probe(p, i);
                             if slot != NO_HINT {
                                 let v = &self.pool[slot as usize];
                                 prefetch(v); // line 0: key and representatives
@@ -1615,23 +1618,31 @@ impl<'a> VoxelMap<'a> {
             let i = i as i32;
             *h = block_hash([b0[0] + (i & 1), b0[1] + (i >> 1 & 1), b0[2] + (i >> 2)]);
         }
-        Some(Prepared { key, b0, gap2, side, bh, slots: [UNPROBED; 27] })
+        // Squared box distances in the search order, summed per axis in a fixed order (x, then
+        // y, then z); per axis [other side, own, query's side].
+        let g: [[f32; 3]; 3] = core::array::from_fn(|a| {
+            let [lo, mid, hi] = gap2[a];
+            if side[a] > 0 { [lo, mid, hi] } else { [hi, mid, lo] }
+        });
+        let bd: [f32; 27] = core::array::from_fn(|i| {
+            g[0][SEARCH_IDX[0][i]] + g[1][SEARCH_IDX[1][i]] + g[2][SEARCH_IDX[2][i]]
+        });
+        Some(Prepared { key, b0, bd, side, bh, slots: [UNPROBED; 27] })
     }
 
-    /// The slot of the first index entry with the hash of the box at `off` (not key-checked),
-    /// or `NO_HINT`; remembered in `pre`.
+    /// The slot of the first index entry with the hash of the `i`-th box of the query's search
+    /// order (not key-checked), or `NO_HINT`; remembered in `pre`.
     #[inline]
-    fn probe(&self, pre: &mut Prepared, off: [i32; 3]) -> u32 {
-        let li = lex(off);
-        if pre.slots[li] == UNPROBED {
-            let h = pre.hash(off);
-            pre.slots[li] = index_first_with_hash(self.index, self.mask, h).unwrap_or(NO_HINT);
+    fn probe(&self, pre: &mut Prepared, i: usize) -> u32 {
+        if pre.slots[i] == UNPROBED {
+            let h = pre.hash(pre.offset(i));
+            pre.slots[i] = index_first_with_hash(self.index, self.mask, h).unwrap_or(NO_HINT);
         }
-        pre.slots[li]
+        pre.slots[i]
     }
 
     /// The search proper: the octant's boxes, then the other 19, each only if not already
-    /// farther than the k-th distance found.
+    /// farther than the k-th distance found; then the neighbours' points and normals.
     fn finish_knn(
         &self,
         pre: &mut Prepared,
@@ -1641,47 +1652,89 @@ impl<'a> VoxelMap<'a> {
         bound2: f32,
         out: &mut Neighbours,
     ) -> usize {
-        let mut cand = [(0.0f32, 0u32, 0u8); KNN_MAX];
-        let mut n = 0usize;
-        let si = usize::from(pre.side[0] > 0)
-            | usize::from(pre.side[1] > 0) << 1
-            | usize::from(pre.side[2] > 0) << 2;
-        for &off in &SIDE_ORDERS[si] {
-            if !box_within(pre.box_d2(off), &cand, n, k, bound2) {
-                continue;
+        let mut cand = Candidates::EMPTY;
+        // The voxel slot of each box searched, by search order.
+        let mut found = [0u32; 27];
+        // The octant's boxes, each unless it is out of bound or beyond the k-th candidate.
+        for i in 0..OCTANTS {
+            let bd2 = pre.bd[i];
+            if (bd2 <= bound2) & (bd2 < cand.dist(k - 1)) {
+                self.visit(pre, i, q, one_per_voxel, &mut cand, &mut found, k, bound2);
             }
-            let slot = self.probe(pre, off);
-            if slot == NO_HINT {
-                continue;
-            }
-            let key = pre.key;
-            let nk = [key[0] + off[0], key[1] + off[1], key[2] + off[2]];
-            let slot = if self.pool[slot as usize].key == nk {
-                slot
-            } else {
-                // Another key with the same 32-bit hash came first: look it up properly.
-                match self.find_slot(nk) {
-                    Some(s2) => s2,
-                    None => continue,
-                }
-            };
-            self.scan_voxel(slot, nk, q, one_per_voxel, &mut cand, &mut n, k, bound2);
         }
-        for (i, &(d2, slot, o)) in cand[..n].iter().enumerate() {
+        // The other 19: those that may still hold a candidate, found with one pass of compares
+        // and visited in order (the k-th distance only shrinks, so each is checked again).
+        let kth = cand.dist(k - 1);
+        let mut rest = 0u32;
+        for i in OCTANTS..27 {
+            let bd2 = pre.bd[i];
+            rest |= u32::from((bd2 <= bound2) & (bd2 < kth)) << i;
+        }
+        while rest != 0 {
+            let i = rest.trailing_zeros() as usize;
+            rest &= rest - 1;
+            if pre.bd[i] < cand.dist(k - 1) {
+                self.visit(pre, i, q, one_per_voxel, &mut cand, &mut found, k, bound2);
+            }
+        }
+        let mut n = 0;
+        for i in 0..k {
+            let d2 = cand.dist(i);
+            if d2 == f32::INFINITY {
+                break;
+            }
+            let (bi, o) = cand.box_octant(i);
+            let slot = found[bi];
             let v = &self.pool[slot as usize];
             let c = self.centre(v.key);
             out.items[i] = Neighbour {
-                point: self.rep_point(c, rep(v, o as usize)),
-                normal_q: v.rep_normals[o as usize],
+                point: self.rep_point(c, rep(v, o)),
+                normal_q: v.rep_normals[o],
                 dist2: d2,
                 voxel: VoxelHandle(slot),
             };
+            n += 1;
         }
         out.len = n;
         n
     }
 
-    /// Adds the representatives of the voxel at `slot` (key `nk`) to the candidates.
+    /// Searches the `i`-th box of the query's order: finds its voxel (recorded in `found`) and
+    /// adds its representatives to the candidates.
+    #[allow(clippy::too_many_arguments)]
+    #[inline]
+    fn visit(
+        &self,
+        pre: &mut Prepared,
+        i: usize,
+        q: [f32; 3],
+        one_per_voxel: bool,
+        cand: &mut Candidates,
+        found: &mut [u32; 27],
+        k: usize,
+        bound2: f32,
+    ) {
+        let slot = self.probe(pre, i);
+        if slot == NO_HINT {
+            return;
+        }
+        let off = pre.offset(i);
+        let nk = [pre.key[0] + off[0], pre.key[1] + off[1], pre.key[2] + off[2]];
+        let slot = if self.pool[slot as usize].key == nk {
+            slot
+        } else {
+            // Another key with the same 32-bit hash came first: look it up properly.
+            match self.find_slot(nk) {
+                Some(s2) => s2,
+                None => return,
+            }
+        };
+        found[i] = slot;
+        self.scan_voxel(slot, nk, q, one_per_voxel, cand, (i as u32) << 3, k, bound2);
+    }
+
+    /// Adds the representatives of the voxel at `slot` (key `nk`) to the candidates, tagged
+    /// `tag | octant`.
     #[allow(clippy::too_many_arguments)]
     #[inline]
     fn scan_voxel(
@@ -1690,49 +1743,39 @@ impl<'a> VoxelMap<'a> {
         nk: [i32; 3],
         q: [f32; 3],
         one_per_voxel: bool,
-        cand: &mut [(f32, u32, u8); KNN_MAX],
-        n: &mut usize,
+        cand: &mut Candidates,
+        tag: u32,
         k: usize,
         bound2: f32,
     ) {
         let v = &self.pool[slot as usize];
-        if v.occupied == 0 {
+        let c = self.centre(nk);
+        let d2s = rep_d2(v, [q[0] - c[0], q[1] - c[1], q[2] - c[2]], self.d.dequant);
+        let mut bits = v.occupied;
+        if one_per_voxel {
+            let mut best = (f32::INFINITY, 0u32);
+            while bits != 0 {
+                let o = bits.trailing_zeros();
+                bits &= bits - 1;
+                if d2s[o as usize] < best.0 {
+                    best = (d2s[o as usize], o);
+                }
+            }
+            if best.0 < cand.dist(k - 1) {
+                cand.push(bound2, best.0, tag | best.1);
+            }
             return;
         }
-        let c = self.centre(nk);
-        let rq = [q[0] - c[0], q[1] - c[1], q[2] - c[2]];
-        let s = self.d.dequant;
-        // All 8 distances at once (vectorised; unoccupied octants are computed and ignored).
-        let mut d2s = [0.0f32; OCTANTS];
-        for o in 0..OCTANTS {
-            let dx = rq[0] - f32::from(v.reps[0][o]) * s;
-            let dy = rq[1] - f32::from(v.reps[1][o]) * s;
-            let dz = rq[2] - f32::from(v.reps[2][o]) * s;
-            d2s[o] = dx * dx + dy * dy + dz * dz;
-        }
-        let mut best = (f32::INFINITY, 0u8);
-        // Only representatives that can enter the list go on (a vector compare against the
-        // current k-th distance); `push_candidate` still decides, as the list shrinks.
-        let thr = if *n == k { cand[k - 1].0 } else { bound2 };
+        let kth = cand.dist(k - 1);
         let mut pass = 0u8;
-        for (o, &d2) in d2s.iter().enumerate() {
-            pass |= u8::from(d2 <= thr) << o;
+        for o in 0..OCTANTS {
+            pass |= u8::from(d2s[o] < kth) << o;
         }
-        let mut bits = if one_per_voxel { v.occupied } else { v.occupied & pass };
+        bits &= pass;
         while bits != 0 {
-            let o = bits.trailing_zeros() as usize;
+            let o = bits.trailing_zeros();
             bits &= bits - 1;
-            let d2 = d2s[o];
-            if one_per_voxel {
-                if d2 < best.0 {
-                    best = (d2, o as u8);
-                }
-            } else {
-                push_candidate(cand, n, k, bound2, (d2, slot, o as u8));
-            }
-        }
-        if one_per_voxel && best.0.is_finite() {
-            push_candidate(cand, n, k, bound2, (best.0, slot, best.1));
+            cand.push(bound2, d2s[o as usize], tag | o);
         }
     }
 
@@ -1848,35 +1891,30 @@ const KNN_GROUP: usize = 8;
 /// Slot not probed yet.
 const UNPROBED: u32 = u32::MAX - 1;
 
-/// Lexicographic index 0..27 of a neighbour offset.
-#[inline]
-fn lex(off: [i32; 3]) -> usize {
-    ((off[0] + 1) * 9 + (off[1] + 1) * 3 + (off[2] + 1)) as usize
-}
-
 /// A k-NN query's voxel, box distances, block hashes and probed index slots.
 #[derive(Clone, Copy, Debug)]
 struct Prepared {
     key: [i32; 3],
     /// The lowest of the two blocks the neighbourhood spans per axis.
     b0: [i32; 3],
-    /// Squared gaps from the query to the neighbouring boxes' faces, per axis: [-1, 0, +1].
-    gap2: [[f32; 3]; 3],
+    /// Squared distance from the query to each neighbouring box, in the search order
+    /// ([`SEARCH_ORDER`]).
+    bd: [f32; 27],
     /// The query's side of its voxel centre per axis (-1 or +1).
     side: [i32; 3],
     /// Hashes of the 8 blocks, index `dx | dy << 1 | dz << 2` for block `b0 + (dx, dy, dz)`.
     bh: [u32; 8],
-    /// Per neighbour ([`lex`]): `UNPROBED`, `NO_HINT` (absent) or the slot of the first index
-    /// entry with the neighbour's hash.
+    /// Per box of the search order: `UNPROBED`, `NO_HINT` (absent) or the slot of the first
+    /// index entry with the box's hash.
     slots: [u32; 27],
 }
 
 impl Prepared {
+    /// The offset of the `i`-th box of the search order.
     #[inline]
-    fn box_d2(&self, off: [i32; 3]) -> f32 {
-        self.gap2[0][(off[0] + 1) as usize]
-            + self.gap2[1][(off[1] + 1) as usize]
-            + self.gap2[2][(off[2] + 1) as usize]
+    fn offset(&self, i: usize) -> [i32; 3] {
+        let o = SEARCH_ORDER[i];
+        [o[0] * self.side[0], o[1] * self.side[1], o[2] * self.side[2]]
     }
 
     /// `hash_key(key + off)`, from the block hashes.
@@ -1888,38 +1926,50 @@ impl Prepared {
     }
 }
 
-/// Whether a box at squared distance `bd2` may still hold a candidate.
-#[inline]
-fn box_within(bd2: f32, cand: &[(f32, u32, u8); KNN_MAX], n: usize, k: usize, bound2: f32) -> bool {
-    if n == k { bd2 < cand[k - 1].0 } else { bd2 <= bound2 }
+/// The k-NN candidates, kept sorted without branches (so that a query's candidates cost no
+/// mispredicted jumps): each is a key `distance bits << 32 | box << 3 | octant` (non-negative
+/// floats order as their bits; `box` is the position in the search order, so the low bits also
+/// put the earlier found of equal distances first). Unused entries are `EMPTY_KEY` (+inf).
+#[derive(Clone, Copy, Debug)]
+struct Candidates {
+    keys: [u64; KNN_MAX],
 }
 
-/// Inserts a candidate into the sorted list (ascending distance; equal distances keep the
-/// earlier one first), keeping at most `k` within `bound2`.
-#[inline]
-fn push_candidate(
-    cand: &mut [(f32, u32, u8); KNN_MAX],
-    n: &mut usize,
-    k: usize,
-    bound2: f32,
-    c: (f32, u32, u8),
-) {
-    if !(c.0 <= bound2) {
-        return;
+/// An unused candidate entry: distance +inf, after every real candidate.
+const EMPTY_KEY: u64 = (0x7f80_0000u64 << 32) | 0xffff_ffff;
+
+impl Candidates {
+    const EMPTY: Self = Self { keys: [EMPTY_KEY; KNN_MAX] };
+
+    /// Distance of entry `i` (+inf if unused).
+    #[inline(always)]
+    fn dist(&self, i: usize) -> f32 {
+        f32::from_bits((self.keys[i] >> 32) as u32)
     }
-    if *n == k {
-        if !(c.0 < cand[k - 1].0) {
-            return;
+
+    /// The search-order box and the octant of entry `i`.
+    #[inline(always)]
+    fn box_octant(&self, i: usize) -> (usize, usize) {
+        let t = self.keys[i] as usize;
+        ((t >> 3) & 31, t & 7)
+    }
+
+    /// Inserts a candidate (`tag`: box << 3 | octant) if it is within `bound2`; it lands after
+    /// every entry not farther.
+    #[inline(always)]
+    fn push(&mut self, bound2: f32, d: f32, tag: u32) {
+        // Written so that NaN is refused; a refused candidate becomes u64::MAX, which the
+        // insertion leaves out.
+        let key = if d <= bound2 { (u64::from(d.to_bits()) << 32) | u64::from(tag) } else { u64::MAX };
+        // Sorted insertion as min/max over whole arrays (vector code): entry i becomes
+        // min(old i, max(old i - 1, key)).
+        let old = self.keys;
+        let mut prev = [0u64; KNN_MAX];
+        prev[1..].copy_from_slice(&old[..KNN_MAX - 1]);
+        for i in 0..KNN_MAX {
+            self.keys[i] = old[i].min(prev[i].max(key));
         }
-        *n -= 1;
     }
-    let mut i = *n;
-    while i > 0 && cand[i - 1].0 > c.0 {
-        cand[i] = cand[i - 1];
-        i -= 1;
-    }
-    cand[i] = c;
-    *n += 1;
 }
 
 fn state_of(s: u8) -> VoxelState {
@@ -1934,6 +1984,20 @@ fn state_of(s: u8) -> VoxelState {
 #[inline]
 fn rep(v: &Voxel, o: usize) -> [i16; 3] {
     [v.reps[0][o], v.reps[1][o], v.reps[2][o]]
+}
+
+/// Squared distances from `rq` (relative to the voxel centre) to the voxel's 8 representative
+/// slots (unoccupied ones too), as one vector computation.
+#[inline(never)]
+fn rep_d2(v: &Voxel, rq: [f32; 3], s: f32) -> [f32; OCTANTS] {
+    let mut d2s = [0.0f32; OCTANTS];
+    for o in 0..OCTANTS {
+        let dx = rq[0] - f32::from(v.reps[0][o]) * s;
+        let dy = rq[1] - f32::from(v.reps[1][o]) * s;
+        let dz = rq[2] - f32::from(v.reps[2][o]) * s;
+        d2s[o] = dx * dx + dy * dy + dz * dz;
+    }
+    d2s
 }
 
 /// A quantised normal as a unit vector; `None` for the "no normal" marker `[0, 0, 0]`.
