@@ -1761,21 +1761,25 @@ impl<'a> VoxelMap<'a> {
                     best = (d2s[o as usize], o);
                 }
             }
-            if best.0 < cand.dist(k - 1) {
-                cand.push(bound2, best.0, tag | best.1);
+            // Written so that NaN is refused.
+            if (best.0 <= bound2) & (best.0 < cand.dist(k - 1)) {
+                cand.push(best.0, tag | best.1);
             }
             return;
         }
+        // Only representatives within the bound and nearer than the k-th candidate go on (one
+        // vector compare); some of them may fall beyond the k-th as the list shrinks, which the
+        // insertion handles (they land after the first k entries).
         let kth = cand.dist(k - 1);
         let mut pass = 0u8;
         for o in 0..OCTANTS {
-            pass |= u8::from(d2s[o] < kth) << o;
+            pass |= u8::from((d2s[o] < kth) & (d2s[o] <= bound2)) << o;
         }
         bits &= pass;
         while bits != 0 {
             let o = bits.trailing_zeros();
             bits &= bits - 1;
-            cand.push(bound2, d2s[o as usize], tag | o);
+            cand.push(d2s[o as usize], tag | o);
         }
     }
 
@@ -1954,13 +1958,11 @@ impl Candidates {
         ((t >> 3) & 31, t & 7)
     }
 
-    /// Inserts a candidate (`tag`: box << 3 | octant) if it is within `bound2`; it lands after
-    /// every entry not farther.
+    /// Inserts a candidate (`tag`: box << 3 | octant); it lands after every entry not farther.
+    /// The caller has checked it against the bound.
     #[inline(always)]
-    fn push(&mut self, bound2: f32, d: f32, tag: u32) {
-        // Written so that NaN is refused; a refused candidate becomes u64::MAX, which the
-        // insertion leaves out.
-        let key = if d <= bound2 { (u64::from(d.to_bits()) << 32) | u64::from(tag) } else { u64::MAX };
+    fn push(&mut self, d: f32, tag: u32) {
+        let key = (u64::from(d.to_bits()) << 32) | u64::from(tag);
         // Sorted insertion as min/max over whole arrays (vector code): entry i becomes
         // min(old i, max(old i - 1, key)).
         let old = self.keys;
