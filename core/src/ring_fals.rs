@@ -876,6 +876,21 @@ pub struct RingFalsStats {
 
 /// Lanes of the gap-aware solve (f32): 8 neighbouring columns.
 const LANES: usize = 8;
+/// Pixels of one row waiting for the lane-parallel trimmed solve.
+#[derive(Clone, Copy, Debug)]
+struct TrimBatch {
+    len: usize,
+    px: [usize; LANES],
+    w9: [[f32; LANES]; 9],
+    ca: [f32; LANES],
+    sa: [f32; LANES],
+}
+
+impl TrimBatch {
+    const EMPTY: Self =
+        Self { len: 0, px: [0; LANES], w9: [[0.0; LANES]; 9], ca: [0.0; LANES], sa: [0.0; LANES] };
+}
+
 /// Lanes of the median (i16): 16 neighbouring columns, two SSE2 registers or one AVX2 register
 /// per operation.
 const QLANES: usize = 16;
@@ -1079,6 +1094,7 @@ impl<const P: usize> RingFals<P> {
         let mut trimmed = 0u32;
         let mut valid = 0u32;
         let mut invalid = 0u32;
+        let mut batch = TrimBatch::EMPTY;
         for r in 0..rows {
             let rc = &table.row[r];
             let base = (r + PAD) * stride + PAD;
@@ -1116,22 +1132,38 @@ impl<const P: usize> RingFals<P> {
                     if self.state[px] != PARTIAL {
                         continue;
                     }
-                    let solved = match verdict[l] {
-                        GAP => Some([n[0][l], n[1][l], n[2][l]]),
-                        TRIM => {
-                            trimmed += 1;
-                            let w: [f32; 9] = core::array::from_fn(|k| w9[k][l]);
-                            solve_trimmed(rc, &table.config, w, cs[l].0, cs[l].1)
+                    match verdict[l] {
+                        GAP => {
+                            self.nx[px] = n[0][l];
+                            self.ny[px] = n[1][l];
+                            self.nz[px] = n[2][l];
+                            self.state[px] = GAP;
                         }
-                        _ => None,
-                    };
-                    let v = solved.unwrap_or([0.0; 3]);
-                    self.nx[px] = v[0];
-                    self.ny[px] = v[1];
-                    self.nz[px] = v[2];
-                    self.state[px] = if solved.is_some() { GAP } else { INVALID };
+                        TRIM => {
+                            // Gathered, LANES at a time, for the lane-parallel trimmed solve.
+                            trimmed += 1;
+                            let j = batch.len;
+                            batch.px[j] = px;
+                            for k in 0..9 {
+                                batch.w9[k][j] = w9[k][l];
+                            }
+                            batch.ca[j] = ca[l];
+                            batch.sa[j] = sa[l];
+                            batch.len += 1;
+                            if batch.len == LANES {
+                                self.finish_trimmed(rc, &table.config, &mut batch);
+                            }
+                        }
+                        _ => {
+                            self.nx[px] = 0.0;
+                            self.ny[px] = 0.0;
+                            self.nz[px] = 0.0;
+                            self.state[px] = INVALID;
+                        }
+                    }
                 }
             }
+            self.finish_trimmed(rc, &table.config, &mut batch);
             for &st in &self.state[base..base + cols] {
                 match st {
                     FULL => valid += 1,
@@ -1148,6 +1180,24 @@ impl<const P: usize> RingFals<P> {
         self.stats.trimmed_solves = trimmed;
         self.stats.valid_pixels = valid;
         self.stats.invalid_pixels = invalid;
+    }
+
+    /// Runs the trimmed solve on the gathered pixels of one row and writes their normals and
+    /// states; empties the batch.
+    fn finish_trimmed(&mut self, rc: &RowCoeffs, cfg: &RingFalsConfig, batch: &mut TrimBatch) {
+        if batch.len == 0 {
+            return;
+        }
+        let active: [bool; LANES] = core::array::from_fn(|l| l < batch.len);
+        let (n, valid) = solve_trimmed_lanes(rc, cfg, &batch.w9, &batch.ca, &batch.sa, &active);
+        for l in 0..batch.len {
+            let px = batch.px[l];
+            self.nx[px] = n[0][l];
+            self.ny[px] = n[1][l];
+            self.nz[px] = n[2][l];
+            self.state[px] = if valid[l] { GAP } else { INVALID };
+        }
+        batch.len = 0;
     }
 
     /// Stage 3: the 5x5 median over valid pixels (per channel, columns wrapped, rows cut at the
@@ -1553,7 +1603,9 @@ fn to_global(rc: &RowCoeffs, m0: f32, m1: f32, m2: f32, ca: f32, sa: f32) -> ([f
 }
 
 /// Present-neighbour bit masks (bit k of the 3x3 window, centre excluded) whose offsets span
-/// both image directions (not all on one line through the centre).
+/// both image directions (not all on one line through the centre). The scalar reference's
+/// table ([`solve_trimmed_lanes`] computes it).
+#[cfg(test)]
 const SPANS_PLANE: [bool; 512] = {
     let mut t = [false; 512];
     let mut mask = 0;
@@ -1657,12 +1709,14 @@ fn solve_group_masked(
     (out, verdict)
 }
 
-/// The trimmed solve of one pixel whose masked solve did not fit: while a point is off the
+/// The trimmed solve of one pixel whose masked solve did not fit (the scalar reference of
+/// [`solve_trimmed_lanes`], which runs it on a row's pixels in parallel): while a point is off the
 /// fitted plane, drop the neighbour with the largest deleted residual (its residual divided by
 /// 1 - its leverage, the residual it would have in a fit without it, which an outlier cannot
 /// hide by pulling the plane toward itself) and solve again. `None` when too few points remain,
 /// they lie on one image line, the system is ill-conditioned, or only the centre is off the
 /// plane of its neighbours, or more than [`MAX_TRIM`] points would have to go.
+#[cfg(test)]
 fn solve_trimmed(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa: f32) -> Option<[f32; 3]> {
     let wc = w[CENTRE];
     if !(wc > 0.0) {
@@ -1738,6 +1792,144 @@ fn solve_trimmed(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa:
         mask &= !(1 << worst.1);
     }
     None
+}
+
+/// [`solve_trimmed`] for up to [`LANES`] pixels of one row at once (lanes with `active` unset
+/// are ignored), branch-free across lanes so that it vectorises: every lane runs the same
+/// passes with its own mask of points, until every lane has its verdict. The arithmetic is
+/// [`solve_trimmed`]'s, term by term in the same order, so the results are the same bits.
+/// Returns the normals and which lanes have one.
+fn solve_trimmed_lanes(
+    rc: &RowCoeffs,
+    cfg: &RingFalsConfig,
+    w9: &[[f32; LANES]; 9],
+    ca: &[f32; LANES],
+    sa: &[f32; LANES],
+    active: &[bool; LANES],
+) -> ([[f32; LANES]; 3], [bool; LANES]) {
+    let wc = w9[CENTRE];
+    let t: [f32; LANES] = core::array::from_fn(|l| cfg.range_jump_abs * wc[l]);
+    let tol: [f32; LANES] = core::array::from_fn(|l| wc[l] * (cfg.fit_tolerance_rel + t[l]));
+    let mut mask = [0u32; LANES];
+    for k in 0..9 {
+        if rc.exists & (1 << k) == 0 {
+            continue;
+        }
+        let w = &w9[k];
+        for l in 0..LANES {
+            let present = (w[l] > 0.0) & ((wc[l] - w[l]).abs() <= w[l] * (rc.gate[k] + t[l]));
+            mask[l] |= u32::from(present) << k;
+        }
+    }
+    let mut done: [bool; LANES] = core::array::from_fn(|l| !active[l] | !(wc[l] > 0.0));
+    let mut valid = [false; LANES];
+    let mut out = [[0.0f32; LANES]; 3];
+    for pass in 0..=MAX_TRIM {
+        if done.iter().all(|&d| d) {
+            break;
+        }
+        // Each step runs over all lanes at once (vector code): the points present as 0/1
+        // factors, their count and spread over the image (SPANS_PLANE, computed), and the
+        // system as masked sums in window order. Adding a product by 0.0 leaves a sum's bits
+        // as they were, so these are the scalar loop's sums over the points present.
+        let mut pf = [[0.0f32; LANES]; 9];
+        let mut count = [0i32; LANES];
+        let (mut srr, mut scc, mut src) = ([0i32; LANES], [0i32; LANES], [0i32; LANES]);
+        for k in 0..9 {
+            let (dr, dc) = (k as i32 / 3 - 1, k as i32 % 3 - 1);
+            for l in 0..LANES {
+                let p = ((mask[l] >> k) & 1) as i32;
+                pf[k][l] = p as f32;
+                count[l] += p;
+                srr[l] += p * (dr * dr);
+                scc[l] += p * (dc * dc);
+                src[l] += p * (dr * dc);
+            }
+        }
+        let mut m = [[0.0f32; LANES]; 6];
+        let mut b = [[0.0f32; LANES]; 3];
+        for k in 0..9 {
+            let (w, p) = (&w9[k], &pf[k]);
+            for i in 0..6 {
+                let uu = rc.uu[i][k];
+                for l in 0..LANES {
+                    m[i][l] += p[l] * uu;
+                }
+            }
+            for i in 0..3 {
+                let u = rc.u[i][k];
+                for l in 0..LANES {
+                    b[i][l] += p[l] * (u * w[l]);
+                }
+            }
+        }
+        let mut adj = [[0.0f32; LANES]; 6];
+        let mut sol = [[0.0f32; LANES]; 3];
+        let mut inv = [0.0f32; LANES];
+        let mut sound = [false; LANES];
+        for l in 0..LANES {
+            let mm = [m[0][l], m[1][l], m[2][l], m[3][l], m[4][l], m[5][l]];
+            let (a, det) = adjugate_f32(&mm);
+            let tr = mm[0] + mm[3] + mm[5];
+            sound[l] = (count[l] >= i32::from(cfg.min_points))
+                & (srr[l] * scc[l] - src[l] * src[l] > 0)
+                & (det > 0.0)
+                & (27.0 * det >= cfg.min_conditioning * tr * tr * tr);
+            let s = 1.0 / det;
+            let bb = [b[0][l], b[1][l], b[2][l]];
+            sol[0][l] = (a[0] * bb[0] + a[1] * bb[1] + a[2] * bb[2]) * s;
+            sol[1][l] = (a[1] * bb[0] + a[3] * bb[1] + a[4] * bb[2]) * s;
+            sol[2][l] = (a[2] * bb[0] + a[4] * bb[1] + a[5] * bb[2]) * s;
+            inv[l] = s;
+            for i in 0..6 {
+                adj[i][l] = a[i];
+            }
+        }
+        // Residuals, and the point with the largest deleted residual (first of equals in
+        // window order, as the scalar loop keeps it).
+        let mut ssr = [0.0f32; LANES];
+        let mut worst_d = [0.0f32; LANES];
+        let mut worst_k = [u32::MAX; LANES];
+        for k in 0..9 {
+            let u = [rc.u[0][k], rc.u[1][k], rc.u[2][k]];
+            let (w, p) = (&w9[k], &pf[k]);
+            for l in 0..LANES {
+                let e = (u[0] * sol[0][l] + u[1] * sol[1][l] + u[2] * sol[2][l] - w[l]).abs();
+                ssr[l] += p[l] * (e * e);
+            }
+            if k == CENTRE {
+                continue;
+            }
+            for l in 0..LANES {
+                let e = (u[0] * sol[0][l] + u[1] * sol[1][l] + u[2] * sol[2][l] - w[l]).abs();
+                let h = (adj[0][l] * u[0] * u[0]
+                    + adj[3][l] * u[1] * u[1]
+                    + adj[5][l] * u[2] * u[2]
+                    + 2.0 * (adj[1][l] * u[0] * u[1] + adj[2][l] * u[0] * u[2] + adj[4][l] * u[1] * u[2]))
+                    * inv[l];
+                let d = e / (1.0 - h).max(1e-3);
+                let take = (p[l] != 0.0) & !(d <= worst_d[l]);
+                worst_d[l] = if take { d } else { worst_d[l] };
+                worst_k[l] = if take { k as u32 } else { worst_k[l] };
+            }
+        }
+        for l in 0..LANES {
+            let fits = ssr[l] <= FIT_K * tol[l] * tol[l];
+            let (n, ok) = to_global(rc, sol[0][l], sol[1][l], sol[2][l], ca[l], sa[l]);
+            let live = !done[l];
+            // Decided now: unsound (None), fits (its normal if usable), or nothing left to drop.
+            let decide = !sound[l] | fits | (worst_k[l] == u32::MAX) | (pass == MAX_TRIM);
+            let good = live & sound[l] & fits & ok;
+            valid[l] |= good;
+            for c in 0..3 {
+                out[c][l] = if good { n[c] } else { out[c][l] };
+            }
+            let drop = if live & !decide { 1u32 << (worst_k[l] & 15) } else { 0 };
+            mask[l] &= !drop;
+            done[l] |= decide;
+        }
+    }
+    (out, valid)
 }
 
 /// Most points the trimmed solve may drop from a window (an occluding edge takes two or three,
@@ -2101,6 +2293,62 @@ mod tests {
         assert_eq!(t.rows(), 0);
         assert_eq!(t.build(&ok, &RingFalsConfig::DEFAULT), Ok(()));
         assert_eq!(t.rows(), 2);
+    }
+
+    /// The lane-parallel trimmed solve gives the scalar reference's results, bit for bit, on
+    /// windows of planes with outliers, holes and far points, in rows with and without
+    /// neighbours above or below, with lanes in every position of a batch.
+    #[test]
+    fn trimmed_lanes_equal_the_scalar_solve() {
+        let els: [f32; 16] = core::array::from_fn(|i| (15.0 - 2.0 * i as f32).to_radians());
+        let layout = RangeImageLayout::from_elevations(&els, 1024, true).unwrap();
+        let mut table = RingTable::new();
+        let cfg = RingFalsConfig::DEFAULT;
+        table.build(&layout, &cfg).unwrap();
+        let mut rng = crate::testutil::Rng::new(11);
+        let (mut valid, mut none) = (0, 0);
+        for case in 0..20_000 {
+            let row = [0usize, 1, 7, 14, 15][case % 5];
+            let rc = &table.row[row];
+            let active: [bool; LANES] = core::array::from_fn(|_| rng.uniform() < 0.8);
+            let mut w9 = [[0.0f32; LANES]; 9];
+            let (mut ca, mut sa) = ([0.0f32; LANES], [0.0f32; LANES]);
+            for l in 0..LANES {
+                let r0 = 2.0 + 40.0 * rng.uniform();
+                // A plane's inverse ranges vary smoothly over the window; a few points are off it.
+                let (gx, gy) = (0.05 * (rng.uniform() - 0.5), 0.05 * (rng.uniform() - 0.5));
+                for k in 0..9 {
+                    let (dr, dc) = ((k / 3) as f64 - 1.0, (k % 3) as f64 - 1.0);
+                    let mut r = r0 * (1.0 + gx * dc + gy * dr) + 0.01 * rng.gauss();
+                    let u = rng.uniform();
+                    if u < 0.12 {
+                        r *= 0.6 + 0.8 * rng.uniform(); // another surface
+                    } else if u < 0.16 {
+                        r = 0.0; // no return
+                    }
+                    w9[k][l] = if r > 0.0 { (1.0 / r) as f32 } else { 0.0 };
+                }
+                let a = core::f64::consts::TAU * rng.uniform();
+                (ca[l], sa[l]) = (libm::cos(a) as f32, libm::sin(a) as f32);
+            }
+            let (n, ok) = solve_trimmed_lanes(rc, &cfg, &w9, &ca, &sa, &active);
+            for l in 0..LANES {
+                if !active[l] {
+                    continue;
+                }
+                let w: [f32; 9] = core::array::from_fn(|k| w9[k][l]);
+                let want = solve_trimmed(rc, &cfg, w, ca[l], sa[l]);
+                let got = ok[l].then(|| [n[0][l], n[1][l], n[2][l]]);
+                assert_eq!(
+                    got.map(|v| v.map(f32::to_bits)),
+                    want.map(|v| v.map(f32::to_bits)),
+                    "row {row}, {w:?}"
+                );
+                if want.is_some() { valid += 1 } else { none += 1 }
+            }
+        }
+        // Both outcomes are well represented.
+        assert!(valid > 10_000 && none > 10_000, "{valid} valid, {none} none");
     }
 
     #[test]
