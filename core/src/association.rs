@@ -250,6 +250,42 @@ pub fn associate_point(
     range: f32,
     nb: &Neighbours,
 ) -> Result<Correspondence, Reject> {
+    associate_with(map, cfg, &Cosines::of(cfg), mode, p_w, n_w, origin, range, nb)
+}
+
+/// The cosines of the configuration's angle limits, computed once per search instead of once
+/// per point.
+#[derive(Clone, Copy, Debug)]
+struct Cosines {
+    /// `cos(max_mean_angle_deg)`.
+    mean_angle: f32,
+    /// `cos(plane_max_normal_angle_deg)`.
+    plane_normal: f32,
+}
+
+impl Cosines {
+    fn of(cfg: &AssociationConfig) -> Self {
+        Self {
+            mean_angle: libm::cosf(cfg.max_mean_angle_deg.to_radians()),
+            plane_normal: libm::cosf(cfg.plane_max_normal_angle_deg.to_radians()),
+        }
+    }
+}
+
+/// [`associate_point`] with the cosines computed.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn associate_with(
+    map: &VoxelMap<'_>,
+    cfg: &AssociationConfig,
+    cos: &Cosines,
+    mode: AssociationMode,
+    p_w: [f32; 3],
+    n_w: Option<[f32; 3]>,
+    origin: [f32; 3],
+    range: f32,
+    nb: &Neighbours,
+) -> Result<Correspondence, Reject> {
     let min_nb = usize::from(cfg.min_neighbours.max(3));
     if nb.len() < min_nb {
         return Err(Reject::NoNeighbours);
@@ -272,7 +308,7 @@ pub fn associate_point(
         let mut angle_sum = 0.0f32;
         let mut angle_n = 0u32;
         let mut all_close = true; // every dot >= cos(max angle): the mean passes without acos
-        let cos_max = libm::cosf(cfg.max_mean_angle_deg.to_radians());
+        let cos_max = cos.mean_angle;
         let mut dots = [0.0f32; KNN_MAX];
         for n in nb.as_slice() {
             if let Some(mn) = n.normal() {
@@ -327,7 +363,7 @@ pub fn associate_point(
                 if let Some(e) = expect {
                     // Orientation-free: a plane's normal has no sign.
                     let c = libm::fabsf(dot(e, pl.normal));
-                    if !(c >= libm::cosf(cfg.plane_max_normal_angle_deg.to_radians())) {
+                    if !(c >= cos.plane_normal) {
                         return Err(Reject::NoPlane);
                     }
                 }
@@ -453,6 +489,7 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
         let r_wl = r * x.ext_rot.to_rotation_matrix().into_inner();
         let origin = to32(&(r * x.ext_pos + x.pos));
         let query = KnnQuery::new(usize::from(self.cfg.k).min(KNN_MAX), self.cfg.max_dist);
+        let cos = Cosines::of(self.cfg);
         let mut counts = AssociationCounts::default();
         let n = self.points.len();
         let mut start = 0;
@@ -472,9 +509,10 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
                 } else {
                     None
                 };
-                let res = associate_point(
+                let res = associate_with(
                     self.map,
                     self.cfg,
+                    &cos,
                     self.mode,
                     self.queries[i],
                     n_w,
