@@ -250,133 +250,141 @@ pub fn associate_point(
     range: f32,
     nb: &Neighbours,
 ) -> Result<Correspondence, Reject> {
-    associate_with(map, cfg, &Cosines::of(cfg), mode, p_w, n_w, origin, range, nb)
+    Associator::new(map, cfg, mode, origin).point(p_w, n_w, range, nb)
 }
 
-/// The cosines of the configuration's angle limits, computed once per search instead of once
-/// per point.
-#[derive(Clone, Copy, Debug)]
-struct Cosines {
-    /// `cos(max_mean_angle_deg)`.
-    mean_angle: f32,
-    /// `cos(plane_max_normal_angle_deg)`.
-    plane_normal: f32,
-}
-
-impl Cosines {
-    fn of(cfg: &AssociationConfig) -> Self {
-        Self {
-            mean_angle: libm::cosf(cfg.max_mean_angle_deg.to_radians()),
-            plane_normal: libm::cosf(cfg.plane_max_normal_angle_deg.to_radians()),
-        }
-    }
-}
-
-/// [`associate_point`] with the cosines computed.
-#[allow(clippy::too_many_arguments)]
-#[inline]
-fn associate_with(
-    map: &VoxelMap<'_>,
-    cfg: &AssociationConfig,
-    cos: &Cosines,
+/// What every point of one search shares: the map, the settings and mode, the LiDAR origin,
+/// and the cosines of the angle limits (computed once per search, not per point).
+struct Associator<'a, 'm> {
+    map: &'a VoxelMap<'m>,
+    cfg: &'a AssociationConfig,
     mode: AssociationMode,
-    p_w: [f32; 3],
-    n_w: Option<[f32; 3]>,
     origin: [f32; 3],
-    range: f32,
-    nb: &Neighbours,
-) -> Result<Correspondence, Reject> {
-    let min_nb = usize::from(cfg.min_neighbours.max(3));
-    if nb.len() < min_nb {
-        return Err(Reject::NoNeighbours);
-    }
-    let mut pts = [[0.0f32; 3]; KNN_MAX];
-    let mut voxels = [VoxelHandle(0); KNN_MAX];
-    let mut m = 0usize;
-    // The direction a fitted plane's normal must agree with (point-to-plane check).
-    let mut expect: Option<[f32; 3]> = None;
-    if mode == AssociationMode::Plain {
-        for n in nb.as_slice() {
-            pts[m] = n.point;
-            voxels[m] = n.voxel;
-            m += 1;
-        }
-    } else {
-        let ray = [origin[0] - p_w[0], origin[1] - p_w[1], origin[2] - p_w[2]];
-        let query_n = n_w.filter(normal_is_valid);
-        let mut nb_sum = [0.0f32; 3];
-        let mut angle_sum = 0.0f32;
-        let mut angle_n = 0u32;
-        let mut all_close = true; // every dot >= cos(max angle): the mean passes without acos
-        let cos_max = cos.mean_angle;
-        let mut dots = [0.0f32; KNN_MAX];
-        for n in nb.as_slice() {
-            if let Some(mn) = n.normal() {
-                if !(dot(mn, ray) > 0.0) {
-                    continue; // behind the surface as seen from here
-                }
-                for a in 0..3 {
-                    nb_sum[a] += mn[a];
-                }
-                if let Some(q) = query_n {
-                    let c = dot(q, mn).clamp(-1.0, 1.0);
-                    all_close &= c >= cos_max;
-                    dots[angle_n as usize] = c;
-                    angle_n += 1;
-                }
-            }
-            pts[m] = n.point;
-            voxels[m] = n.voxel;
-            m += 1;
-        }
-        if m < min_nb {
-            return Err(Reject::Visibility);
-        }
-        expect = query_n.or_else(|| {
-            let l = crate::math::sqrtf(dot(nb_sum, nb_sum));
-            (l > 0.0).then(|| [nb_sum[0] / l, nb_sum[1] / l, nb_sum[2] / l])
-        });
-        if angle_n > 0 && !all_close {
-            for c in &dots[..angle_n as usize] {
-                angle_sum += libm::acosf(*c);
-            }
-            if !(angle_sum / angle_n as f32 <= cfg.max_mean_angle_deg.to_radians()) {
-                return Err(Reject::Consistency);
-            }
+    /// `cos(max_mean_angle_deg)`.
+    cos_mean_angle: f32,
+    /// `cos(plane_max_normal_angle_deg)`.
+    cos_plane_normal: f32,
+}
+
+impl<'a, 'm> Associator<'a, 'm> {
+    fn new(
+        map: &'a VoxelMap<'m>,
+        cfg: &'a AssociationConfig,
+        mode: AssociationMode,
+        origin: [f32; 3],
+    ) -> Self {
+        Self {
+            map,
+            cfg,
+            mode,
+            origin,
+            cos_mean_angle: libm::cosf(cfg.max_mean_angle_deg.to_radians()),
+            cos_plane_normal: libm::cosf(cfg.plane_max_normal_angle_deg.to_radians()),
         }
     }
-    let mut corr = None;
-    if mode == AssociationMode::Full {
-        if let Ok(s) = map.large_surfel(&voxels[..m]) {
-            corr = Some(Correspondence::through(s.normal, s.mean, Kind::LargeSurfel));
-        } else if let Ok(s) = map.small_surfel_at(p_w) {
-            let c = Correspondence::through(s.normal, s.mean, Kind::SmallSurfel);
-            if libm::fabs(c.distance(p_w)) <= f64::from(cfg.small_surfel_max_residual) {
-                corr = Some(c);
-            }
+
+    /// [`associate_point`] for one point.
+    #[inline]
+    fn point(
+        &self,
+        p_w: [f32; 3],
+        n_w: Option<[f32; 3]>,
+        range: f32,
+        nb: &Neighbours,
+    ) -> Result<Correspondence, Reject> {
+        let (map, cfg, mode, origin) = (self.map, self.cfg, self.mode, self.origin);
+        let min_nb = usize::from(cfg.min_neighbours.max(3));
+        if nb.len() < min_nb {
+            return Err(Reject::NoNeighbours);
         }
-    }
-    let corr = match corr {
-        Some(c) => c,
-        None => match surfel::fit_plane(&pts[..m], cfg.plane_max_dist) {
-            Ok(pl) => {
-                if let Some(e) = expect {
-                    // Orientation-free: a plane's normal has no sign.
-                    let c = libm::fabsf(dot(e, pl.normal));
-                    if !(c >= cos.plane_normal) {
-                        return Err(Reject::NoPlane);
+        let mut pts = [[0.0f32; 3]; KNN_MAX];
+        let mut voxels = [VoxelHandle(0); KNN_MAX];
+        let mut m = 0usize;
+        // The direction a fitted plane's normal must agree with (point-to-plane check).
+        let mut expect: Option<[f32; 3]> = None;
+        if mode == AssociationMode::Plain {
+            for n in nb.as_slice() {
+                pts[m] = n.point;
+                voxels[m] = n.voxel;
+                m += 1;
+            }
+        } else {
+            let ray = [origin[0] - p_w[0], origin[1] - p_w[1], origin[2] - p_w[2]];
+            let query_n = n_w.filter(normal_is_valid);
+            let mut nb_sum = [0.0f32; 3];
+            let mut angle_sum = 0.0f32;
+            let mut angle_n = 0u32;
+            let mut all_close = true; // every dot >= cos(max angle): the mean passes without acos
+            let cos_max = self.cos_mean_angle;
+            let mut dots = [0.0f32; KNN_MAX];
+            for n in nb.as_slice() {
+                if let Some(mn) = n.normal() {
+                    if !(dot(mn, ray) > 0.0) {
+                        continue; // behind the surface as seen from here
+                    }
+                    for a in 0..3 {
+                        nb_sum[a] += mn[a];
+                    }
+                    if let Some(q) = query_n {
+                        let c = dot(q, mn).clamp(-1.0, 1.0);
+                        all_close &= c >= cos_max;
+                        dots[angle_n as usize] = c;
+                        angle_n += 1;
                     }
                 }
-                Correspondence::through(pl.normal, pl.centroid, Kind::Plane)
+                pts[m] = n.point;
+                voxels[m] = n.voxel;
+                m += 1;
             }
-            Err(_) => return Err(Reject::NoPlane),
-        },
-    };
-    let r = corr.distance(p_w);
-    if !(f64::from(cfg.residual_gate) * r * r < f64::from(range)) {
-        return Err(Reject::Residual);
+            if m < min_nb {
+                return Err(Reject::Visibility);
+            }
+            expect = query_n.or_else(|| {
+                let l = crate::math::sqrtf(dot(nb_sum, nb_sum));
+                (l > 0.0).then(|| [nb_sum[0] / l, nb_sum[1] / l, nb_sum[2] / l])
+            });
+            if angle_n > 0 && !all_close {
+                for c in &dots[..angle_n as usize] {
+                    angle_sum += libm::acosf(*c);
+                }
+                if !(angle_sum / angle_n as f32 <= cfg.max_mean_angle_deg.to_radians()) {
+                    return Err(Reject::Consistency);
+                }
+            }
+        }
+        let mut corr = None;
+        if mode == AssociationMode::Full {
+            if let Ok(s) = map.large_surfel(&voxels[..m]) {
+                corr = Some(Correspondence::through(s.normal, s.mean, Kind::LargeSurfel));
+            } else if let Ok(s) = map.small_surfel_at(p_w) {
+                let c = Correspondence::through(s.normal, s.mean, Kind::SmallSurfel);
+                if libm::fabs(c.distance(p_w)) <= f64::from(cfg.small_surfel_max_residual) {
+                    corr = Some(c);
+                }
+            }
+        }
+        let corr = match corr {
+            Some(c) => c,
+            None => match surfel::fit_plane(&pts[..m], cfg.plane_max_dist) {
+                Ok(pl) => {
+                    if let Some(e) = expect {
+                        // Orientation-free: a plane's normal has no sign.
+                        let c = libm::fabsf(dot(e, pl.normal));
+                        if !(c >= self.cos_plane_normal) {
+                            return Err(Reject::NoPlane);
+                        }
+                    }
+                    Correspondence::through(pl.normal, pl.centroid, Kind::Plane)
+                }
+                Err(_) => return Err(Reject::NoPlane),
+            },
+        };
+        let r = corr.distance(p_w);
+        if !(f64::from(cfg.residual_gate) * r * r < f64::from(range)) {
+            return Err(Reject::Residual);
+        }
+        Ok(corr)
     }
-    Ok(corr)
 }
 
 #[inline]
@@ -489,7 +497,7 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
         let r_wl = r * x.ext_rot.to_rotation_matrix().into_inner();
         let origin = to32(&(r * x.ext_pos + x.pos));
         let query = KnnQuery::new(usize::from(self.cfg.k).min(KNN_MAX), self.cfg.max_dist);
-        let cos = Cosines::of(self.cfg);
+        let assoc = Associator::new(self.map, self.cfg, self.mode, origin);
         let mut counts = AssociationCounts::default();
         let n = self.points.len();
         let mut start = 0;
@@ -509,17 +517,7 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
                 } else {
                     None
                 };
-                let res = associate_with(
-                    self.map,
-                    self.cfg,
-                    &cos,
-                    self.mode,
-                    self.queries[i],
-                    n_w,
-                    origin,
-                    p.range(),
-                    &self.nbrs[i],
-                );
+                let res = assoc.point(self.queries[i], n_w, p.range(), &self.nbrs[i]);
                 self.corr[j] = match res {
                     Ok(c) => {
                         match c.kind {

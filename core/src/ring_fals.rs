@@ -1111,7 +1111,7 @@ impl<const P: usize> RingFals<P> {
             }
             // Incomplete windows, 8 columns at a time: the masked least squares over the
             // neighbours present; windows that still fail the plane-fit check go to the
-            // trimmed solve one by one.
+            // trimmed solve, gathered LANES at a time.
             let mut c0 = 0;
             while c0 < cols {
                 let c = c0.min(cols - LANES);

@@ -41,6 +41,8 @@ pub const STAGES: [&str; 6] = ["normals", "undistort", "downsample", "associatio
 pub struct BenchReport {
     /// Preset.
     pub preset: String,
+    /// The simulated scenario.
+    pub scenario: String,
     /// The measurement budget both modes ran with (0: none).
     pub max_points: u64,
     /// Simulated seconds.
@@ -133,10 +135,12 @@ enum Event2 {
     Scan(OwnedScan),
 }
 
-/// Runs the bench for `preset` over `seconds` of a simulated drive, both modes with the
-/// measurement budget `max_points` (0: every downsampled point).
+/// Runs the bench for `preset` over `seconds` of a simulated scenario (`None`: the vehicle
+/// drive for Velodyne presets, the handheld walk for Ouster), both modes with the measurement
+/// budget `max_points` (0: every downsampled point).
 pub fn run(
     preset: Preset,
+    scenario: Option<ScenarioKind>,
     seconds: f64,
     max_points: u64,
     progress: bool,
@@ -146,11 +150,11 @@ pub fn run(
             "the simulator has no {preset} model; bench one of vlp16, vlp32c, hdl32e, os1-16, os1-64 (the per-point cost scales with the points per scan)"
         ))
     })?;
-    let kind = if preset.family() == crate::config::SensorFamily::Ouster {
+    let kind = scenario.unwrap_or(if preset.family() == crate::config::SensorFamily::Ouster {
         ScenarioKind::Handheld
     } else {
         ScenarioKind::Vehicle
-    };
+    });
     let opt = SimOptions {
         kind,
         sensor,
@@ -188,6 +192,7 @@ pub fn run(
     let baseline = time_mode(&data, &sc, preset, AssociationMode::Plain, max_points, scan_period_s)?;
     Ok(BenchReport {
         preset: preset.name().into(),
+        scenario: kind.name().into(),
         max_points,
         seconds,
         points_per_scan: points as f64 / scans.max(1) as f64,
@@ -216,6 +221,7 @@ impl BenchReport {
         let cpu = std::thread::available_parallelism().map_or(1, |n| n.get());
         let v = json!({
             "preset": self.preset,
+            "scenario": self.scenario,
             "max_points": self.max_points,
             "simulated_seconds": self.seconds,
             "points_per_scan": self.points_per_scan,
@@ -232,9 +238,10 @@ impl BenchReport {
     /// Human-readable.
     pub fn to_text(&self) -> String {
         let mut s = format!(
-            "bench {}: {} s simulated, {:.0} points per scan, scan period {:.0} ms ({} {} threads)\n",
+            "bench {}: {} s of the simulated {} scenario, {:.0} points per scan, scan period {:.0} ms ({} {} threads)\n",
             self.preset,
             self.seconds,
+            self.scenario,
             self.points_per_scan,
             self.scan_period_s * 1e3,
             std::env::consts::ARCH,

@@ -223,6 +223,10 @@ struct BenchArgs {
     /// scan, in both modes; 0 = all.
     #[arg(long, default_value_t = 0, value_name = "N")]
     max_points: u64,
+    /// Simulated scenario: vehicle, handheld, corridor, drone, rotation (default: vehicle for
+    /// Velodyne presets, handheld for Ouster).
+    #[arg(long, value_name = "NAME")]
+    scenario: Option<String>,
     /// Print JSON.
     #[arg(long)]
     json: bool,
@@ -493,7 +497,8 @@ fn bench_cmd(a: BenchArgs) -> anyhow::Result<()> {
     if !(a.seconds >= 3.0 && a.seconds <= 120.0) {
         bail!("--seconds must be in [3, 120], not {}", a.seconds);
     }
-    let r = loglio_host::bench::run(preset, a.seconds, a.max_points, !a.json)?;
+    let scenario = a.scenario.as_deref().map(scenario_kind).transpose()?;
+    let r = loglio_host::bench::run(preset, scenario, a.seconds, a.max_points, !a.json)?;
     print(&if a.json { r.to_json() } else { r.to_text() })
 }
 
@@ -520,13 +525,18 @@ fn sim_run(opt: loglio_host::sim::SimOptions) -> anyhow::Result<()> {
     print(&loglio_host::sim::summary(&opt, &report))
 }
 
+/// A simulator scenario by name, or an error that lists the known ones.
+fn scenario_kind(name: &str) -> anyhow::Result<loglio_firmware_sim::scenario::ScenarioKind> {
+    use loglio_firmware_sim::scenario::ScenarioKind;
+    ScenarioKind::from_name(name).ok_or_else(|| {
+        let known: Vec<&str> = ScenarioKind::ALL.iter().map(|k| k.name()).collect();
+        anyhow::anyhow!("unknown scenario \"{name}\" (known: {})", known.join(", "))
+    })
+}
+
 fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
     use loglio_firmware_sim::lidar::SensorModel;
-    use loglio_firmware_sim::scenario::ScenarioKind;
-    let kind = ScenarioKind::from_name(&a.scenario).ok_or_else(|| {
-        let known: Vec<&str> = ScenarioKind::ALL.iter().map(|k| k.name()).collect();
-        anyhow::anyhow!("unknown scenario \"{}\" (known: {})", a.scenario, known.join(", "))
-    })?;
+    let kind = scenario_kind(&a.scenario)?;
     let sensor =
         SensorModel::ALL.into_iter().find(|m| m.name().eq_ignore_ascii_case(&a.sensor)).ok_or_else(|| {
             let known: Vec<&str> = SensorModel::ALL.iter().map(|m| m.name()).collect();

@@ -279,6 +279,7 @@ fn bench_json_parses_and_is_consistent() {
     let text = stdout(&loglio(&["bench", "--preset", "os1-16", "--seconds", "3", "--json"]));
     let v: serde_json::Value = serde_json::from_str(&text).unwrap_or_else(|e| panic!("{e}: {text}"));
     assert_eq!(v["preset"], "os1-16");
+    assert_eq!(v["scenario"], "handheld"); // the Ouster presets' default
     assert_eq!(v["scan_period_ms"], 100.0);
     assert!(v["points_per_scan"].as_f64().unwrap() > 5_000.0, "{text}");
     for (key, mode) in [("main", "full"), ("baseline", "plain")] {
@@ -302,8 +303,9 @@ fn bench_json_parses_and_is_consistent() {
     let means = [&v["main"], &v["baseline"]].map(|m| m["scan_ms"]["mean"].as_f64().unwrap());
     assert!((ratio - means[0] / means[1]).abs() < 1e-9 * ratio);
     assert_eq!(v["keeps_up"], v["main"]["realtime_margin"].as_f64().unwrap() >= 1.0);
-    // The human form names the verdict.
-    let text = stdout(&loglio(&["bench", "--preset", "vlp16", "--seconds", "3"]));
+    // The human form names the scenario and the verdict.
+    let text = stdout(&loglio(&["bench", "--preset", "vlp16", "--seconds", "3", "--scenario", "rotation"]));
+    assert!(text.contains("simulated rotation scenario"), "{text}");
     assert!(text.contains("this computer keeps up") || text.contains("does NOT keep up"), "{text}");
     assert!(text.contains("margin"), "{text}");
 }
@@ -313,4 +315,8 @@ fn bench_bad_presets_are_one_line() {
     fails_with(&loglio(&["bench", "--preset", "vlp64"]), "error: unknown preset \"vlp64\" (known: vlp16,");
     fails_with(&loglio(&["bench", "--preset", "os1-128"]), "error: the simulator has no os1-128 model");
     fails_with(&loglio(&["bench", "--seconds", "1"]), "error: --seconds must be in [3, 120]");
+    fails_with(
+        &loglio(&["bench", "--scenario", "moon"]),
+        "error: unknown scenario \"moon\" (known: vehicle,",
+    );
 }
