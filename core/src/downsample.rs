@@ -146,15 +146,18 @@ impl<const N: usize> Default for VoxelDownsampler<N> {
     }
 }
 
+/// The index slot of a voxel key: the hash of its 2x2x2 block times 8 plus its place in the
+/// block, so that neighbouring voxels (the next beam of a column, the next column of a beam)
+/// have their index entries in one cache line.
 #[inline]
 fn hash(k: &[i32; 3]) -> u32 {
-    let mut h = (k[0] as u32).wrapping_mul(0x9E37_79B1)
-        ^ (k[1] as u32).wrapping_mul(0x85EB_CA77)
-        ^ (k[2] as u32).wrapping_mul(0xC2B2_AE3D);
+    let b = [(k[0] >> 1) as u32, (k[1] >> 1) as u32, (k[2] >> 1) as u32];
+    let mut h =
+        b[0].wrapping_mul(0x9E37_79B1) ^ b[1].wrapping_mul(0x85EB_CA77) ^ b[2].wrapping_mul(0xC2B2_AE3D);
     h ^= h >> 15;
     h = h.wrapping_mul(0x2C1B_3C6D);
     h ^= h >> 12;
-    h
+    h << 3 | ((k[0] & 1) | (k[1] & 1) << 1 | (k[2] & 1) << 2) as u32
 }
 
 /// `floor(v)` as an integer for finite `|v| < 2^31`, equal to `libm::floorf` there (an `f32`
