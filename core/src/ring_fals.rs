@@ -876,7 +876,8 @@ pub struct RingFalsStats {
 
 /// Lanes of the gap-aware solve (f32): 8 neighbouring columns.
 const LANES: usize = 8;
-/// Pixels of one row waiting for the lane-parallel trimmed solve.
+/// Pixels of one row waiting for the lane-parallel masked or trimmed solve: their windows'
+/// inverse ranges and azimuths.
 #[derive(Clone, Copy, Debug)]
 struct TrimBatch {
     len: usize,
@@ -1094,6 +1095,7 @@ impl<const P: usize> RingFals<P> {
         let mut trimmed = 0u32;
         let mut valid = 0u32;
         let mut invalid = 0u32;
+        let mut partial = TrimBatch::EMPTY;
         let mut batch = TrimBatch::EMPTY;
         for r in 0..rows {
             let rc = &table.row[r];
@@ -1109,60 +1111,26 @@ impl<const P: usize> RingFals<P> {
                 let state = &mut self.state[base..][..cols];
                 solve_row_full(rc, abs, rel, up, mid, dn, cs, nx, ny, nz, state);
             }
-            // Incomplete windows, 8 columns at a time: the masked least squares over the
+            // Incomplete windows, gathered LANES at a time: the masked least squares over the
             // neighbours present; windows that still fail the plane-fit check go to the
-            // trimmed solve, gathered LANES at a time.
-            let mut c0 = 0;
-            while c0 < cols {
-                let c = c0.min(cols - LANES);
-                c0 += LANES;
-                let px0 = base + c;
-                if !self.state[px0..px0 + LANES].contains(&PARTIAL) {
+            // trimmed solve, gathered LANES at a time as well.
+            for c in 0..cols {
+                let px = base + c;
+                if self.state[px] != PARTIAL {
                     continue;
                 }
-                let w9: [[f32; LANES]; 9] = core::array::from_fn(|k| {
-                    let o = px0 + (k / 3) * stride + (k % 3) - stride - 1;
-                    core::array::from_fn(|l| self.inv[o + l])
-                });
-                let cs: [(f32, f32); LANES] = core::array::from_fn(|l| table.azimuth_cs(r, c + l));
-                let (ca, sa) = (cs.map(|v| v.0), cs.map(|v| v.1));
-                let (n, verdict) = solve_group_masked(rc, &table.config, &w9, &ca, &sa);
-                for l in 0..LANES {
-                    let px = px0 + l;
-                    if self.state[px] != PARTIAL {
-                        continue;
-                    }
-                    match verdict[l] {
-                        GAP => {
-                            self.nx[px] = n[0][l];
-                            self.ny[px] = n[1][l];
-                            self.nz[px] = n[2][l];
-                            self.state[px] = GAP;
-                        }
-                        TRIM => {
-                            // Gathered, LANES at a time, for the lane-parallel trimmed solve.
-                            trimmed += 1;
-                            let j = batch.len;
-                            batch.px[j] = px;
-                            for k in 0..9 {
-                                batch.w9[k][j] = w9[k][l];
-                            }
-                            batch.ca[j] = ca[l];
-                            batch.sa[j] = sa[l];
-                            batch.len += 1;
-                            if batch.len == LANES {
-                                self.finish_trimmed(rc, &table.config, &mut batch);
-                            }
-                        }
-                        _ => {
-                            self.nx[px] = 0.0;
-                            self.ny[px] = 0.0;
-                            self.nz[px] = 0.0;
-                            self.state[px] = INVALID;
-                        }
-                    }
+                let j = partial.len;
+                partial.px[j] = px;
+                for k in 0..9 {
+                    partial.w9[k][j] = self.inv[px + (k / 3) * stride + (k % 3) - stride - 1];
+                }
+                (partial.ca[j], partial.sa[j]) = table.azimuth_cs(r, c);
+                partial.len += 1;
+                if partial.len == LANES {
+                    trimmed += self.finish_partial(rc, &table.config, &mut partial, &mut batch);
                 }
             }
+            trimmed += self.finish_partial(rc, &table.config, &mut partial, &mut batch);
             self.finish_trimmed(rc, &table.config, &mut batch);
             for &st in &self.state[base..base + cols] {
                 match st {
@@ -1180,6 +1148,56 @@ impl<const P: usize> RingFals<P> {
         self.stats.trimmed_solves = trimmed;
         self.stats.valid_pixels = valid;
         self.stats.invalid_pixels = invalid;
+    }
+
+    /// Runs the masked solve on the gathered incomplete windows of one row: writes the normals
+    /// and states of those it decides and moves those to be trimmed into `trim` (solving it
+    /// whenever it fills). Empties the batch; returns how many went to the trimmed solve.
+    fn finish_partial(
+        &mut self,
+        rc: &RowCoeffs,
+        cfg: &RingFalsConfig,
+        batch: &mut TrimBatch,
+        trim: &mut TrimBatch,
+    ) -> u32 {
+        if batch.len == 0 {
+            return 0;
+        }
+        let (n, verdict) = solve_group_masked(rc, cfg, &batch.w9, &batch.ca, &batch.sa);
+        let mut trimmed = 0;
+        for l in 0..batch.len {
+            let px = batch.px[l];
+            match verdict[l] {
+                GAP => {
+                    self.nx[px] = n[0][l];
+                    self.ny[px] = n[1][l];
+                    self.nz[px] = n[2][l];
+                    self.state[px] = GAP;
+                }
+                TRIM => {
+                    trimmed += 1;
+                    let j = trim.len;
+                    trim.px[j] = px;
+                    for k in 0..9 {
+                        trim.w9[k][j] = batch.w9[k][l];
+                    }
+                    trim.ca[j] = batch.ca[l];
+                    trim.sa[j] = batch.sa[l];
+                    trim.len += 1;
+                    if trim.len == LANES {
+                        self.finish_trimmed(rc, cfg, trim);
+                    }
+                }
+                _ => {
+                    self.nx[px] = 0.0;
+                    self.ny[px] = 0.0;
+                    self.nz[px] = 0.0;
+                    self.state[px] = INVALID;
+                }
+            }
+        }
+        batch.len = 0;
+        trimmed
     }
 
     /// Runs the trimmed solve on the gathered pixels of one row and writes their normals and
