@@ -2369,6 +2369,85 @@ mod tests {
         assert!(valid > 10_000 && none > 10_000, "{valid} valid, {none} none");
     }
 
+    /// Every incomplete window goes through the masked solve once, and on to the trimmed solve
+    /// once at most, wherever it lies in the row (the column count here is no multiple of
+    /// LANES): the counts equal a pixel-by-pixel reference.
+    #[test]
+    fn each_incomplete_window_is_solved_once() {
+        extern crate std;
+        use std::{boxed::Box, vec::Vec};
+        let els: [f32; 16] = core::array::from_fn(|i| (15.0 - 2.0 * i as f32).to_radians());
+        let cols = 1020;
+        let layout = RangeImageLayout::from_elevations(&els, cols, true).unwrap();
+        let mut table = RingTable::new();
+        table.build(&layout, &RingFalsConfig::DEFAULT).unwrap();
+        // A room 8 m across with a pole near the seam, 1 cm noise, 3 % dropouts, a few outliers.
+        let mut rng = crate::testutil::Rng::new(5);
+        let mut points = Vec::new();
+        for r in 0..16 {
+            for c in 0..cols {
+                if rng.uniform() < 0.03 {
+                    continue;
+                }
+                let d = layout.direction(r, c);
+                let wall = 8.0 / d[0].abs().max(d[1].abs()).max(1e-6);
+                let floor = if d[2] < 0.0 { 1.5 / -d[2] } else { f64::INFINITY };
+                let pole = if c >= cols - 6 && c < cols - 2 { 3.0 } else { f64::INFINITY };
+                let mut range = wall.min(floor).min(pole) + 0.01 * rng.gauss();
+                if rng.uniform() < 0.01 {
+                    range *= 0.7;
+                }
+                let p = [d[0] * range, d[1] * range, d[2] * range].map(|v| v as f32);
+                points.push(ScanPoint { xyz: p, row: r as u16, col: c as u16, ..Default::default() });
+            }
+        }
+        let mut fals = Box::new(RingFals::<{ storage_pixels(16, 1020) }>::new());
+        let mut out = std::vec![PointNormal::INVALID; points.len()];
+        let stats = fals.estimate(&table, &points, &mut out).unwrap();
+        // The reference: each pixel with a return, its full window alone, then the masked solve
+        // alone (the image planes `inv` are what `solve` read).
+        let (stride, cfg) = (fals.stride, table.config);
+        let (mut partial, mut trimmed) = (0u32, 0u32);
+        for r in 0..16 {
+            let rc = &table.row[r];
+            for c in 0..cols {
+                let px = (r + PAD) * stride + PAD + c;
+                let row = |dr: usize| &fals.inv[px + dr * stride - stride - 1..][..3];
+                let (mut n3, mut st) = ([[0.0f32; 1]; 3], [EMPTY]);
+                let [nx, ny, nz] = &mut n3;
+                let cs = (&table.col_cos[c..c + 1], &table.col_sin[c..c + 1]);
+                solve_row_full(
+                    rc,
+                    cfg.range_jump_abs,
+                    cfg.fit_tolerance_rel,
+                    row(0),
+                    row(1),
+                    row(2),
+                    cs,
+                    nx,
+                    ny,
+                    nz,
+                    &mut st,
+                );
+                if st[0] != PARTIAL {
+                    continue;
+                }
+                partial += 1;
+                let w9: [[f32; LANES]; 9] =
+                    core::array::from_fn(|k| [fals.inv[px + (k / 3) * stride + (k % 3) - stride - 1]; LANES]);
+                let (ca, sa) = table.azimuth_cs(r, c);
+                let (_, verdict) = solve_group_masked(rc, &cfg, &w9, &[ca; LANES], &[sa; LANES]);
+                trimmed += u32::from(verdict[0] == TRIM);
+            }
+        }
+        assert!(
+            trimmed > 20 && partial > trimmed,
+            "{partial} partial, {trimmed} trimmed: the scene should exercise both"
+        );
+        assert_eq!(stats.trimmed_solves, trimmed);
+        assert_eq!(stats.gap_solves + stats.invalid_pixels, partial, "{stats:?}");
+    }
+
     #[test]
     fn full_window_system_is_well_conditioned_in_the_local_frame() {
         // VLP-32C-like central rows, 1800 columns: det(M) of the global-frame system is ~1e-7;
