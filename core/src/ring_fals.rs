@@ -879,7 +879,7 @@ const LANES: usize = 8;
 /// Pixels of one row waiting for the lane-parallel masked or trimmed solve: their windows'
 /// inverse ranges and azimuths.
 #[derive(Clone, Copy, Debug)]
-struct TrimBatch {
+struct WindowBatch {
     len: usize,
     px: [usize; LANES],
     w9: [[f32; LANES]; 9],
@@ -887,9 +887,22 @@ struct TrimBatch {
     sa: [f32; LANES],
 }
 
-impl TrimBatch {
+impl WindowBatch {
     const EMPTY: Self =
         Self { len: 0, px: [0; LANES], w9: [[0.0; LANES]; 9], ca: [0.0; LANES], sa: [0.0; LANES] };
+
+    /// Adds pixel `px` with its window's inverse ranges and azimuth; whether the batch is full.
+    #[inline(always)]
+    fn push(&mut self, px: usize, w9: [f32; 9], (ca, sa): (f32, f32)) -> bool {
+        let j = self.len;
+        self.px[j] = px;
+        for k in 0..9 {
+            self.w9[k][j] = w9[k];
+        }
+        (self.ca[j], self.sa[j]) = (ca, sa);
+        self.len += 1;
+        self.len == LANES
+    }
 }
 
 /// Lanes of the median (i16): 16 neighbouring columns, two SSE2 registers or one AVX2 register
@@ -1095,8 +1108,8 @@ impl<const P: usize> RingFals<P> {
         let mut trimmed = 0u32;
         let mut valid = 0u32;
         let mut invalid = 0u32;
-        let mut partial = TrimBatch::EMPTY;
-        let mut batch = TrimBatch::EMPTY;
+        let mut partial = WindowBatch::EMPTY;
+        let mut batch = WindowBatch::EMPTY;
         for r in 0..rows {
             let rc = &table.row[r];
             let base = (r + PAD) * stride + PAD;
@@ -1119,14 +1132,8 @@ impl<const P: usize> RingFals<P> {
                 if self.state[px] != PARTIAL {
                     continue;
                 }
-                let j = partial.len;
-                partial.px[j] = px;
-                for k in 0..9 {
-                    partial.w9[k][j] = self.inv[px + (k / 3) * stride + (k % 3) - stride - 1];
-                }
-                (partial.ca[j], partial.sa[j]) = table.azimuth_cs(r, c);
-                partial.len += 1;
-                if partial.len == LANES {
+                let w9 = core::array::from_fn(|k| self.inv[px + (k / 3) * stride + (k % 3) - stride - 1]);
+                if partial.push(px, w9, table.azimuth_cs(r, c)) {
                     trimmed += self.finish_partial(rc, &table.config, &mut partial, &mut batch);
                 }
             }
@@ -1157,8 +1164,8 @@ impl<const P: usize> RingFals<P> {
         &mut self,
         rc: &RowCoeffs,
         cfg: &RingFalsConfig,
-        batch: &mut TrimBatch,
-        trim: &mut TrimBatch,
+        batch: &mut WindowBatch,
+        trim: &mut WindowBatch,
     ) -> u32 {
         if batch.len == 0 {
             return 0;
@@ -1176,15 +1183,8 @@ impl<const P: usize> RingFals<P> {
                 }
                 TRIM => {
                     trimmed += 1;
-                    let j = trim.len;
-                    trim.px[j] = px;
-                    for k in 0..9 {
-                        trim.w9[k][j] = batch.w9[k][l];
-                    }
-                    trim.ca[j] = batch.ca[l];
-                    trim.sa[j] = batch.sa[l];
-                    trim.len += 1;
-                    if trim.len == LANES {
+                    let w9 = core::array::from_fn(|k| batch.w9[k][l]);
+                    if trim.push(px, w9, (batch.ca[l], batch.sa[l])) {
                         self.finish_trimmed(rc, cfg, trim);
                     }
                 }
@@ -1202,7 +1202,7 @@ impl<const P: usize> RingFals<P> {
 
     /// Runs the trimmed solve on the gathered pixels of one row and writes their normals and
     /// states; empties the batch.
-    fn finish_trimmed(&mut self, rc: &RowCoeffs, cfg: &RingFalsConfig, batch: &mut TrimBatch) {
+    fn finish_trimmed(&mut self, rc: &RowCoeffs, cfg: &RingFalsConfig, batch: &mut WindowBatch) {
         if batch.len == 0 {
             return;
         }
@@ -1652,6 +1652,15 @@ const SPANS_PLANE: [bool; 512] = {
 /// more than about 2.2 `tol` fails it, wherever the noise.
 const FIT_K: f32 = 4.0;
 
+/// Whether a window neighbour with inverse range `w` takes part in the centre's solve: it has
+/// a return and its range is within the gate (`gate`: the relative part for its angular
+/// distance plus the absolute part) of the centre's (inverse range `wc`). Written so that NaN
+/// fails.
+#[inline(always)]
+fn on_surface(w: f32, wc: f32, gate: f32) -> bool {
+    (w > 0.0) & ((wc - w).abs() <= w * gate)
+}
+
 /// Verdict of the masked solve: the window fits but should be trimmed point by point.
 const TRIM: u8 = 5;
 
@@ -1682,7 +1691,7 @@ fn solve_group_masked(
         let u = [rc.u[0][k], rc.u[1][k], rc.u[2][k]];
         let w = &w9[k];
         for l in 0..LANES {
-            let present = (w[l] > 0.0) & ((wc[l] - w[l]).abs() <= w[l] * (g + t[l]));
+            let present = on_surface(w[l], wc[l], g + t[l]);
             let p = if present { 1.0f32 } else { 0.0 };
             let pw = p * w[l];
             for i in 0..6 {
@@ -1744,7 +1753,7 @@ fn solve_trimmed(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa:
     let tol = wc * (cfg.fit_tolerance_rel + t);
     let mut mask = 0usize;
     for k in 0..9 {
-        let present = rc.exists & (1 << k) != 0 && w[k] > 0.0 && (wc - w[k]).abs() <= w[k] * (rc.gate[k] + t);
+        let present = rc.exists & (1 << k) != 0 && on_surface(w[k], wc, rc.gate[k] + t);
         if present {
             mask |= 1 << k;
         }
@@ -1835,7 +1844,7 @@ fn solve_trimmed_lanes(
         }
         let w = &w9[k];
         for l in 0..LANES {
-            let present = (w[l] > 0.0) & ((wc[l] - w[l]).abs() <= w[l] * (rc.gate[k] + t[l]));
+            let present = on_surface(w[l], wc[l], rc.gate[k] + t[l]);
             mask[l] |= u32::from(present) << k;
         }
     }
@@ -1911,21 +1920,22 @@ fn solve_trimmed_lanes(
         for k in 0..9 {
             let u = [rc.u[0][k], rc.u[1][k], rc.u[2][k]];
             let (w, p) = (&w9[k], &pf[k]);
+            let e: [f32; LANES] = core::array::from_fn(|l| {
+                (u[0] * sol[0][l] + u[1] * sol[1][l] + u[2] * sol[2][l] - w[l]).abs()
+            });
             for l in 0..LANES {
-                let e = (u[0] * sol[0][l] + u[1] * sol[1][l] + u[2] * sol[2][l] - w[l]).abs();
-                ssr[l] += p[l] * (e * e);
+                ssr[l] += p[l] * (e[l] * e[l]);
             }
             if k == CENTRE {
                 continue;
             }
             for l in 0..LANES {
-                let e = (u[0] * sol[0][l] + u[1] * sol[1][l] + u[2] * sol[2][l] - w[l]).abs();
                 let h = (adj[0][l] * u[0] * u[0]
                     + adj[3][l] * u[1] * u[1]
                     + adj[5][l] * u[2] * u[2]
                     + 2.0 * (adj[1][l] * u[0] * u[1] + adj[2][l] * u[0] * u[2] + adj[4][l] * u[1] * u[2]))
                     * inv[l];
-                let d = e / (1.0 - h).max(1e-3);
+                let d = e[l] / (1.0 - h).max(1e-3);
                 let take = (p[l] != 0.0) & !(d <= worst_d[l]);
                 worst_d[l] = if take { d } else { worst_d[l] };
                 worst_k[l] = if take { k as u32 } else { worst_k[l] };

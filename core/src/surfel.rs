@@ -337,6 +337,10 @@ pub fn eigen_sym3_closed(m: &Sym3) -> Option<([f64; 3], [[f64; 3]; 3])> {
     let p = crate::math::sqrt(p2 / 6.0);
     let inv = 1.0 / p;
     let (c00, c01, c02, c11, c12, c22) = (b00 * inv, a01 * inv, a02 * inv, b11 * inv, a12 * inv, b22 * inv);
+    // The spread l3 - l1 is between 3 p and 2 sqrt(3) p, and |l1| + |l3| at most 2 |q| + 4 p.
+    if !(3.0 * p > 1e-6 * (2.0 * q.abs() + 4.0 * p)) {
+        return None;
+    }
     let det = c00 * (c11 * c22 - c12 * c12) - c01 * (c01 * c22 - c12 * c02) + c02 * (c01 * c12 - c11 * c02);
     // The eigenvalues of (A - q I) / p are 2 cos(phi + 2 k pi / 3), cos(3 phi) = det / 2. The
     // largest is isolated when det > 0 (phi < pi / 6), the smallest otherwise; it is
@@ -344,10 +348,6 @@ pub fn eigen_sym3_closed(m: &Sym3) -> Option<([f64; 3], [[f64; 3]; 3])> {
     let x = (0.5 * det).clamp(-1.0, 1.0);
     let low_isolated = x <= 0.0;
     let c = cos_third_acos(x.abs());
-    // The spread l3 - l1 is between 3 p and 2 sqrt(3) p, and |l1| + |l3| at most 2 |q| + 4 p.
-    if !(3.0 * p > 1e-6 * (2.0 * q.abs() + 4.0 * p)) {
-        return None;
-    }
     let v = null_vector(m, if low_isolated { q - 2.0 * p * c } else { q + 2.0 * p * c })?;
     let av = sym_mul(m, v);
     let lv = dot3(v, av);

@@ -1989,7 +1989,9 @@ fn rep(v: &Voxel, o: usize) -> [i16; 3] {
 }
 
 /// Squared distances from `rq` (relative to the voxel centre) to the voxel's 8 representative
-/// slots (unoccupied ones too), as one vector computation.
+/// slots (unoccupied ones too), as one vector computation. Out of line on purpose: inlined into
+/// the k-NN, an AVX-512 build split the loop into masked loads, one of which reached into the
+/// voxel's second cache line (a miss per voxel searched).
 #[inline(never)]
 fn rep_d2(v: &Voxel, rq: [f32; 3], s: f32) -> [f32; OCTANTS] {
     let mut d2s = [0.0f32; OCTANTS];
