@@ -77,8 +77,8 @@
 //!
 //! ## Memory and time
 //!
-//! [`RingFals`] holds the per-scan images (35 bytes per padded pixel, plus a 115 kB row scratch:
-//! 2.4 MB for 32 x 1800, 9.7 MB for 128 x 2048) and [`RingTable`] the per-row coefficients
+//! [`RingFals`] holds the per-scan images (35 bytes per padded pixel, plus a 187 kB row scratch:
+//! 2.5 MB for 32 x 1800, 9.7 MB for 128 x 2048) and [`RingTable`] the per-row coefficients
 //! (88 kB); both have `const fn new()`, and the storage's is all zero, so a `static` of it
 //! costs no flash. Nothing
 //! allocates, nothing reads a clock; the same input gives bit-identical output on every target
@@ -86,7 +86,10 @@
 //! pixel, the correctly rounded `libm::sqrtf`; no FMA contraction, no reassociation). The inner loops are written over planar buffers without branches so that they
 //! auto-vectorise (SSE2 on x86-64, NEON on aarch64, AVX2 where the build enables it); the median
 //! runs on normals quantised to 1/32000 (0.002 degrees), 16 columns at a time in 16-bit lanes,
-//! with sorting networks.
+//! with selection networks. Where every window of the 16 lies on one surface and lacks at most
+//! four pixels, the windows share their columns sorted once per row (127 min/max per channel);
+//! elsewhere each window's left-out pixels become -inf/+inf sentinels of a full 25-value
+//! network (202). Both give the exact lower median of the pixels kept.
 
 // Index loops over planar buffers are what auto-vectorises; `!(a <= b)` is deliberate
 // wherever a NaN must count as failing the test.
@@ -286,6 +289,10 @@ struct RowCoeffs {
     /// window takes part in the median only if it is on the centre's surface. 0 for rows
     /// outside the image.
     gate5: [i16; 25],
+    /// Per window row, the smallest of `gate5` over its pixels (centre excluded; 0 for rows
+    /// outside the image): a window row whose keys all lie within it of the centre's key needs
+    /// no per-pixel gate.
+    gate5_min: [i16; 5],
     /// Inverse of `M'` for the nominal window (every neighbour inside the image present),
     /// symmetric: 00, 01, 02, 11, 12, 22.
     minv: [f32; 6],
@@ -309,6 +316,7 @@ impl RowCoeffs {
         gate: [0.0; 9],
         exists: 0,
         gate5: [0; 25],
+        gate5_min: [0; 5],
         minv: [0.0; 6],
         nominal_ok: false,
         ce: 0.0,
@@ -477,6 +485,9 @@ impl RingTable {
                     if j == 12 { 0.0 } else { incidence_gate(alpha, libm::acos(ca.clamp(-1.0, 1.0))) as f64 };
                 rc.gate5[j] = (KEY_SCALE as f64 * libm::log2(1.0 + g)).min(30000.0) as i16;
             }
+            rc.gate5_min = core::array::from_fn(|dr| {
+                (5 * dr..5 * dr + 5).filter(|&j| j != 12).map(|j| rc.gate5[j]).min().unwrap_or(0)
+            });
             let (adj, det) = adjugate_f64(&m);
             let tr = m[0] + m[3] + m[5];
             rc.nominal_ok = det > 0.0 && 27.0 * det >= config.min_conditioning as f64 * tr * tr * tr;
@@ -947,6 +958,11 @@ pub struct RingFals<const P: usize> {
     strips: [[i16; SCRATCH_COLS]; 15],
     /// Per row: minus the number of invalid pixels in each column's 5-row strip.
     strip_inv: [i16; SCRATCH_COLS],
+    /// The largest and smallest range key of the valid pixels among each pixel and its two
+    /// neighbours either side (`i16::MIN` / `i16::MAX` where none), for the five padded rows
+    /// of the current windows (padded row `pr` in slot `pr % 5`).
+    row_kmax: [[i16; SCRATCH_COLS]; 5],
+    row_kmin: [[i16; SCRATCH_COLS]; 5],
 }
 
 impl<const P: usize> Default for RingFals<P> {
@@ -990,6 +1006,8 @@ impl<const P: usize> RingFals<P> {
             state: [EMPTY; P],
             strips: [[0; SCRATCH_COLS]; 15],
             strip_inv: [0; SCRATCH_COLS],
+            row_kmax: [[0; SCRATCH_COLS]; 5],
+            row_kmin: [[0; SCRATCH_COLS]; 5],
         }
     }
 
@@ -1273,34 +1291,53 @@ impl<const P: usize> RingFals<P> {
                 for (j, d) in dst.iter_mut().enumerate() {
                     *d = s[0][j] + s[1][j] + s[2][j] + s[3][j] + s[4][j];
                 }
+                // Key ranges of the padded rows r..r + 5: all five for the first row, then the
+                // one that enters.
+                for pr in if r == 0 { 0..5 } else { r + 4..r + 5 } {
+                    let i = pr * stride..(pr + 1) * stride;
+                    key_range_row(
+                        &self.key[i.clone()],
+                        &self.qinv[i],
+                        &mut self.row_kmax[pr % 5][..stride],
+                        &mut self.row_kmin[pr % 5][..stride],
+                    );
+                }
             }
 
-            let rc = &table.row[r];
             let base = (r + PAD) * stride + PAD;
+            // -inf pad pixels in the window of an even and of an odd image column: the window
+            // covers padded rows r..r + 5 and padded columns c..c + 5.
+            let pads = (r..r + 5).filter(|&pr| pr < PAD || pr >= rows + PAD);
+            let neg_even = pads.clone().map(|pr| if pr % 2 == 0 { 3 } else { 2 }).sum::<i16>();
+            let neg_odd = pads.map(|pr| if pr % 2 == 0 { 2 } else { 3 }).sum::<i16>();
             // Groups of 16 columns; the last group is moved left to end at the last column and
             // skips the lanes the previous group already did.
             let mut c0 = 0;
             while c0 < cols {
                 let c0_eff = c0.min(cols - QLANES);
-                kept_own += self.median_group(table, rc, base, c0_eff, c0 - c0_eff, min_valid);
+                kept_own +=
+                    self.median_group(table, r, base, c0_eff, c0 - c0_eff, min_valid, (neg_even, neg_odd));
                 c0 += QLANES;
             }
         }
         self.stats.median_kept_own = kept_own;
     }
 
-    /// Median of the 16 pixels at image columns c0..c0+16 of one image row. Returns how many
+    /// Median of the 16 pixels at image columns c0..c0+16 of one image row. `pad_neg` is the
+    /// number of -inf pad pixels in the window of an even and of an odd column. Returns how many
     /// kept their own normal.
     #[allow(clippy::too_many_arguments)]
     fn median_group(
         &mut self,
         table: &RingTable,
-        rc: &RowCoeffs,
+        r: usize,
         base: usize,
         c0: usize,
         first_lane: usize,
         min_valid: i16,
+        pad_neg: (i16, i16),
     ) -> u32 {
+        let rc = &table.row[r];
         let stride = self.stride;
         let centre = base + c0;
         let st: [u8; QLANES] =
@@ -1322,30 +1359,45 @@ impl<const P: usize> RingFals<P> {
                     .min(30000.0),
             ) as i16
         });
-        let mut masks = [[0i16; QLANES]; 25];
-        let mut any: Lane = [0; QLANES];
-        for dr in 0..5 {
-            let row0 = centre + dr * stride - 2 * stride - 2;
-            for dc in 0..5 {
-                let j = 5 * dr + dc;
-                let inv = lane_load(&self.qinv[row0 + dc..]);
-                let kq = lane_load(&self.key[row0 + dc..]);
-                let g = rc.gate5[j];
-                masks[j] = core::array::from_fn(|l| {
-                    let d = kc[l].saturating_sub(kq[l]);
-                    let d = d.max(0i16.saturating_sub(d));
-                    inv[l] | -((d.saturating_sub(tc[l]) > g) as i16)
-                });
-                for l in 0..QLANES {
-                    any[l] |= masks[j][l];
-                }
+        // Per window: how many pixels have no valid normal (pad rows included), and whether
+        // the valid pixels' keys lie, row by row, within the row's smallest gate of the centre's.
+        let mut out: Lane = [0; QLANES];
+        for dc in 0..5 {
+            let inv = lane_load(&self.strip_inv[sc + dc - 2..]);
+            for l in 0..QLANES {
+                out[l] -= inv[l];
             }
+        }
+        let mut one_surface = [true; QLANES];
+        for dr in 0..5 {
+            let (hi, lo) = (
+                lane_load(&self.row_kmax[(r + dr) % 5][sc..]),
+                lane_load(&self.row_kmin[(r + dr) % 5][sc..]),
+            );
+            let g = rc.gate5_min[dr];
+            for l in 0..QLANES {
+                let d = hi[l].saturating_sub(kc[l]).max(kc[l].saturating_sub(lo[l]));
+                one_surface[l] &= d.saturating_sub(tc[l]) <= g;
+            }
+        }
+        // The shared-strip path needs, in every lane that uses its median, all valid pixels
+        // within the row's smallest gate of the centre's key (then none is left out by the
+        // gate), and the lower median of the valid pixels at rank 10, 11 or 12 of all 25
+        // values: invalid pixels sort as +inf, and pad pixels as -inf and +inf in the numbers
+        // `pad_neg` gives. Without pad rows that is up to 4 invalid pixels.
+        let mut rank: Lane = [0; QLANES];
+        let mut general: Lane = [0; QLANES];
+        for l in 0..QLANES {
+            let neg = if (c0 + l) & 1 == 0 { pad_neg.0 } else { pad_neg.1 };
+            rank[l] = neg + ((24 - out[l]) >> 1);
+            let used = ((st[l] == FULL) | (st[l] == GAP)) & (25 - out[l] >= min_valid);
+            general[l] = -((used & !(one_surface[l] & (10..=12).contains(&rank[l]))) as i16);
         }
         let mut med = [[0i16; QLANES]; 3];
         let mut neg_count: Lane = [0; QLANES];
-        if any == [0; QLANES] {
-            // Every window complete and on one surface: the sorted column strips are shared
-            // between windows.
+        if general == [0; QLANES] {
+            // The sorted column strips are shared between windows.
+            neg_count = out.map(|o| -o);
             for (ch, m) in med.iter_mut().enumerate() {
                 let mut v = [[0i16; QLANES]; 25];
                 for dc in 0..5 {
@@ -1353,37 +1405,56 @@ impl<const P: usize> RingFals<P> {
                         v[5 * dc + k] = lane_load(&self.strips[ch * 5 + k][sc + dc - 2..]);
                     }
                 }
-                *m = median25_presorted(&mut v);
+                let [r10, r11, r12] = ranks25_presorted(&v);
+                for l in 0..QLANES {
+                    let (is12, is11) = (-i16::from(rank[l] == 12), -i16::from(rank[l] == 11));
+                    m[l] = (r12[l] & is12) | (r11[l] & is11) | (r10[l] & !(is12 | is11));
+                }
             }
         } else {
+            let mut masks = [[0i16; QLANES]; 25];
+            for dr in 0..5 {
+                let row0 = centre + dr * stride - 2 * stride - 2;
+                for dc in 0..5 {
+                    let j = 5 * dr + dc;
+                    let inv = lane_load(&self.qinv[row0 + dc..]);
+                    let kq = lane_load(&self.key[row0 + dc..]);
+                    let g = rc.gate5[j];
+                    masks[j] = core::array::from_fn(|l| {
+                        let d = kc[l].saturating_sub(kq[l]);
+                        let d = d.max(0i16.saturating_sub(d));
+                        inv[l] | -((d.saturating_sub(tc[l]) > g) as i16)
+                    });
+                }
+            }
             // Left-out pixels enter the network as alternately -inf and +inf sentinels (per
             // window, in scan order), so that the network's middle output is the median of the
-            // pixels kept (the lower median for an even count).
-            let mut flips = [[0i16; QLANES]; 25];
+            // pixels kept (the lower median for an even count): value `(x | m) ^ c` with the
+            // mask m all ones and c = i16::MIN (giving +inf) or i16::MAX (giving -inf).
+            let mut c = [[0i16; QLANES]; 25];
             let mut tog: Lane = [0; QLANES];
             for j in 0..25 {
                 let m = masks[j];
                 for l in 0..QLANES {
                     neg_count[l] += m[l];
                     tog[l] ^= m[l];
-                    flips[j][l] = tog[l] & m[l];
+                    c[j][l] = m[l] & (i16::MIN ^ (tog[l] & m[l]));
                 }
             }
             let planes = [&self.qx, &self.qy, &self.qz];
             for (ch, q) in planes.iter().enumerate() {
-                // A fresh local array per channel, indexed by constants only in the network, so
-                // that it lives in registers.
                 let mut v = [[0i16; QLANES]; 25];
                 for dr in 0..5 {
                     let row0 = centre + dr * stride - 2 * stride - 2;
                     for dc in 0..5 {
                         let j = 5 * dr + dc;
                         let x = lane_load(&q[row0 + dc..]);
-                        let m = masks[j];
-                        v[j] = core::array::from_fn(|l| (x[l] & !m[l]) | (m[l] & (QINVALID ^ flips[j][l])));
+                        for l in 0..QLANES {
+                            v[j][l] = (x[l] | masks[j][l]) ^ c[j][l];
+                        }
                     }
                 }
-                med[ch] = median25(&mut v);
+                med[ch] = median25(&v)[0];
             }
         }
 
@@ -1503,7 +1574,36 @@ impl<const P: usize> RingFals<P> {
         self.qinv[..n].fill(-1);
         self.key[..n].fill(KEY_EMPTY);
         self.state[..n].fill(EMPTY);
+        // The pad rows hold -inf and +inf alternately (see `smooth`).
+        let stride = self.stride;
+        for pr in [0, 1, rows + PAD, rows + PAD + 1] {
+            for pc in 0..stride {
+                let v = pad_sentinel(pr, pc);
+                let i = pr * stride + pc;
+                (self.qx[i], self.qy[i], self.qz[i]) = (v, v, v);
+            }
+        }
     }
+}
+
+/// Per padded column `pc` of one padded row: the largest and smallest key of the valid pixels
+/// (`qinv` 0) in columns pc-2..=pc+2, `i16::MIN` / `i16::MAX` where none (the two columns at
+/// each end are left as they are).
+fn key_range_row(key: &[i16], qinv: &[i16], kmax: &mut [i16], kmin: &mut [i16]) {
+    let n = key.len();
+    let (qinv, kmax, kmin) = (&qinv[..n], &mut kmax[..n], &mut kmin[..n]);
+    let hi = |j: usize| (key[j] & !qinv[j]) | (qinv[j] & i16::MIN);
+    let lo = |j: usize| (key[j] & !qinv[j]) | (qinv[j] & i16::MAX);
+    for pc in 2..n - 2 {
+        kmax[pc] = hi(pc - 2).max(hi(pc - 1)).max(hi(pc)).max(hi(pc + 1)).max(hi(pc + 2));
+        kmin[pc] = lo(pc - 2).min(lo(pc - 1)).min(lo(pc)).min(lo(pc + 1)).min(lo(pc + 2));
+    }
+}
+
+/// Median value of a pad-row pixel at padded row `pr`, column `pc`: -inf and +inf alternately,
+/// so that a window's pad pixels sit at both ends of its sorted values in known numbers.
+const fn pad_sentinel(pr: usize, pc: usize) -> i16 {
+    if (pr + pc) & 1 == 0 { i16::MIN } else { QINVALID }
 }
 
 /// Copies the two image columns at each end of a padded row into the opposite pad columns.
@@ -2069,18 +2169,23 @@ fn lmax(a: Lane, b: Lane) -> Lane {
     core::array::from_fn(|l| a[l].max(b[l]))
 }
 
-/// Defines a median network both as data (for the exhaustive test) and as straight-line code
-/// (for speed): comparator (a, b, kind) leaves the minimum on wire a and the maximum on wire b.
+/// Defines a selection network both as data (for the exhaustive tests) and as straight-line code
+/// (for speed): comparator (a, b, kind) leaves the minimum on wire a and the maximum on wire b;
+/// the outputs are the listed wires.
 macro_rules! median_network {
-    ($(#[$m:meta])* $data:ident, $apply:ident, $out:expr; $(($a:expr, $b:expr, $k:ident)),* $(,)?) => {
+    ($(#[$m:meta])* $data:ident, $apply:ident, [$($out:expr),+]; $(($a:expr, $b:expr, $k:ident)),* $(,)?) => {
         $(#[$m])*
         #[allow(dead_code)]
-        const $data: (&[(u8, u8, Cx)], usize) = (&[$(($a, $b, Cx::$k)),*], $out);
+        const $data: (&[(u8, u8, Cx)], &[usize]) = (&[$(($a, $b, Cx::$k)),*], &[$($out),+]);
 
+        // Inlined: out of line, the calls cost 20 % more of `smooth` here. The input is copied
+        // into a local so that only constant indices touch it and it can live in registers.
         #[inline(always)]
-        fn $apply(v: &mut [Lane; 25]) -> Lane {
+        fn $apply(v: &[Lane; 25]) -> [Lane; [$($out),+].len()] {
+            let mut w = *v;
+            let v = &mut w;
             $( median_network!(@cx v, $a, $b, $k); )*
-            v[$out]
+            [$(v[$out]),+]
         }
     };
     (@cx $v:ident, $a:expr, $b:expr, B) => {{ let (x, y) = ($v[$a], $v[$b]); $v[$a] = lmin(x, y); $v[$b] = lmax(x, y); }};
@@ -2091,7 +2196,7 @@ macro_rules! median_network {
 median_network! {
     /// Median of 25 values: Batcher's odd-even merge sort for 32 inputs restricted to 25 and
     /// pruned backwards from output 12 (113 comparators, 202 min/max operations).
-    MEDIAN25, median25, 12;
+    MEDIAN25, median25, [12];
     (0, 1, B), (2, 3, B), (4, 5, B), (6, 7, B), (8, 9, B), (10, 11, B), (12, 13, B), (14, 15, B),
     (16, 17, B), (18, 19, B), (20, 21, B), (22, 23, B), (0, 2, B), (1, 3, B), (4, 6, B), (5, 7, B),
     (8, 10, B), (9, 11, B), (12, 14, B), (13, 15, B), (16, 18, B), (17, 19, B), (20, 22, B),
@@ -2110,20 +2215,23 @@ median_network! {
 }
 
 median_network! {
-    /// Median of 25 values given as five sorted columns of five (wires 5c..5c+4 ascending):
-    /// sort the rows, keep the 13 candidates that can still be the median, take their median;
-    /// pruned backwards from the output and stripped of comparators whose order the sorted
-    /// columns already fix (70 comparators, 116 min/max operations).
-    MEDIAN25_PRESORTED, median25_presorted, 12;
-    (0, 5, B), (15, 20, B), (10, 20, B), (10, 15, H), (0, 15, H), (5, 20, B), (5, 15, H), (1, 6, B),
-    (16, 21, B), (11, 21, B), (11, 16, B), (1, 16, B), (1, 11, H), (6, 21, B), (6, 16, B), (6, 11, H),
-    (2, 7, B), (17, 22, B), (12, 22, B), (12, 17, B), (2, 17, B), (2, 12, H), (7, 22, L), (7, 17, B),
-    (7, 12, B), (3, 8, B), (18, 23, B), (13, 23, B), (13, 18, B), (3, 18, B), (3, 13, B), (8, 23, L),
-    (8, 18, L), (8, 13, B), (4, 9, B), (19, 24, B), (14, 24, B), (14, 19, B), (4, 19, B), (4, 14, B),
-    (9, 24, L), (9, 19, L), (9, 14, L), (21, 7, B), (13, 4, B), (15, 11, B), (20, 16, B), (7, 17, L),
-    (20, 11, B), (7, 12, B), (8, 13, B), (15, 21, B), (20, 7, B), (11, 21, B), (16, 7, B), (20, 11, B),
-    (16, 21, B), (7, 12, B), (4, 9, B), (15, 3, H), (20, 8, H), (11, 13, H), (16, 4, L), (21, 9, L),
-    (21, 3, H), (7, 8, L), (12, 13, L), (16, 7, H), (12, 3, L), (7, 12, H)
+    /// Ranks 10, 11 and 12 (from 0) of 25 values given as five sorted columns of five (wires
+    /// 5c..5c+4 ascending): a full sort (the rows by five-sorters, then Batcher's network)
+    /// pruned backwards from the three outputs, stripped of comparators whose order the sorted
+    /// columns already fix and then of every comparator the exhaustive 0-1 check shows
+    /// unneeded (75 comparators, 127 min/max operations).
+    RANKS25_PRESORTED, ranks25_presorted, [10, 11, 12];
+    (0, 5, B), (10, 15, B), (0, 10, H), (5, 15, B), (1, 6, B), (16, 21, B), (11, 21, B),
+    (11, 16, B), (1, 16, H), (6, 21, B), (6, 16, B), (6, 11, B), (2, 7, B), (17, 22, B),
+    (12, 22, B), (12, 17, B), (2, 17, B), (2, 12, B), (7, 22, L), (7, 17, B), (7, 12, B),
+    (3, 8, B), (13, 23, B), (13, 18, B), (3, 13, B), (8, 23, L), (8, 18, B), (8, 13, B), (4, 9, B),
+    (19, 24, B), (4, 19, B), (4, 14, B), (9, 24, L), (9, 19, L), (9, 14, B), (4, 5, B),
+    (14, 15, L), (5, 7, B), (8, 10, B), (9, 11, B), (12, 14, B), (5, 6, B), (9, 10, B),
+    (13, 14, B), (16, 20, B), (17, 21, L), (2, 4, H), (3, 5, H), (10, 12, B), (11, 13, B),
+    (18, 20, L), (5, 6, B), (11, 12, B), (13, 14, L), (17, 18, B), (4, 8, H), (5, 9, H),
+    (6, 10, B), (7, 11, B), (6, 8, H), (7, 9, B), (11, 13, L), (7, 8, B), (9, 10, B), (11, 12, B),
+    (8, 16, H), (9, 17, B), (10, 18, L), (12, 16, L), (13, 17, L), (7, 9, H), (10, 12, B),
+    (11, 13, L), (9, 10, H), (11, 12, B)
 }
 
 #[cfg(test)]
@@ -2149,7 +2257,7 @@ mod tests {
     /// every 0/1 input. All 2^25 inputs, 64 per word.
     #[test]
     fn median25_is_exact_for_all_zero_one_inputs() {
-        let (net, out) = MEDIAN25;
+        let (net, out) = (MEDIAN25.0, MEDIAN25.1[0]);
         for hi in 0u64..(1 << 19) {
             let mut v = [0u64; 25];
             for (i, w) in v.iter_mut().enumerate() {
@@ -2180,8 +2288,8 @@ mod tests {
 
     /// The presorted network on every 0/1 input whose five columns are sorted (6^5 of them).
     #[test]
-    fn median25_presorted_is_exact_for_sorted_columns() {
-        let (net, out) = MEDIAN25_PRESORTED;
+    fn ranks25_presorted_is_exact_for_sorted_columns() {
+        let (net, outs) = RANKS25_PRESORTED;
         for code in 0..6u32.pow(5) {
             let mut v = [0u64; 25];
             let mut ones = 0;
@@ -2195,7 +2303,10 @@ mod tests {
                 ones += k;
             }
             run_bits(net, &mut v);
-            assert_eq!(v[out] == 1, ones >= 13, "code {code}");
+            for (k, &out) in outs.iter().enumerate() {
+                // Rank 10 + k (from 0) is 1 iff at least 15 - k ones.
+                assert_eq!(v[out] == 1, ones >= 15 - k, "code {code}, rank {}", 10 + k);
+            }
         }
     }
 
@@ -2220,12 +2331,13 @@ mod tests {
                 s ^= s << 17;
                 *x = (s % 2001) as i16 - 1000;
             }
-            let want: Lane = core::array::from_fn(|l| {
+            let sorted: [[i16; 25]; QLANES] = core::array::from_fn(|l| {
                 let mut c: [i16; 25] = core::array::from_fn(|i| v[i][l]);
                 c.sort();
-                c[12]
+                c
             });
-            assert_eq!(median25(&mut v.clone()), want);
+            let rank = |k: usize| -> Lane { core::array::from_fn(|l| sorted[l][k]) };
+            assert_eq!(median25(&v), [rank(12)]);
             // Presorted: sort each column of five first.
             let mut p = v;
             for l in 0..QLANES {
@@ -2237,7 +2349,7 @@ mod tests {
                     }
                 }
             }
-            assert_eq!(median25_presorted(&mut p), want);
+            assert_eq!(ranks25_presorted(&p), [rank(10), rank(11), rank(12)]);
         }
     }
 
