@@ -1482,11 +1482,13 @@ impl<const P: usize> RingFals<P> {
             let valid = (st[l] == FULL) | (st[l] == GAP);
             use_med[l] = valid & (25 + neg_count[l] >= min_valid) & sound[l];
         }
+        // A blend by bit masks: a conditional store per lane compiled to jumps.
+        let keep: [u32; QLANES] = core::array::from_fn(|l| u32::from(use_med[l]).wrapping_neg());
         let planes = [&mut self.nx, &mut self.ny, &mut self.nz];
         for (ch, plane) in planes.into_iter().enumerate() {
             let dst = &mut plane[centre..centre + QLANES];
             for l in 0..QLANES {
-                dst[l] = if use_med[l] { n[ch][l] } else { dst[l] };
+                dst[l] = f32::from_bits((n[ch][l].to_bits() & keep[l]) | (dst[l].to_bits() & !keep[l]));
             }
         }
         let valid = st.iter().filter(|&&s| s == FULL || s == GAP).count();
@@ -1509,17 +1511,19 @@ impl<const P: usize> RingFals<P> {
             if row >= rows || col >= cols {
                 continue;
             }
-            let [x, y, z] = p.xyz;
-            let r2 = x * x + y * y + z * z;
-            if !(r2 >= min2 && r2 <= max2) {
-                continue;
-            }
             let px = (row + PAD) * stride + table.internal_col(row, col) + PAD;
             let s = self.state[px];
             if s != FULL && s != GAP {
                 continue;
             }
+            // The pixel's owner was projected this scan (a pixel with a return was written),
+            // so it passed the range filter already.
             if self.owner[px] != i as u32 {
+                let [x, y, z] = p.xyz;
+                let r2 = x * x + y * y + z * z;
+                if !(r2 >= min2 && r2 <= max2) {
+                    continue;
+                }
                 // A point that lost its pixel to a nearer one shares the pixel's normal only if
                 // it lies on the same surface: within the gate to a same-row neighbour.
                 let (ri, rp) = (crate::math::sqrtf(r2), crate::math::sqrtf(self.range2[px]));
