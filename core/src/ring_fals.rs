@@ -2241,6 +2241,7 @@ median_network! {
 #[cfg(test)]
 mod tests {
     use super::*;
+    extern crate std;
 
     /// Runs a network on 64 bit-sliced 0/1 inputs at once (min = AND, max = OR).
     fn run_bits(net: &[(u8, u8, Cx)], v: &mut [u64; 25]) {
@@ -2499,35 +2500,48 @@ mod tests {
     /// Every incomplete window goes through the masked solve once, and on to the trimmed solve
     /// once at most, wherever it lies in the row (the column count here is no multiple of
     /// LANES): the counts equal a pixel-by-pixel reference.
-    #[test]
-    fn each_incomplete_window_is_solved_once() {
+    /// A 16 x 1020 scan (a column count no multiple of the lane widths) of a room 8 m across,
+    /// 1.5 m above its floor: 1 cm noise, 3 % dropouts, `outliers` of the returns cut to 70 %;
+    /// `pole(c)` is the range of a pole in column c (infinite where none).
+    fn room_scan(
+        seed: u64,
+        pole: impl Fn(usize) -> f64,
+        outliers: f64,
+    ) -> (RingTable, std::vec::Vec<ScanPoint>) {
         extern crate std;
-        use std::{boxed::Box, vec::Vec};
         let els: [f32; 16] = core::array::from_fn(|i| (15.0 - 2.0 * i as f32).to_radians());
-        let cols = 1020;
-        let layout = RangeImageLayout::from_elevations(&els, cols, true).unwrap();
+        let layout = RangeImageLayout::from_elevations(&els, 1020, true).unwrap();
         let mut table = RingTable::new();
         table.build(&layout, &RingFalsConfig::DEFAULT).unwrap();
-        // A room 8 m across with a pole near the seam, 1 cm noise, 3 % dropouts, a few outliers.
-        let mut rng = crate::testutil::Rng::new(5);
-        let mut points = Vec::new();
+        let mut rng = crate::testutil::Rng::new(seed);
+        let mut points = std::vec::Vec::new();
         for r in 0..16 {
-            for c in 0..cols {
+            for c in 0..1020 {
                 if rng.uniform() < 0.03 {
                     continue;
                 }
                 let d = layout.direction(r, c);
                 let wall = 8.0 / d[0].abs().max(d[1].abs()).max(1e-6);
                 let floor = if d[2] < 0.0 { 1.5 / -d[2] } else { f64::INFINITY };
-                let pole = if c >= cols - 6 && c < cols - 2 { 3.0 } else { f64::INFINITY };
-                let mut range = wall.min(floor).min(pole) + 0.01 * rng.gauss();
-                if rng.uniform() < 0.01 {
+                let mut range = wall.min(floor).min(pole(c)) + 0.01 * rng.gauss();
+                if rng.uniform() < outliers {
                     range *= 0.7;
                 }
                 let p = [d[0] * range, d[1] * range, d[2] * range].map(|v| v as f32);
                 points.push(ScanPoint { xyz: p, row: r as u16, col: c as u16, ..Default::default() });
             }
         }
+        (table, points)
+    }
+
+    #[test]
+    fn each_incomplete_window_is_solved_once() {
+        extern crate std;
+        use std::boxed::Box;
+        let cols = 1020;
+        // A pole near the seam and a few outliers.
+        let (table, points) =
+            room_scan(5, |c| if c >= cols - 6 && c < cols - 2 { 3.0 } else { f64::INFINITY }, 0.01);
         let mut fals = Box::new(RingFals::<{ storage_pixels(16, 1020) }>::new());
         let mut out = std::vec![PointNormal::INVALID; points.len()];
         let stats = fals.estimate(&table, &points, &mut out).unwrap();
@@ -2582,29 +2596,11 @@ mod tests {
     fn median_equals_the_scalar_reference() {
         extern crate std;
         use std::{boxed::Box, vec::Vec};
-        let els: [f32; 16] = core::array::from_fn(|i| (15.0 - 2.0 * i as f32).to_radians());
         let cols = 1020;
-        let layout = RangeImageLayout::from_elevations(&els, cols, true).unwrap();
-        let mut table = RingTable::new();
-        table.build(&layout, &RingFalsConfig::DEFAULT).unwrap();
-        let mut rng = crate::testutil::Rng::new(11);
-        let mut points = Vec::new();
-        for r in 0..16 {
-            for c in 0..cols {
-                if rng.uniform() < 0.03 {
-                    continue;
-                }
-                let d = layout.direction(r, c);
-                let wall = 8.0 / d[0].abs().max(d[1].abs()).max(1e-6);
-                let floor = if d[2] < 0.0 { 1.5 / -d[2] } else { f64::INFINITY };
-                // Poles 3-9 pixels wide every 60 columns, at 2-5 m; one across the seam.
-                let k = (c + 3) % 60;
-                let pole = if k < 3 + c % 7 { 2.0 + (c / 60 % 4) as f64 } else { f64::INFINITY };
-                let range = wall.min(floor).min(pole) + 0.01 * rng.gauss();
-                let p = [d[0] * range, d[1] * range, d[2] * range].map(|v| v as f32);
-                points.push(ScanPoint { xyz: p, row: r as u16, col: c as u16, ..Default::default() });
-            }
-        }
+        // Poles 3-9 pixels wide every 60 columns, at 2-5 m; one across the seam.
+        let pole =
+            |c: usize| if (c + 3) % 60 < 3 + c % 7 { 2.0 + (c / 60 % 4) as f64 } else { f64::INFINITY };
+        let (table, points) = room_scan(11, pole, 0.0);
         let mut fals = Box::new(RingFals::<{ storage_pixels(16, 1020) }>::new());
         fals.project(&table, &points).unwrap();
         fals.solve(&table);
