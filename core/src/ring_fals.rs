@@ -1305,11 +1305,13 @@ impl<const P: usize> RingFals<P> {
             }
 
             let base = (r + PAD) * stride + PAD;
-            // -inf pad pixels in the window of an even and of an odd image column: the window
+            // -inf pad pixels in the window of an even and of an odd image column c: the window
             // covers padded rows r..r + 5 and padded columns c..c + 5.
-            let pads = (r..r + 5).filter(|&pr| pr < PAD || pr >= rows + PAD);
-            let neg_even = pads.clone().map(|pr| if pr % 2 == 0 { 3 } else { 2 }).sum::<i16>();
-            let neg_odd = pads.map(|pr| if pr % 2 == 0 { 2 } else { 3 }).sum::<i16>();
+            let neg = |c: usize| {
+                let pads = (r..r + 5).filter(|&pr| pr < PAD || pr >= rows + PAD);
+                pads.map(|pr| (c..c + 5).filter(|&pc| pad_sentinel(pr, pc) == i16::MIN).count() as i16).sum()
+            };
+            let (neg_even, neg_odd) = (neg(0), neg(1));
             // Groups of 16 columns; the last group is moved left to end at the last column and
             // skips the lanes the previous group already did.
             let mut c0 = 0;
@@ -2497,9 +2499,6 @@ mod tests {
         assert!(valid > 10_000 && none > 10_000, "{valid} valid, {none} none");
     }
 
-    /// Every incomplete window goes through the masked solve once, and on to the trimmed solve
-    /// once at most, wherever it lies in the row (the column count here is no multiple of
-    /// LANES): the counts equal a pixel-by-pixel reference.
     /// A 16 x 1020 scan (a column count no multiple of the lane widths) of a room 8 m across,
     /// 1.5 m above its floor: 1 cm noise, 3 % dropouts, `outliers` of the returns cut to 70 %;
     /// `pole(c)` is the range of a pole in column c (infinite where none).
@@ -2508,7 +2507,6 @@ mod tests {
         pole: impl Fn(usize) -> f64,
         outliers: f64,
     ) -> (RingTable, std::vec::Vec<ScanPoint>) {
-        extern crate std;
         let els: [f32; 16] = core::array::from_fn(|i| (15.0 - 2.0 * i as f32).to_radians());
         let layout = RangeImageLayout::from_elevations(&els, 1020, true).unwrap();
         let mut table = RingTable::new();
@@ -2534,6 +2532,9 @@ mod tests {
         (table, points)
     }
 
+    /// Every incomplete window goes through the masked solve once, and on to the trimmed solve
+    /// once at most, wherever it lies in the row (the column count here is no multiple of
+    /// LANES): the counts equal a pixel-by-pixel reference.
     #[test]
     fn each_incomplete_window_is_solved_once() {
         extern crate std;
