@@ -2043,9 +2043,11 @@ fn solve_trimmed_lanes(
                     + 2.0 * (adj[1][l] * u[0] * u[1] + adj[2][l] * u[0] * u[2] + adj[4][l] * u[1] * u[2]))
                     * inv[l];
                 let d = e[l] / (1.0 - h).max(1e-3);
-                let take = (p[l] != 0.0) & !(d <= worst_d[l]);
-                worst_d[l] = if take { d } else { worst_d[l] };
-                worst_k[l] = if take { k as u32 } else { worst_k[l] };
+                // A blend by bit masks: as a select, it compiled to masked stores that the next
+                // k's loads waited on (no store forwarding from a masked store).
+                let take = u32::from((p[l] != 0.0) & !(d <= worst_d[l])).wrapping_neg();
+                worst_d[l] = f32::from_bits((d.to_bits() & take) | (worst_d[l].to_bits() & !take));
+                worst_k[l] = (k as u32 & take) | (worst_k[l] & !take);
             }
         }
         for l in 0..LANES {
