@@ -16,6 +16,10 @@
 //!   results, pipelined; and as the association asks, 1 m bound in chunks of 64), and kiddo's immutable and mutable kd-trees holding exactly the map's
 //!   points, built outside the timed part; results are checked equal to kiddo's before timing.
 //! - `surfel/*`: the large surfel of each query's 5 nearest voxels, and one 3x3 eigen-analysis.
+//! - `downsample/vlp32c_0.4m/*`: the odometry's [`VoxelDownsampler`] on one raw scan (57,600
+//!   returns with their normals, in the sensor's column order): `warm` with everything in the
+//!   caches, `cold` after 64 MiB of other data went through them (as the map does between scans
+//!   in the odometry). The scan is restored outside the timed part.
 
 use std::collections::HashMap;
 use std::hint::black_box;
@@ -26,6 +30,8 @@ use criterion::{Criterion, criterion_group, criterion_main};
 use kiddo::kd_tree::KdTree;
 use kiddo::leaf_strategies::VecOfArrays;
 use kiddo::{Eytzinger, ImmutableKdTree, SquaredEuclidean};
+use loglio_core::downsample::{DownsampleConfig, VoxelDownsampler};
+use loglio_core::scan::ScanPoint;
 use loglio_core::voxel_map::{IndexSlot, KnnQuery, MapConfig, MapPoint, Neighbours, Voxel, VoxelMap};
 
 /// VLP-32C beam elevations, degrees (from the sensor's manual).
@@ -469,9 +475,58 @@ fn bench_knn(c: &mut Criterion) {
     g.finish();
 }
 
+fn bench_downsample(c: &mut Criterion) {
+    let scene = street();
+    let raw = scan(&scene, [0.0, 0.0, SENSOR_HEIGHT], 0.0, 7);
+    let to32 = |v: [f64; 3]| v.map(|x| x as f32);
+    let points: Vec<ScanPoint> = raw
+        .iter()
+        .enumerate()
+        .map(|(i, (p, _))| ScanPoint {
+            xyz: to32(*p),
+            t: i as f32 * 1e-6,
+            row: (i % 32) as u16,
+            col: (i / 32) as u16,
+            ..Default::default()
+        })
+        .collect();
+    let normals: Vec<[f32; 3]> = raw.iter().map(|(_, n)| to32(*n)).collect();
+    // The odometry's capacity (`OdometryStorage`'s `DS`) for this layout.
+    let mut ds: Box<VoxelDownsampler<{ 1 << 16 }>> = Box::new(VoxelDownsampler::new());
+    let cfg = DownsampleConfig::default();
+    let (mut p, mut n, mut cell_of) = (points.clone(), normals.clone(), vec![0u32; points.len()]);
+    let kept = ds.downsample_with_scratch(&cfg, &mut p, Some(&mut n), &mut cell_of).unwrap().kept;
+    eprintln!("downsample: {} returns -> {kept} points", points.len());
+    let mut sweep = vec![0u64; 8 << 20];
+    let mut g = c.benchmark_group("downsample/vlp32c_0.4m");
+    for cold in [false, true] {
+        g.bench_function(if cold { "cold" } else { "warm" }, |b| {
+            b.iter_custom(|iters| {
+                let mut total = Duration::ZERO;
+                for i in 0..iters {
+                    p.copy_from_slice(&points);
+                    n.copy_from_slice(&normals);
+                    if cold {
+                        for (j, w) in sweep.iter_mut().enumerate() {
+                            *w = w.wrapping_add(j as u64 ^ i);
+                        }
+                        black_box(&sweep);
+                    }
+                    let t = Instant::now();
+                    let st = ds.downsample_with_scratch(&cfg, black_box(&mut p), Some(&mut n), &mut cell_of);
+                    total += t.elapsed();
+                    black_box(st.unwrap());
+                }
+                total
+            })
+        });
+    }
+    g.finish();
+}
+
 criterion_group! {
     name = benches;
     config = Criterion::default().sample_size(20).measurement_time(Duration::from_secs(4)).warm_up_time(Duration::from_secs(1));
-    targets = bench_insert, bench_knn
+    targets = bench_insert, bench_knn, bench_downsample
 }
 criterion_main!(benches);
