@@ -15,7 +15,8 @@
 //!   by driving the street: `VoxelMap::knn` one query at a time, `VoxelMap::knn_many` (the same
 //!   results, pipelined; and as the association asks, 1 m bound in chunks of 64), and kiddo's immutable and mutable kd-trees holding exactly the map's
 //!   points, built outside the timed part; results are checked equal to kiddo's before timing.
-//! - `surfel/*`: the large surfel of each query's 5 nearest voxels, and one 3x3 eigen-analysis.
+//! - `surfel/*`: the large surfel of each query's 5 nearest voxels, the plane fit of their 5
+//!   nearest points (one at a time and `PLANE_LANES` at a time), and one 3x3 eigen-analysis.
 //! - `downsample/vlp32c_0.4m/*`: the odometry's [`VoxelDownsampler`] on one raw scan (57,600
 //!   returns with their normals, in the sensor's column order): `warm` with everything in the
 //!   caches, `cold` after 64 MiB of other data went through them (as the map does between scans
@@ -462,6 +463,36 @@ fn bench_knn(c: &mut Criterion) {
             let mut s = 0usize;
             for (o, h) in outs.iter().zip(&handles) {
                 s += usize::from(map.large_surfel(black_box(&h[..o.len()])).is_ok());
+            }
+            s
+        })
+    });
+    // The point-to-plane fallback's fit of each query's 5 nearest points: one at a time, and
+    // PLANE_LANES at a time as the association runs them (the same results).
+    let mut near = vec![Neighbours::new(); queries.len()];
+    map.knn_many(&queries, &query, &mut near);
+    let sets: Vec<([[f32; 3]; 8], usize)> = near.iter().map(|o| (o.points(), o.len())).collect();
+    let lanes = loglio_core::surfel::PLANE_LANES;
+    g.bench_function("fit_plane_10k", |b| {
+        b.iter(|| {
+            let mut s = 0usize;
+            for (p, n) in &sets {
+                s += usize::from(loglio_core::surfel::fit_plane(black_box(&p[..*n]), 0.1).is_ok());
+            }
+            s
+        })
+    });
+    g.bench_function("fit_plane_lanes_10k", |b| {
+        b.iter(|| {
+            let mut s = 0usize;
+            for group in sets.chunks(lanes) {
+                let mut pts = [[[0.0f32; 3]; 8]; loglio_core::surfel::PLANE_LANES];
+                let mut len = [0usize; loglio_core::surfel::PLANE_LANES];
+                for (l, (p, n)) in group.iter().enumerate() {
+                    (pts[l], len[l]) = (*p, *n);
+                }
+                let r = loglio_core::surfel::fit_plane_lanes(black_box(&pts), len, 0.1);
+                s += r[..group.len()].iter().filter(|r| r.is_ok()).count();
             }
             s
         })

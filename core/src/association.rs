@@ -58,7 +58,7 @@ use crate::eskf::{InfoAccumulator, Measurements, PointToPlane, State};
 use crate::odometry::{AssociationMode, Clock};
 use crate::output::AssociationCounts;
 use crate::scan::ScanPoint;
-use crate::surfel;
+use crate::surfel::{self, PLANE_LANES};
 use crate::voxel_map::{KNN_MAX, KnnQuery, Neighbours, VoxelHandle, VoxelMap};
 
 type V3 = Vector3<f64>;
@@ -292,6 +292,22 @@ impl<'a, 'm> Associator<'a, 'm> {
         range: f32,
         nb: &Neighbours,
     ) -> Result<Correspondence, Reject> {
+        match self.head(p_w, n_w, range, nb)? {
+            Head::Done(c) => Ok(c),
+            Head::Plane(f) => self.tail(&f, surfel::fit_plane(&f.pts[..f.len], self.cfg.plane_max_dist)),
+        }
+    }
+
+    /// Steps 2-5 up to the plane fit: a correspondence or rejection, or the point-to-plane
+    /// fit still to do (which [`ScanAssociation`] runs for several points at once).
+    #[inline]
+    fn head(
+        &self,
+        p_w: [f32; 3],
+        n_w: Option<[f32; 3]>,
+        range: f32,
+        nb: &Neighbours,
+    ) -> Result<Head, Reject> {
         let (map, cfg, mode, origin) = (self.map, self.cfg, self.mode, self.origin);
         let min_nb = usize::from(cfg.min_neighbours.max(3));
         if nb.len() < min_nb {
@@ -352,8 +368,8 @@ impl<'a, 'm> Associator<'a, 'm> {
                 }
             }
         }
-        let mut corr = None;
         if mode == AssociationMode::Full {
+            let mut corr = None;
             if let Ok(s) = map.large_surfel(&voxels[..m]) {
                 corr = Some(Correspondence::through(s.normal, s.mean, Kind::LargeSurfel));
             } else if let Ok(s) = map.small_surfel_at(p_w) {
@@ -362,29 +378,68 @@ impl<'a, 'm> Associator<'a, 'm> {
                     corr = Some(c);
                 }
             }
+            if let Some(c) = corr {
+                return self.residual_test(c, p_w, range).map(Head::Done);
+            }
         }
-        let corr = match corr {
-            Some(c) => c,
-            None => match surfel::fit_plane(&pts[..m], cfg.plane_max_dist) {
-                Ok(pl) => {
-                    if let Some(e) = expect {
-                        // Orientation-free: a plane's normal has no sign.
-                        let c = libm::fabsf(dot(e, pl.normal));
-                        if !(c >= self.cos_plane_normal) {
-                            return Err(Reject::NoPlane);
-                        }
-                    }
-                    Correspondence::through(pl.normal, pl.centroid, Kind::Plane)
-                }
-                Err(_) => return Err(Reject::NoPlane),
-            },
-        };
+        Ok(Head::Plane(PlaneFit { pts, len: m, expect, p_w, range }))
+    }
+
+    /// The point-to-plane fallback's verdict on `fit` (the plane of `f.pts`), then step 5.
+    #[inline]
+    fn tail(
+        &self,
+        f: &PlaneFit,
+        fit: Result<surfel::Plane, surfel::SurfelReject>,
+    ) -> Result<Correspondence, Reject> {
+        let Ok(pl) = fit else { return Err(Reject::NoPlane) };
+        if let Some(e) = f.expect {
+            // Orientation-free: a plane's normal has no sign.
+            let c = libm::fabsf(dot(e, pl.normal));
+            if !(c >= self.cos_plane_normal) {
+                return Err(Reject::NoPlane);
+            }
+        }
+        self.residual_test(Correspondence::through(pl.normal, pl.centroid, Kind::Plane), f.p_w, f.range)
+    }
+
+    /// Step 5.
+    #[inline]
+    fn residual_test(
+        &self,
+        corr: Correspondence,
+        p_w: [f32; 3],
+        range: f32,
+    ) -> Result<Correspondence, Reject> {
         let r = corr.distance(p_w);
-        if !(f64::from(cfg.residual_gate) * r * r < f64::from(range)) {
+        if !(f64::from(self.cfg.residual_gate) * r * r < f64::from(range)) {
             return Err(Reject::Residual);
         }
         Ok(corr)
     }
+}
+
+/// Where [`Associator::head`] got to.
+enum Head {
+    /// A surfel correspondence that passed the residual test.
+    Done(Correspondence),
+    /// The point-to-plane fallback is next.
+    Plane(PlaneFit),
+}
+
+/// A point waiting for its point-to-plane fit: the neighbours to fit, and what the verdict
+/// needs.
+#[derive(Clone, Copy)]
+struct PlaneFit {
+    pts: [[f32; 3]; KNN_MAX],
+    len: usize,
+    expect: Option<[f32; 3]>,
+    p_w: [f32; 3],
+    range: f32,
+}
+
+impl PlaneFit {
+    const EMPTY: Self = Self { pts: [[0.0; 3]; KNN_MAX], len: 0, expect: None, p_w: [0.0; 3], range: 0.0 };
 }
 
 #[inline]
@@ -501,6 +556,7 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
         let mut counts = AssociationCounts::default();
         let n = self.points.len();
         let mut start = 0;
+        let mut fits = [(0usize, PlaneFit::EMPTY); KNN_CHUNK];
         while start < n {
             let len = (n - start).min(KNN_CHUNK);
             for i in 0..len {
@@ -508,6 +564,7 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
                 self.queries[i] = to32(&h.to_world(&V3::new(f64::from(px), f64::from(py), f64::from(pz))));
             }
             self.map.knn_many(&self.queries[..len], &query, &mut self.nbrs[..len]);
+            let mut nfit = 0;
             for i in 0..len {
                 let j = start + i;
                 let p = &self.points[j];
@@ -517,33 +574,62 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
                 } else {
                     None
                 };
-                let res = assoc.point(self.queries[i], n_w, p.range(), &self.nbrs[i]);
-                self.corr[j] = match res {
-                    Ok(c) => {
-                        match c.kind {
-                            Kind::LargeSurfel => counts.large_surfel += 1,
-                            Kind::SmallSurfel => counts.small_surfel += 1,
-                            Kind::Plane | Kind::None => counts.plane += 1,
-                        }
-                        c
+                let res = match assoc.head(self.queries[i], n_w, p.range(), &self.nbrs[i]) {
+                    Ok(Head::Plane(f)) => {
+                        // Later, with the chunk's other plane fits.
+                        fits[nfit] = (j, f);
+                        nfit += 1;
+                        continue;
                     }
-                    Err(e) => {
-                        match e {
-                            Reject::NoNeighbours => counts.no_neighbours += 1,
-                            Reject::Visibility => counts.rejected_visibility += 1,
-                            Reject::Consistency => counts.rejected_consistency += 1,
-                            Reject::NoPlane => counts.no_plane += 1,
-                            Reject::Residual => counts.rejected_residual += 1,
-                        }
-                        Correspondence::NONE
-                    }
+                    Ok(Head::Done(c)) => Ok(c),
+                    Err(e) => Err(e),
                 };
+                self.corr[j] = count(&mut counts, res);
+            }
+            // The plane fits, PLANE_LANES at a time (their chains of square roots and
+            // divisions overlap); the same results as one at a time.
+            for group in fits[..nfit].chunks(PLANE_LANES) {
+                let mut pts = [[[0.0f32; 3]; KNN_MAX]; PLANE_LANES];
+                let mut lens = [0usize; PLANE_LANES];
+                for (l, (_, f)) in group.iter().enumerate() {
+                    pts[l] = f.pts;
+                    lens[l] = f.len;
+                }
+                let planes = surfel::fit_plane_lanes(&pts, lens, self.cfg.plane_max_dist);
+                for ((j, f), fit) in group.iter().zip(planes) {
+                    self.corr[*j] = count(&mut counts, assoc.tail(f, fit));
+                }
             }
             start += len;
         }
         self.counts = counts;
         self.searched = Some(*x);
         self.searches += 1;
+    }
+}
+
+/// Counts a point's association and gives its correspondence ([`Correspondence::NONE`] if
+/// rejected).
+fn count(counts: &mut AssociationCounts, res: Result<Correspondence, Reject>) -> Correspondence {
+    match res {
+        Ok(c) => {
+            match c.kind {
+                Kind::LargeSurfel => counts.large_surfel += 1,
+                Kind::SmallSurfel => counts.small_surfel += 1,
+                Kind::Plane | Kind::None => counts.plane += 1,
+            }
+            c
+        }
+        Err(e) => {
+            match e {
+                Reject::NoNeighbours => counts.no_neighbours += 1,
+                Reject::Visibility => counts.rejected_visibility += 1,
+                Reject::Consistency => counts.rejected_consistency += 1,
+                Reject::NoPlane => counts.no_plane += 1,
+                Reject::Residual => counts.rejected_residual += 1,
+            }
+            Correspondence::NONE
+        }
     }
 }
 

@@ -36,6 +36,20 @@ pub fn sqrtf(x: f32) -> f32 {
     }
 }
 
+/// Correctly rounded square roots of four `f64`: one vector instruction where the build has AVX,
+/// four [`sqrt`] otherwise (the same bits either way).
+#[inline(always)]
+pub fn sqrt4(x: [f64; 4]) -> [f64; 4] {
+    #[cfg(all(any(target_arch = "x86", target_arch = "x86_64"), target_feature = "avx"))]
+    {
+        safe_arch::sqrt_m256d(safe_arch::m256d::from_array(x)).to_array()
+    }
+    #[cfg(not(all(any(target_arch = "x86", target_arch = "x86_64"), target_feature = "avx")))]
+    {
+        x.map(sqrt)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -50,6 +64,12 @@ mod tests {
                 assert_eq!(sqrtf(f).to_bits(), libm::sqrtf(f).to_bits(), "{f}");
             }
             x *= 1.37;
+        }
+        for x in [[0.0, 1.0, 2.0, 1e-300], [3.7e200, 1e-310, 0.25, 7.0]] {
+            let v = sqrt4(x);
+            for i in 0..4 {
+                assert_eq!(v[i].to_bits(), libm::sqrt(x[i]).to_bits(), "{}", x[i]);
+            }
         }
         assert!(sqrt(-1.0).is_nan() && sqrtf(-1.0).is_nan());
         assert_eq!(sqrt(0.0), 0.0);

@@ -571,6 +571,266 @@ pub fn fit_plane(points: &[[f32; 3]], max_dist: f32) -> Result<Plane, SurfelReje
     })
 }
 
+/// Point sets [`fit_plane_lanes`] fits at once.
+pub const PLANE_LANES: usize = 8;
+
+type Lanes = [f64; PLANE_LANES];
+
+/// [`crate::math::sqrt4`] over the lanes.
+#[inline(always)]
+fn sqrt_lanes(x: Lanes) -> Lanes {
+    let mut out = x;
+    for c in 0..PLANE_LANES / 4 {
+        let v = crate::math::sqrt4([x[4 * c], x[4 * c + 1], x[4 * c + 2], x[4 * c + 3]]);
+        out[4 * c..4 * c + 4].copy_from_slice(&v);
+    }
+    out
+}
+
+/// [`fit_plane`] of [`PLANE_LANES`] point sets at once (`pts[l][..len[l]]`); every lane's
+/// result is the scalar function's, bit for bit.
+///
+/// The scalar fit is a chain of a dozen dependent square roots and divisions (about 100 ns):
+/// here the lanes run the same operations side by side (vector code where the target has it),
+/// so the chains overlap. Lanes the straight-line code cannot answer exactly (too few or
+/// non-finite points, eigenvalues too close for the closed form, overflow-sized numbers) take
+/// the scalar function.
+pub fn fit_plane_lanes<const K: usize>(
+    pts: &[[[f32; 3]; K]; PLANE_LANES],
+    len: [usize; PLANE_LANES],
+    max_dist: f32,
+) -> [Result<Plane, SurfelReject>; PLANE_LANES] {
+    const L: usize = PLANE_LANES;
+    let mut scalar: [bool; L] = core::array::from_fn(|l| {
+        len[l] < 3 || len[l] > K || pts[l][..len[l]].iter().any(|p| p.iter().any(|x| !x.is_finite()))
+    });
+    // Moments about the first point, as `Moments::add` sums them.
+    let o: [Lanes; 3] = core::array::from_fn(|a| core::array::from_fn(|l| f64::from(pts[l][0][a])));
+    let mut sum = [[0.0f64; L]; 3];
+    let mut sq = [[0.0f64; L]; 6];
+    for j in 0..K {
+        for l in 0..L {
+            let take = j < len[l];
+            let d = [
+                f64::from(pts[l][j][0]) - o[0][l],
+                f64::from(pts[l][j][1]) - o[1][l],
+                f64::from(pts[l][j][2]) - o[2][l],
+            ];
+            for a in 0..3 {
+                sum[a][l] = if take { sum[a][l] + d[a] } else { sum[a][l] };
+            }
+            let outer = [
+                1.0 * d[0] * d[0],
+                1.0 * d[0] * d[1],
+                1.0 * d[0] * d[2],
+                1.0 * d[1] * d[1],
+                1.0 * d[1] * d[2],
+                1.0 * d[2] * d[2],
+            ];
+            for i in 0..6 {
+                sq[i][l] = if take { sq[i][l] + outer[i] } else { sq[i][l] };
+            }
+        }
+    }
+    let n: Lanes = core::array::from_fn(|l| f64::from(len[l].min(K) as u32));
+    // `Moments::covariance`: the scatter `S - P Pᵀ / n`, then divided by n.
+    let mut cov = sq;
+    for l in 0..L {
+        let w = -1.0 / n[l];
+        let s = [sum[0][l], sum[1][l], sum[2][l]];
+        let outer = [
+            w * s[0] * s[0],
+            w * s[0] * s[1],
+            w * s[0] * s[2],
+            w * s[1] * s[1],
+            w * s[1] * s[2],
+            w * s[2] * s[2],
+        ];
+        let inv = 1.0 / n[l];
+        for i in 0..6 {
+            cov[i][l] = (cov[i][l] + outer[i]) * inv;
+        }
+    }
+    let (values, normal, ok) = eigen_closed_lanes(&cov);
+    let mut out = [Err(SurfelReject::Degenerate); L];
+    for l in 0..L {
+        scalar[l] |= !ok[l];
+        if scalar[l] {
+            out[l] = fit_plane(&pts[l][..len[l].min(K)], max_dist);
+            continue;
+        }
+        // `Shape::of_covariance` clamps at 0.
+        let l2 = if values[1][l] < 0.0 { 0.0 } else { values[1][l] };
+        let l3 = if values[2][l] < 0.0 { 0.0 } else { values[2][l] };
+        if !(l3 > 0.0 && l2 > 1e-8 * l3) {
+            continue; // Degenerate
+        }
+        let nv = [normal[0][l], normal[1][l], normal[2][l]];
+        let c = [sum[0][l] / n[l], sum[1][l] / n[l], sum[2][l] / n[l]];
+        let mut max_res = 0.0f64;
+        for p in &pts[l][..len[l]] {
+            let d = [
+                f64::from(p[0]) - o[0][l] - c[0],
+                f64::from(p[1]) - o[1][l] - c[1],
+                f64::from(p[2]) - o[2][l] - c[2],
+            ];
+            let r = dot3(nv, d).abs();
+            if r > max_res {
+                max_res = r;
+            }
+        }
+        out[l] = if !(max_res <= f64::from(max_dist)) {
+            Err(SurfelReject::OffPlane)
+        } else {
+            Ok(Plane {
+                normal: [nv[0] as f32, nv[1] as f32, nv[2] as f32],
+                centroid: [(o[0][l] + c[0]) as f32, (o[1][l] + c[1]) as f32, (o[2][l] + c[2]) as f32],
+                max_residual: max_res as f32,
+            })
+        };
+    }
+    out
+}
+
+/// [`eigen_sym3_closed`] on lanes, operation for operation: the ascending eigenvalues, the
+/// eigenvector of the smallest, and whether the lane's answer is the scalar one (false where
+/// the scalar function returns `None` or takes a branch not written here).
+fn eigen_closed_lanes(m: &[Lanes; 6]) -> ([Lanes; 3], [Lanes; 3], [bool; PLANE_LANES]) {
+    const L: usize = PLANE_LANES;
+    let [a00, a01, a02, a11, a12, a22] = *m;
+    let mut ok = [true; L];
+    let mut q = [0.0; L];
+    let mut p2 = [0.0; L];
+    let mut b = [[0.0; L]; 3];
+    for l in 0..L {
+        q[l] = (a00[l] + a11[l] + a22[l]) / 3.0;
+        b[0][l] = a00[l] - q[l];
+        b[1][l] = a11[l] - q[l];
+        b[2][l] = a22[l] - q[l];
+        p2[l] = b[0][l] * b[0][l]
+            + b[1][l] * b[1][l]
+            + b[2][l] * b[2][l]
+            + 2.0 * (a01[l] * a01[l] + a02[l] * a02[l] + a12[l] * a12[l]);
+        ok[l] &= p2[l] > 0.0 && p2[l] < 1e300;
+    }
+    let p = sqrt_lanes(p2.map(|v| v / 6.0));
+    let mut low = [false; L];
+    let mut liso = [0.0; L];
+    for l in 0..L {
+        let inv = 1.0 / p[l];
+        let (c00, c01, c02, c11, c12, c22) =
+            (b[0][l] * inv, a01[l] * inv, a02[l] * inv, b[1][l] * inv, a12[l] * inv, b[2][l] * inv);
+        ok[l] &= 3.0 * p[l] > 1e-6 * (2.0 * q[l].abs() + 4.0 * p[l]);
+        let det =
+            c00 * (c11 * c22 - c12 * c12) - c01 * (c01 * c22 - c12 * c02) + c02 * (c01 * c12 - c11 * c02);
+        let x = (0.5 * det).clamp(-1.0, 1.0);
+        low[l] = x <= 0.0;
+        let c = cos_third_acos(x.abs());
+        liso[l] = if low[l] { q[l] - 2.0 * p[l] * c } else { q[l] + 2.0 * p[l] * c };
+    }
+    // `null_vector`: the longest cross product of two rows of A - λ I, made unit.
+    let mut best = [[0.0; L]; 3];
+    let mut bn = [0.0; L];
+    for l in 0..L {
+        let mm = [a00[l], a01[l], a02[l], a11[l], a12[l], a22[l]];
+        let r0 = [mm[0] - liso[l], mm[1], mm[2]];
+        let r1 = [mm[1], mm[3] - liso[l], mm[4]];
+        let r2 = [mm[2], mm[4], mm[5] - liso[l]];
+        let (x01, x02, x12) = (cross3(r0, r1), cross3(r0, r2), cross3(r1, r2));
+        let (n01, n02, n12) = (dot3(x01, x01), dot3(x02, x02), dot3(x12, x12));
+        let (v, nv) = if n01 >= n02 && n01 >= n12 {
+            (x01, n01)
+        } else if n02 >= n12 {
+            (x02, n02)
+        } else {
+            (x12, n12)
+        };
+        for a in 0..3 {
+            best[a][l] = v[a];
+        }
+        bn[l] = nv;
+        ok[l] &= nv > 0.0 && nv.is_finite();
+    }
+    let rs = sqrt_lanes(bn);
+    let mut v = [[0.0; L]; 3];
+    let mut u = [[0.0; L]; 3];
+    let mut un = [0.0; L];
+    for l in 0..L {
+        let s = 1.0 / rs[l];
+        let vl = [best[0][l] * s, best[1][l] * s, best[2][l] * s];
+        let axis = if vl[0].abs() <= vl[1].abs() && vl[0].abs() <= vl[2].abs() {
+            [1.0, 0.0, 0.0]
+        } else if vl[1].abs() <= vl[2].abs() {
+            [0.0, 1.0, 0.0]
+        } else {
+            [0.0, 0.0, 1.0]
+        };
+        let ul = cross3(vl, axis);
+        un[l] = dot3(ul, ul);
+        ok[l] &= un[l] > 0.0 && un[l].is_finite();
+        for a in 0..3 {
+            v[a][l] = vl[a];
+            u[a][l] = ul[a];
+        }
+    }
+    let ru = sqrt_lanes(un);
+    let mut tt = [0.0; L];
+    let mut rot = [[0.0; L]; 4]; // a, b, c, |d| + sqrt(d² + e²) denominator input
+    let mut dd = [0.0; L];
+    for l in 0..L {
+        let s = 1.0 / ru[l];
+        let ul = [u[0][l] * s, u[1][l] * s, u[2][l] * s];
+        let vl = [v[0][l], v[1][l], v[2][l]];
+        let wl = cross3(vl, ul);
+        let mm = [a00[l], a01[l], a02[l], a11[l], a12[l], a22[l]];
+        let (au, aw) = (sym_mul(&mm, ul), sym_mul(&mm, wl));
+        let (a, bb, c) = (dot3(ul, au), dot3(ul, aw), dot3(wl, aw));
+        rot[0][l] = a;
+        rot[1][l] = bb;
+        rot[2][l] = c;
+        // `rotation_tan(c - a, 2 b)`, its common branch.
+        let (d, e) = (c - a, 2.0 * bb);
+        ok[l] &= !(d.abs() > 1e150 || e.abs() > 1e150);
+        dd[l] = d * d + e * e;
+        for ax in 0..3 {
+            u[ax][l] = ul[ax];
+        }
+        rot[3][l] = d;
+    }
+    let rd = sqrt_lanes(dd);
+    for l in 0..L {
+        let (d, e) = (rot[3][l], 2.0 * rot[1][l]);
+        let s = if d >= 0.0 { 1.0 } else { -1.0 };
+        tt[l] = if rot[1][l] == 0.0 { 0.0 } else { s * e / (d.abs() + rd[l]) };
+    }
+    let rc = sqrt_lanes(tt.map(|t| t * t + 1.0));
+    let mut values = [[0.0; L]; 3];
+    let mut normal = [[0.0; L]; 3];
+    for l in 0..L {
+        let (a, bb, c, t) = (rot[0][l], rot[1][l], rot[2][l], tt[l]);
+        let cs = 1.0 / rc[l];
+        let sn = t * cs;
+        let (la, lb) = (a - t * bb, c + t * bb);
+        let ul = [u[0][l], u[1][l], u[2][l]];
+        let vl = [v[0][l], v[1][l], v[2][l]];
+        let wl = cross3(vl, ul);
+        let xa = [cs * ul[0] - sn * wl[0], cs * ul[1] - sn * wl[1], cs * ul[2] - sn * wl[2]];
+        let xb = [sn * ul[0] + cs * wl[0], sn * ul[1] + cs * wl[1], sn * ul[2] + cs * wl[2]];
+        let mm = [a00[l], a01[l], a02[l], a11[l], a12[l], a22[l]];
+        let lv = dot3(vl, sym_mul(&mm, vl));
+        let (lo, hi) = if la <= lb { ((la, xa), (lb, xb)) } else { ((lb, xb), (la, xa)) };
+        let [(v1, e1), (v2, _), (v3, _)] = if low[l] { [(lv, vl), lo, hi] } else { [lo, hi, (lv, vl)] };
+        ok[l] &= v1 <= v2 && v2 <= v3;
+        values[0][l] = v1;
+        values[1][l] = v2;
+        values[2][l] = v3;
+        for a in 0..3 {
+            normal[a][l] = e1[a];
+        }
+    }
+    (values, normal, ok)
+}
+
 #[inline]
 pub(crate) fn sub3(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
@@ -864,6 +1124,89 @@ mod tests {
         let line: Vec<[f64; 3]> = (0..10).map(|i| [i as f64 * 0.01, 0.0, 0.0]).collect();
         assert_eq!(c.check(&shape(&line)), Err(SurfelReject::Degenerate));
         assert_eq!(c.check(&shape(&[[1.0, 2.0, 3.0]; 5])), Err(SurfelReject::Degenerate));
+    }
+
+    /// The lanes give the scalar fit's results bit for bit, on the sets the association sees
+    /// (4 to 8 neighbours on a noisy plane, anywhere in the world) and on those the scalar fit
+    /// refuses or that leave the closed form: lines, coincident points, near-isotropic clouds,
+    /// non-finite coordinates, too few points.
+    #[test]
+    fn plane_fit_lanes_equal_the_scalar_fit() {
+        fn same(a: &Result<Plane, SurfelReject>, b: &Result<Plane, SurfelReject>) -> bool {
+            match (a, b) {
+                (Ok(x), Ok(y)) => {
+                    let bits =
+                        |p: &Plane| [p.normal, p.centroid, [p.max_residual; 3]].map(|v| v.map(f32::to_bits));
+                    bits(x) == bits(y)
+                }
+                (Err(x), Err(y)) => x == y,
+                _ => false,
+            }
+        }
+        let mut rng = Rng(11);
+        let mut kinds = [0usize; 4]; // ok, off plane, degenerate, other
+        for case in 0..4000 {
+            let mut pts = [[[0.0f32; 3]; 8]; PLANE_LANES];
+            let mut len = [0usize; PLANE_LANES];
+            for l in 0..PLANE_LANES {
+                len[l] = 3 + (rng.next_u64() % 6) as usize;
+                let far = if case % 3 == 0 { 1000.0 } else { 20.0 };
+                let c = [rng.uniform(-far, far), rng.uniform(-far, far), rng.uniform(-5.0, 5.0)];
+                let (u, v) = (
+                    [1.0, rng.uniform(-1.0, 1.0), rng.uniform(-0.3, 0.3)],
+                    [rng.uniform(-0.3, 0.3), 1.0, rng.uniform(-1.0, 1.0)],
+                );
+                let noise = [0.0, 0.005, 0.05, 0.3][(rng.next_u64() % 4) as usize];
+                let style = rng.next_u64() % 10;
+                for j in 0..8 {
+                    let (s, t) = (rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5));
+                    let p: [f64; 3] = core::array::from_fn(|a| match style {
+                        0 => c[a] + s * u[a],               // a line
+                        1 => c[a],                          // one point, repeated
+                        2 => c[a] + rng.uniform(-0.3, 0.3), // a blob
+                        _ => c[a] + s * u[a] + t * v[a] + noise * rng.gauss(),
+                    });
+                    pts[l][j] = p.map(|x| x as f32);
+                }
+                if style == 3 && case % 7 == 0 {
+                    pts[l][(rng.next_u64() % len[l] as u64) as usize][1] = f32::NAN;
+                }
+                if style == 4 && case % 5 == 0 {
+                    len[l] = (rng.next_u64() % 3) as usize;
+                }
+            }
+            let lanes = fit_plane_lanes(&pts, len, 0.1);
+            for l in 0..PLANE_LANES {
+                let want = fit_plane(&pts[l][..len[l]], 0.1);
+                assert!(same(&lanes[l], &want), "case {case} lane {l}: {:?} vs {want:?}", lanes[l]);
+                kinds[match want {
+                    Ok(_) => 0,
+                    Err(SurfelReject::OffPlane) => 1,
+                    Err(SurfelReject::Degenerate) => 2,
+                    Err(_) => 3,
+                }] += 1;
+            }
+        }
+        // Every outcome is exercised.
+        assert!(kinds.iter().all(|&k| k > 200), "{kinds:?}");
+        // The lanes answer surfel-like covariances themselves (no fallback), as the closed form.
+        for _ in 0..500 {
+            let covs: [Sym3; PLANE_LANES] = core::array::from_fn(|_| {
+                let l = rng.uniform(0.001, 0.04);
+                let e = [l * libm::pow(10.0, rng.uniform(-7.0, -1.0)), l * rng.uniform(0.05, 1.0), l];
+                rotated(&mut rng, e)
+            });
+            let m: [Lanes; 6] = core::array::from_fn(|i| core::array::from_fn(|l| covs[l][i]));
+            let (values, normal, ok) = eigen_closed_lanes(&m);
+            for l in 0..PLANE_LANES {
+                let (cv, cvec) = eigen_sym3_closed(&covs[l]).unwrap();
+                assert!(ok[l]);
+                for i in 0..3 {
+                    assert_eq!(values[i][l].to_bits(), cv[i].to_bits());
+                    assert_eq!(normal[i][l].to_bits(), cvec[0][i].to_bits());
+                }
+            }
+        }
     }
 
     #[test]
