@@ -45,6 +45,12 @@
 //! `research_rot` since the last search; in between, the stored correspondences (world planes)
 //! are re-linearised at the new iterate, which costs a few products per point.
 //!
+//! ## Speed
+//! A search goes through the points in chunks of [`KNN_CHUNK`]: their k-NN queries go to the
+//! map together, then steps 2-4 run per point up to the point-to-plane fit, and the chunk's
+//! plane fits run [`PLANE_LANES`] at a time ([`surfel::fit_plane_lanes`]: the same results,
+//! with the fits' chains of square roots and divisions overlapping), then step 5.
+//!
 //! Everything here is allocation-free: the caller lends the correspondence buffer and the k-NN
 //! chunk buffers.
 
