@@ -94,7 +94,6 @@ pub struct DownsampleStats {
 /// The accumulators of one voxel, kept dense in first-seen order (the index points here), so
 /// that a scan's voxels occupy a few hundred kilobytes instead of being spread over the table.
 #[derive(Clone, Copy, Debug)]
-#[repr(C, align(64))]
 struct Cell {
     key: [i32; 3],
     count: u32,
@@ -321,16 +320,11 @@ impl<const N: usize> VoxelDownsampler<N> {
             }
         }
 
-        // Pass 2: the point nearest to each centroid (`sum` holds the centroid from here on:
-        // one division per voxel instead of one per point).
-        for c in &mut self.cells[..used] {
-            let n = c.count as f32;
-            c.sum = c.sum.map(|v| v / n);
-        }
+        // Pass 2: the point nearest to each centroid.
         let nearest = |c: &mut Cell, p: &ScanPoint, i: usize| {
             let mut d2 = 0.0;
             for a in 0..3 {
-                let centroid = c.sum[a];
+                let centroid = c.sum[a] / c.count as f32;
                 let d = (p.xyz[a] - c.key[a] as f32 * cfg.voxel) - centroid;
                 d2 += d * d;
             }
