@@ -304,8 +304,9 @@ impl<'a, 'm> Associator<'a, 'm> {
         }
     }
 
-    /// Steps 2-5 up to the plane fit: a correspondence or rejection, or the point-to-plane
-    /// fit still to do (which [`ScanAssociation`] runs for several points at once).
+    /// Steps 2-4 up to the plane fit (and step 5 for a surfel): a correspondence or rejection,
+    /// or the point-to-plane fit still to do (which [`ScanAssociation`] runs for several points
+    /// at once).
     #[inline]
     fn head(
         &self,
