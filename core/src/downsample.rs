@@ -269,13 +269,9 @@ impl<const N: usize> VoxelDownsampler<N> {
         let max = Self::max_voxels();
 
         // The index is all but empty between scans and the map's work evicts it from the
-        // caches; one read per cache line in order brings it back in a stream, where the
-        // scan's lookups would fetch its lines one random miss at a time.
-        let mut touch = 0u32;
-        for line in self.index.chunks(16) {
-            touch |= line[0];
-        }
-        core::hint::black_box(touch);
+        // caches: read in order, it comes back in a stream, where the scan's lookups would
+        // fetch its lines one random miss at a time.
+        crate::math::read_in(&self.index);
 
         // Pass 1: accumulate.
         self.recent = [([0; 3], 0); RECENT];

@@ -1,4 +1,5 @@
-//! Square roots that compile to the target's own instruction in its own encoding.
+//! Square roots that compile to the target's own instruction in its own encoding, and a cache
+//! warm-up read ([`read_in`]).
 //!
 //! `libm::sqrt` on x86 is inline assembly with the legacy SSE encoding (`sqrtsd`). In a build
 //! for a CPU with AVX (`-C target-cpu=native`, see `.cargo/config.toml`) the code around it is
@@ -47,6 +48,18 @@ pub fn sqrt4(x: [f64; 4]) -> [f64; 4] {
     #[cfg(not(all(any(target_arch = "x86", target_arch = "x86_64"), target_feature = "avx")))]
     {
         x.map(sqrt)
+    }
+}
+
+/// Reads one element per 64-byte cache line of `s`, in order, and nothing else. For a buffer
+/// about to be used in random order after other work evicted it: a sequential read arrives as a
+/// stream the hardware prefetchers follow, where the random accesses would each wait for
+/// memory. No effect on results.
+#[inline]
+pub(crate) fn read_in<T: Copy>(s: &[T]) {
+    let step = (64 / core::mem::size_of::<T>().max(1)).max(1);
+    for x in s.iter().step_by(step) {
+        core::hint::black_box(*x);
     }
 }
 

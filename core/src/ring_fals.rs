@@ -1063,13 +1063,8 @@ impl<const P: usize> RingFals<P> {
         self.range2[PAD * stride..(PAD + rows) * stride].fill(0.0);
         // The owner image is written in the points' order, column by column, a stream per row:
         // more streams than the hardware prefetchers follow. Where the storage left the caches
-        // between scans (the odometry's map work evicts it), one read per cache line in order
-        // brings it back first.
-        let mut touch = 0u32;
-        for line in self.owner[PAD * stride..(PAD + rows) * stride].chunks(16) {
-            touch |= line[0];
-        }
-        core::hint::black_box(touch);
+        // between scans (the odometry's map work evicts it), it is read in order first.
+        crate::math::read_in(&self.owner[PAD * stride..(PAD + rows) * stride]);
 
         let cfg = table.config;
         let (min2, max2) = (cfg.min_range * cfg.min_range, cfg.max_range * cfg.max_range);

@@ -56,9 +56,8 @@ pub(crate) fn rodrigues_coeffs(theta: f64) -> (f64, f64) {
     } else if theta < POLY_ANGLE {
         // Eight terms of each series (the next is below 5e-20 at 0.5 rad): the undistortion
         // asks for a transform per distinct point time, and two `sin` calls were a quarter of
-        // its time.
-        // Estrin's scheme: three dependent multiply-adds instead of Horner's seven (the
-        // undistortion's transforms wait on this chain).
+        // its time. Estrin's scheme: three dependent multiply-adds instead of Horner's seven
+        // (the transforms wait on this chain).
         let x = theta * theta;
         let (x2, x4) = (x * x, x * x * (x * x));
         let estrin = |c: &[f64; 8]| {
