@@ -352,14 +352,7 @@ pub fn eigen_sym3_closed(m: &Sym3) -> Option<([f64; 3], [[f64; 3]; 3])> {
     let av = sym_mul(m, v);
     let lv = dot3(v, av);
     // An orthonormal basis (u, w) of the plane orthogonal to v, and A restricted to it.
-    let axis = if v[0].abs() <= v[1].abs() && v[0].abs() <= v[2].abs() {
-        [1.0, 0.0, 0.0]
-    } else if v[1].abs() <= v[2].abs() {
-        [0.0, 1.0, 0.0]
-    } else {
-        [0.0, 0.0, 1.0]
-    };
-    let u = unit3(cross3(v, axis))?;
+    let u = unit3(cross3(v, least_axis(v)))?;
     let w = cross3(v, u);
     let (au, aw) = (sym_mul(m, u), sym_mul(m, w));
     let (a, b, c) = (dot3(u, au), dot3(u, aw), dot3(w, aw));
@@ -428,6 +421,19 @@ fn null_vector(m: &Sym3, l: f64) -> Option<[f64; 3]> {
         x12
     };
     unit3(best)
+}
+
+/// The coordinate axis along which `v` is shortest (the first of equals): crossed with `v`, it
+/// gives a vector orthogonal to `v` far from zero.
+#[inline]
+fn least_axis(v: [f64; 3]) -> [f64; 3] {
+    if v[0].abs() <= v[1].abs() && v[0].abs() <= v[2].abs() {
+        [1.0, 0.0, 0.0]
+    } else if v[1].abs() <= v[2].abs() {
+        [0.0, 1.0, 0.0]
+    } else {
+        [0.0, 0.0, 1.0]
+    }
 }
 
 #[inline]
@@ -758,14 +764,7 @@ fn eigen_closed_lanes(m: &[Lanes; 6]) -> ([Lanes; 3], [Lanes; 3], [bool; PLANE_L
     for l in 0..L {
         let s = 1.0 / rs[l];
         let vl = [best[0][l] * s, best[1][l] * s, best[2][l] * s];
-        let axis = if vl[0].abs() <= vl[1].abs() && vl[0].abs() <= vl[2].abs() {
-            [1.0, 0.0, 0.0]
-        } else if vl[1].abs() <= vl[2].abs() {
-            [0.0, 1.0, 0.0]
-        } else {
-            [0.0, 0.0, 1.0]
-        };
-        let ul = cross3(vl, axis);
+        let ul = cross3(vl, least_axis(vl));
         un[l] = dot3(ul, ul);
         ok[l] &= un[l] > 0.0 && un[l].is_finite();
         for a in 0..3 {
