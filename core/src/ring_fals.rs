@@ -2543,7 +2543,6 @@ mod tests {
     /// LANES): the counts equal a pixel-by-pixel reference.
     #[test]
     fn each_incomplete_window_is_solved_once() {
-        extern crate std;
         use std::boxed::Box;
         let cols = 1020;
         // A pole near the seam and a few outliers.
@@ -2601,7 +2600,6 @@ mod tests {
     /// fallback and normalisation. Poles in front of walls make the gate leave pixels out.
     #[test]
     fn median_equals_the_scalar_reference() {
-        extern crate std;
         use std::{boxed::Box, vec::Vec};
         let cols = 1020;
         // Poles 3-9 pixels wide every 60 columns, at 2-5 m; one across the seam.

@@ -359,6 +359,25 @@ pub fn eigen_sym3_closed(m: &Sym3) -> Option<([f64; 3], [[f64; 3]; 3])> {
     // One Jacobi rotation diagonalises it (see `jacobi_rotate`).
     let t = if b == 0.0 { 0.0 } else { rotation_tan(c - a, 2.0 * b) };
     let cs = 1.0 / crate::math::sqrt(t * t + 1.0);
+    let (values, vectors, ordered) = assemble((lv, v), low_isolated, [a, b, c], t, cs, u, w);
+    ordered.then_some((values, vectors))
+}
+
+/// The end of [`eigen_sym3_closed`] (and of its lanes): the pair's rotation by `t` (cosine
+/// `cs`) in the basis `(u, w)` of A restricted to `[a, b, c]`, and the three eigenpairs in
+/// ascending order with the isolated one `(lv, v)` first or last, and whether they are in
+/// order (rounding may leave the isolated value a hair past its neighbour).
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn assemble(
+    (lv, v): (f64, [f64; 3]),
+    low_isolated: bool,
+    [a, b, c]: [f64; 3],
+    t: f64,
+    cs: f64,
+    u: [f64; 3],
+    w: [f64; 3],
+) -> ([f64; 3], [[f64; 3]; 3], bool) {
     let sn = t * cs;
     let (la, lb) = (a - t * b, c + t * b);
     let xa = [cs * u[0] - sn * w[0], cs * u[1] - sn * w[1], cs * u[2] - sn * w[2]];
@@ -366,11 +385,7 @@ pub fn eigen_sym3_closed(m: &Sym3) -> Option<([f64; 3], [[f64; 3]; 3])> {
     let (pair_lo, pair_hi) = if la <= lb { ((la, xa), (lb, xb)) } else { ((lb, xb), (la, xa)) };
     let [(v1, e1), (v2, e2), (v3, e3)] =
         if low_isolated { [(lv, v), pair_lo, pair_hi] } else { [pair_lo, pair_hi, (lv, v)] };
-    // Rounding may leave the isolated value a hair past its neighbour; keep the order.
-    if !(v1 <= v2 && v2 <= v3) {
-        return None;
-    }
-    Some(([v1, v2, v3], [e1, e2, e3]))
+    ([v1, v2, v3], [e1, e2, e3], v1 <= v2 && v2 <= v3)
 }
 
 /// `cos(acos(y) / 3)` for `y` in [0, 1] (in [cos(30 deg), 1]; smooth there): a degree-7
@@ -408,19 +423,25 @@ fn sym_mul(m: &Sym3, v: [f64; 3]) -> [f64; 3] {
 /// The unit vector spanning the null space of `A - λ I` (rank 2): the longest cross product of
 /// two of its rows.
 fn null_vector(m: &Sym3, l: f64) -> Option<[f64; 3]> {
+    unit3(longest_row_cross(m, l).0)
+}
+
+/// The longest cross product of two rows of `A - λ I` and its squared length (before
+/// [`unit3`], which the lanes take in a batch).
+#[inline(always)]
+fn longest_row_cross(m: &Sym3, l: f64) -> ([f64; 3], f64) {
     let r0 = [m[0] - l, m[1], m[2]];
     let r1 = [m[1], m[3] - l, m[4]];
     let r2 = [m[2], m[4], m[5] - l];
     let (x01, x02, x12) = (cross3(r0, r1), cross3(r0, r2), cross3(r1, r2));
     let (n01, n02, n12) = (dot3(x01, x01), dot3(x02, x02), dot3(x12, x12));
-    let best = if n01 >= n02 && n01 >= n12 {
-        x01
+    if n01 >= n02 && n01 >= n12 {
+        (x01, n01)
     } else if n02 >= n12 {
-        x02
+        (x02, n02)
     } else {
-        x12
-    };
-    unit3(best)
+        (x12, n12)
+    }
 }
 
 /// The coordinate axis along which `v` is shortest (the first of equals): crossed with `v`, it
@@ -552,13 +573,27 @@ pub fn fit_plane(points: &[[f32; 3]], max_dist: f32) -> Result<Plane, SurfelReje
         m.add([f64::from(p[0]), f64::from(p[1]), f64::from(p[2])]);
     }
     let shape = Shape::of_covariance(&m.covariance());
-    let [_, l2, l3] = shape.eigenvalues;
+    plane_verdict(points, o, m.sum, f64::from(m.n), shape.eigenvalues, shape.normal(), max_dist)
+}
+
+/// The end of [`fit_plane`] (and of its lanes), given the points' sums about `o` and the
+/// clamped eigenvalues and normal of their covariance: the degeneracy and distance tests and
+/// the plane.
+#[inline(always)]
+fn plane_verdict(
+    points: &[[f32; 3]],
+    o: [f64; 3],
+    sum: [f64; 3],
+    n_pts: f64,
+    [_, l2, l3]: [f64; 3],
+    n: [f64; 3],
+    max_dist: f32,
+) -> Result<Plane, SurfelReject> {
     // A line (or a point) has no unique plane: the middle eigenvalue must be a real extent.
     if !(l3 > 0.0 && l2 > 1e-8 * l3) {
         return Err(SurfelReject::Degenerate);
     }
-    let n = shape.normal();
-    let c = [m.sum[0] / f64::from(m.n), m.sum[1] / f64::from(m.n), m.sum[2] / f64::from(m.n)]; // relative to o
+    let c = [sum[0] / n_pts, sum[1] / n_pts, sum[2] / n_pts]; // relative to o
     let mut max_res = 0.0f64;
     for p in points {
         let d = [f64::from(p[0]) - o[0] - c[0], f64::from(p[1]) - o[1] - c[1], f64::from(p[2]) - o[2] - c[2]];
@@ -666,34 +701,16 @@ pub fn fit_plane_lanes<const K: usize>(
             continue;
         }
         // `Shape::of_covariance` clamps at 0.
-        let l2 = if values[1][l] < 0.0 { 0.0 } else { values[1][l] };
-        let l3 = if values[2][l] < 0.0 { 0.0 } else { values[2][l] };
-        if !(l3 > 0.0 && l2 > 1e-8 * l3) {
-            continue; // Degenerate
-        }
-        let nv = [normal[0][l], normal[1][l], normal[2][l]];
-        let c = [sum[0][l] / n[l], sum[1][l] / n[l], sum[2][l] / n[l]];
-        let mut max_res = 0.0f64;
-        for p in &pts[l][..len[l]] {
-            let d = [
-                f64::from(p[0]) - o[0][l] - c[0],
-                f64::from(p[1]) - o[1][l] - c[1],
-                f64::from(p[2]) - o[2][l] - c[2],
-            ];
-            let r = dot3(nv, d).abs();
-            if r > max_res {
-                max_res = r;
-            }
-        }
-        out[l] = if !(max_res <= f64::from(max_dist)) {
-            Err(SurfelReject::OffPlane)
-        } else {
-            Ok(Plane {
-                normal: [nv[0] as f32, nv[1] as f32, nv[2] as f32],
-                centroid: [(o[0][l] + c[0]) as f32, (o[1][l] + c[1]) as f32, (o[2][l] + c[2]) as f32],
-                max_residual: max_res as f32,
-            })
-        };
+        let values = [0, 1, 2].map(|i| if values[i][l] < 0.0 { 0.0 } else { values[i][l] });
+        out[l] = plane_verdict(
+            &pts[l][..len[l]],
+            [o[0][l], o[1][l], o[2][l]],
+            [sum[0][l], sum[1][l], sum[2][l]],
+            n[l],
+            values,
+            [normal[0][l], normal[1][l], normal[2][l]],
+            max_dist,
+        );
     }
     out
 }
@@ -734,28 +751,18 @@ fn eigen_closed_lanes(m: &[Lanes; 6]) -> ([Lanes; 3], [Lanes; 3], [bool; PLANE_L
         let c = cos_third_acos(x.abs());
         liso[l] = if low[l] { q[l] - 2.0 * p[l] * c } else { q[l] + 2.0 * p[l] * c };
     }
-    // `null_vector`: the longest cross product of two rows of A - λ I, made unit.
+    // `null_vector`: the longest cross product of two rows of A - λ I, made unit. Vectors are
+    // kept per component over the lanes (`x[axis][lane]`), which is what vectorises.
+    let row = |l: usize| [a00[l], a01[l], a02[l], a11[l], a12[l], a22[l]];
+    let get = |x: &[Lanes; 3], l: usize| [x[0][l], x[1][l], x[2][l]];
+    let put = |x: &mut [Lanes; 3], l: usize, y: [f64; 3]| (x[0][l], x[1][l], x[2][l]) = (y[0], y[1], y[2]);
     let mut best = [[0.0; L]; 3];
     let mut bn = [0.0; L];
     for l in 0..L {
-        let mm = [a00[l], a01[l], a02[l], a11[l], a12[l], a22[l]];
-        let r0 = [mm[0] - liso[l], mm[1], mm[2]];
-        let r1 = [mm[1], mm[3] - liso[l], mm[4]];
-        let r2 = [mm[2], mm[4], mm[5] - liso[l]];
-        let (x01, x02, x12) = (cross3(r0, r1), cross3(r0, r2), cross3(r1, r2));
-        let (n01, n02, n12) = (dot3(x01, x01), dot3(x02, x02), dot3(x12, x12));
-        let (v, nv) = if n01 >= n02 && n01 >= n12 {
-            (x01, n01)
-        } else if n02 >= n12 {
-            (x02, n02)
-        } else {
-            (x12, n12)
-        };
-        for a in 0..3 {
-            best[a][l] = v[a];
-        }
-        bn[l] = nv;
-        ok[l] &= nv > 0.0 && nv.is_finite();
+        let (x, n2) = longest_row_cross(&row(l), liso[l]);
+        put(&mut best, l, x);
+        bn[l] = n2;
+        ok[l] &= n2 > 0.0 && n2.is_finite();
     }
     let rs = sqrt_lanes(bn);
     let mut v = [[0.0; L]; 3];
@@ -763,69 +770,51 @@ fn eigen_closed_lanes(m: &[Lanes; 6]) -> ([Lanes; 3], [Lanes; 3], [bool; PLANE_L
     let mut un = [0.0; L];
     for l in 0..L {
         let s = 1.0 / rs[l];
-        let vl = [best[0][l] * s, best[1][l] * s, best[2][l] * s];
+        let vl = get(&best, l).map(|x| x * s);
         let ul = cross3(vl, least_axis(vl));
         un[l] = dot3(ul, ul);
         ok[l] &= un[l] > 0.0 && un[l].is_finite();
-        for a in 0..3 {
-            v[a][l] = vl[a];
-            u[a][l] = ul[a];
-        }
+        put(&mut v, l, vl);
+        put(&mut u, l, ul);
     }
+    // The plane orthogonal to v: its basis (u, w), A restricted to it ([a, b, c]), and the
+    // rotation that diagonalises that (`rotation_tan(c - a, 2 b)`, its common branch).
     let ru = sqrt_lanes(un);
-    let mut tt = [0.0; L];
-    let mut rot = [[0.0; L]; 4]; // a, b, c, |d| + sqrt(d² + e²) denominator input
+    let mut w = [[0.0; L]; 3];
+    let mut abc = [[0.0; L]; 3];
     let mut dd = [0.0; L];
     for l in 0..L {
         let s = 1.0 / ru[l];
-        let ul = [u[0][l] * s, u[1][l] * s, u[2][l] * s];
-        let vl = [v[0][l], v[1][l], v[2][l]];
+        let (ul, vl) = (get(&u, l).map(|x| x * s), get(&v, l));
         let wl = cross3(vl, ul);
-        let mm = [a00[l], a01[l], a02[l], a11[l], a12[l], a22[l]];
-        let (au, aw) = (sym_mul(&mm, ul), sym_mul(&mm, wl));
-        let (a, bb, c) = (dot3(ul, au), dot3(ul, aw), dot3(wl, aw));
-        rot[0][l] = a;
-        rot[1][l] = bb;
-        rot[2][l] = c;
-        // `rotation_tan(c - a, 2 b)`, its common branch.
-        let (d, e) = (c - a, 2.0 * bb);
+        let (au, aw) = (sym_mul(&row(l), ul), sym_mul(&row(l), wl));
+        let (a, b, c) = (dot3(ul, au), dot3(ul, aw), dot3(wl, aw));
+        let (d, e) = (c - a, 2.0 * b);
         ok[l] &= !(d.abs() > 1e150 || e.abs() > 1e150);
         dd[l] = d * d + e * e;
-        for ax in 0..3 {
-            u[ax][l] = ul[ax];
-        }
-        rot[3][l] = d;
+        put(&mut u, l, ul);
+        put(&mut w, l, wl);
+        put(&mut abc, l, [a, b, c]);
     }
     let rd = sqrt_lanes(dd);
+    let mut t = [0.0; L];
     for l in 0..L {
-        let (d, e) = (rot[3][l], 2.0 * rot[1][l]);
-        let s = if d >= 0.0 { 1.0 } else { -1.0 };
-        tt[l] = if rot[1][l] == 0.0 { 0.0 } else { s * e / (d.abs() + rd[l]) };
+        let [a, b, c] = get(&abc, l);
+        let (d, e) = (c - a, 2.0 * b);
+        let sg = if d >= 0.0 { 1.0 } else { -1.0 };
+        t[l] = if b == 0.0 { 0.0 } else { sg * e / (d.abs() + rd[l]) };
     }
-    let rc = sqrt_lanes(tt.map(|t| t * t + 1.0));
+    let rc = sqrt_lanes(t.map(|t| t * t + 1.0));
     let mut values = [[0.0; L]; 3];
     let mut normal = [[0.0; L]; 3];
     for l in 0..L {
-        let (a, bb, c, t) = (rot[0][l], rot[1][l], rot[2][l], tt[l]);
-        let cs = 1.0 / rc[l];
-        let sn = t * cs;
-        let (la, lb) = (a - t * bb, c + t * bb);
-        let ul = [u[0][l], u[1][l], u[2][l]];
-        let vl = [v[0][l], v[1][l], v[2][l]];
-        let wl = cross3(vl, ul);
-        let xa = [cs * ul[0] - sn * wl[0], cs * ul[1] - sn * wl[1], cs * ul[2] - sn * wl[2]];
-        let xb = [sn * ul[0] + cs * wl[0], sn * ul[1] + cs * wl[1], sn * ul[2] + cs * wl[2]];
-        let mm = [a00[l], a01[l], a02[l], a11[l], a12[l], a22[l]];
-        let lv = dot3(vl, sym_mul(&mm, vl));
-        let (lo, hi) = if la <= lb { ((la, xa), (lb, xb)) } else { ((lb, xb), (la, xa)) };
-        let [(v1, e1), (v2, _), (v3, _)] = if low[l] { [(lv, vl), lo, hi] } else { [lo, hi, (lv, vl)] };
-        ok[l] &= v1 <= v2 && v2 <= v3;
-        values[0][l] = v1;
-        values[1][l] = v2;
-        values[2][l] = v3;
-        for a in 0..3 {
-            normal[a][l] = e1[a];
-        }
+        let vl = get(&v, l);
+        let lv = dot3(vl, sym_mul(&row(l), vl));
+        let (vals, vecs, ordered) =
+            assemble((lv, vl), low[l], get(&abc, l), t[l], 1.0 / rc[l], get(&u, l), get(&w, l));
+        ok[l] &= ordered;
+        put(&mut values, l, vals);
+        put(&mut normal, l, vecs[0]);
     }
     (values, normal, ok)
 }
