@@ -532,12 +532,47 @@ impl RingTable {
         if c >= self.cols as usize { c - self.cols as usize } else { c }
     }
 
+    /// The padded-image index of every caller pixel, as a table per row for the per-point
+    /// loops (see [`PixelIndex`]).
+    fn pixel_index(&self, stride: usize) -> PixelIndex {
+        let cols = usize::from(self.cols);
+        let mut ix = PixelIndex { base: [0; MAX_ROWS], wrap_at: [0; MAX_ROWS], cols };
+        for r in 0..usize::from(self.rows) {
+            let shift = usize::from(self.shift[r]);
+            ix.base[r] = (r + PAD) * stride + PAD + shift;
+            ix.wrap_at[r] = cols - shift;
+        }
+        ix
+    }
+
     /// Unit ray (cos az, sin az) of the internal pixel (row, internal col), as the solve uses it.
     #[inline]
     fn azimuth_cs(&self, row: usize, icol: usize) -> (f32, f32) {
         let rc = &self.row[row];
         let (cc, sc) = (self.col_cos[icol], self.col_sin[icol]);
         (rc.ca0 * cc - rc.sa0 * sc, rc.sa0 * cc + rc.ca0 * sc)
+    }
+}
+
+/// Per row of a table: where its caller column 0 lies in the padded image, and the caller
+/// column from which the internal columns wrap around. One load and a compare per point instead
+/// of [`RingTable::internal_col`]'s multiply and its bounds checks: the projection and the
+/// write-back are short loops over every point.
+struct PixelIndex {
+    base: [usize; MAX_ROWS],
+    wrap_at: [usize; MAX_ROWS],
+    cols: usize,
+}
+
+const _: () = assert!(MAX_ROWS.is_power_of_two());
+
+impl PixelIndex {
+    /// Padded-image index of caller pixel (row, col), for `row < rows` and `col < cols`.
+    #[inline(always)]
+    fn px(&self, row: usize, col: usize) -> usize {
+        // `row` is below the table's rows, so the mask changes nothing but proves the index.
+        let r = row & (MAX_ROWS - 1);
+        self.base[r] + col - if col >= self.wrap_at[r] { self.cols } else { 0 }
     }
 }
 
@@ -1068,35 +1103,36 @@ impl<const P: usize> RingFals<P> {
 
         let cfg = table.config;
         let (min2, max2) = (cfg.min_range * cfg.min_range, cfg.max_range * cfg.max_range);
-        let mut st = self.stats;
+        // Two counters only: with four, one lived on the stack, and its store and reload were a
+        // chain through every iteration. Projected pixels are counted after the loop.
+        let (mut no_pixel, mut rejected) = (0u32, 0u32);
+        let ix = table.pixel_index(stride);
         for (i, p) in points.iter().enumerate() {
             let (row, col) = (p.row as usize, p.col as usize);
             if row >= rows || col >= cols {
-                st.no_pixel += 1;
+                no_pixel += 1;
                 continue;
             }
             let [x, y, z] = p.xyz;
             let r2 = x * x + y * y + z * z;
             // Written so that NaN fails: a non-finite point is rejected, never projected.
             if !(r2 >= min2 && r2 <= max2) {
-                st.rejected_range += 1;
+                rejected += 1;
                 continue;
             }
-            let px = (row + PAD) * stride + table.internal_col(row, col) + PAD;
+            let px = ix.px(row, col);
             let old = self.range2[px];
-            if old == 0.0 {
-                st.projected += 1;
+            if old == 0.0 || r2 < old {
                 self.range2[px] = r2;
                 self.owner[px] = i as u32;
-            } else {
-                st.collisions += 1;
-                if r2 < old {
-                    self.range2[px] = r2;
-                    self.owner[px] = i as u32;
-                }
             }
         }
-        self.stats = st;
+        let image = &self.range2[PAD * stride..(PAD + rows) * stride];
+        let projected = image.iter().fold(0u32, |n, &r2| n + u32::from(r2 > 0.0));
+        self.stats.no_pixel = no_pixel;
+        self.stats.rejected_range = rejected;
+        self.stats.projected = projected;
+        self.stats.collisions = points.len() as u32 - no_pixel - rejected - projected;
         Ok(())
     }
 
@@ -1478,7 +1514,7 @@ impl<const P: usize> RingFals<P> {
             let (ca, sa) = (rc.ca0 * cc - rc.sa0 * sc, rc.sa0 * cc + rc.ca0 * sc);
             let facing = rc.ce * (ca * m[0] + sa * m[1]) + rc.se * m[2];
             sound[l] = (n2 >= 0.25 * QSCALE * QSCALE) & (facing < 0.0);
-            let s = rsqrt(n2);
+            let s = rsqrt_norm(n2);
             for ch in 0..3 {
                 n[ch][l] = m[ch] * s;
             }
@@ -1511,15 +1547,17 @@ impl<const P: usize> RingFals<P> {
         }
         let cfg = table.config;
         let (min2, max2) = (cfg.min_range * cfg.min_range, cfg.max_range * cfg.max_range);
+        let ix = table.pixel_index(stride);
         for (i, (p, o)) in points.iter().zip(out.iter_mut()).enumerate() {
-            *o = PointNormal::INVALID;
             let (row, col) = (p.row as usize, p.col as usize);
             if row >= rows || col >= cols {
+                *o = PointNormal::INVALID;
                 continue;
             }
-            let px = (row + PAD) * stride + table.internal_col(row, col) + PAD;
+            let px = ix.px(row, col);
             let s = self.state[px];
             if s != FULL && s != GAP {
+                *o = PointNormal::INVALID;
                 continue;
             }
             // The pixel's owner was projected this scan (a pixel with a return was written),
@@ -1527,14 +1565,12 @@ impl<const P: usize> RingFals<P> {
             if self.owner[px] != i as u32 {
                 let [x, y, z] = p.xyz;
                 let r2 = x * x + y * y + z * z;
-                if !(r2 >= min2 && r2 <= max2) {
-                    continue;
-                }
                 // A point that lost its pixel to a nearer one shares the pixel's normal only if
                 // it lies on the same surface: within the gate to a same-row neighbour.
                 let (ri, rp) = (crate::math::sqrtf(r2), crate::math::sqrtf(self.range2[px]));
                 let g = table.row[row].gate[CENTRE + 1];
-                if !(ri - rp <= g * rp + cfg.range_jump_abs) {
+                if !((r2 >= min2) & (r2 <= max2) & (ri - rp <= g * rp + cfg.range_jump_abs)) {
+                    *o = PointNormal::INVALID;
                     continue;
                 }
             }
@@ -1649,6 +1685,17 @@ fn rsqrt(x: f32) -> f32 {
     y * (1.5 - h * y * y)
 }
 
+/// 1/sqrt(x) for normalising a vector: as [`rsqrt`] with two Newton steps instead of three,
+/// relative error below 5e-6 (the median quantises normals to 3e-5). The third step is a
+/// quarter of the full-window solve's arithmetic.
+#[inline(always)]
+fn rsqrt_norm(x: f32) -> f32 {
+    let y = f32::from_bits(0x5f37_5a86u32.wrapping_sub(x.to_bits() >> 1));
+    let h = 0.5 * x;
+    let y = y * (1.5 - h * y * y);
+    y * (1.5 - h * y * y)
+}
+
 /// The full-window solve of one image row, vectorisable: writes the oriented unit normal and
 /// FULL for pixels whose complete window passed the gates, zero and PARTIAL for pixels with a
 /// return whose window is incomplete, zero and EMPTY for pixels without a return.
@@ -1726,7 +1773,7 @@ fn to_global(rc: &RowCoeffs, m0: f32, m1: f32, m2: f32, ca: f32, sa: f32) -> ([f
     let z = m0 * rc.se + t2 * rc.ce;
     let n2 = x * x + y * y + z * z;
     // FALS normals point away from the sensor (m0 > 0): flip them toward it.
-    let s = -rsqrt(n2);
+    let s = -rsqrt_norm(n2);
     let ok = (m0 > 0.0) & (n2 > 1e-30) & (n2 < 1e30);
     ([x * s, y * s, z * s], ok)
 }
@@ -2392,6 +2439,17 @@ mod tests {
     }
 
     #[test]
+    fn rsqrt_norm_is_accurate() {
+        let mut x = 1e-6f32;
+        while x < 1e8 {
+            let want = 1.0 / libm::sqrt(x as f64);
+            let got = rsqrt_norm(x) as f64;
+            assert!(((got - want) / want).abs() < 5e-6, "x {x}: {got} vs {want}");
+            x *= 1.013;
+        }
+    }
+
+    #[test]
     fn log2_approx_is_accurate() {
         let mut x = 1e-5f32;
         while x < 1e3 {
@@ -2654,7 +2712,7 @@ mod tests {
                     let (ca, sa) = (rc.ca0 * cc - rc.sa0 * sc, rc.sa0 * cc + rc.ca0 * sc);
                     let facing = rc.ce * (ca * m[0] + sa * m[1]) + rc.se * m[2];
                     if n2 >= 0.25 * QSCALE * QSCALE && facing < 0.0 {
-                        let s = rsqrt(n2);
+                        let s = rsqrt_norm(n2);
                         want = m.map(|v| v * s);
                     }
                 }
