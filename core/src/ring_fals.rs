@@ -2084,7 +2084,8 @@ fn solve_trimmed_lanes(
             for l in 0..LANES {
                 ssr[l] += p[l] * (e[l] * e[l]);
             }
-            if k == CENTRE {
+            // The last pass drops nothing: no leverage needed (most lanes get that far).
+            if k == CENTRE || pass == MAX_TRIM {
                 continue;
             }
             for l in 0..LANES {
