@@ -951,6 +951,46 @@ impl WindowBatch {
     }
 }
 
+/// Two window batches filled in turn. A batch that fills is solved only when the other one
+/// fills too: a batch solved at once loads, as vectors, the values its last pixel stored one by
+/// one a moment before, and those loads wait until the stores reach the cache (a store is not
+/// forwarded into a wider load); a batch older by one fill has long reached it.
+#[derive(Clone, Copy, Debug)]
+struct BatchPair {
+    b: [WindowBatch; 2],
+    cur: usize,
+}
+
+impl BatchPair {
+    const EMPTY: Self = Self { b: [WindowBatch::EMPTY; 2], cur: 0 };
+
+    /// Adds a pixel. When that fills the current batch, the other one becomes current and is
+    /// returned if it holds the previous full batch, to be solved (and emptied) at once.
+    #[inline(always)]
+    fn push(&mut self, px: usize, w9: [f32; 9], cs: (f32, f32)) -> Option<&mut WindowBatch> {
+        if self.b[self.cur].push(px, w9, cs) {
+            self.cur ^= 1;
+            let other = &mut self.b[self.cur];
+            if other.len > 0 {
+                return Some(other);
+            }
+        }
+        None
+    }
+
+    /// The batch to solve at the end of a row, older first; `None` when both are empty.
+    fn pending(&mut self) -> Option<&mut WindowBatch> {
+        let older = self.cur ^ 1;
+        if self.b[older].len > 0 {
+            Some(&mut self.b[older])
+        } else if self.b[self.cur].len > 0 {
+            Some(&mut self.b[self.cur])
+        } else {
+            None
+        }
+    }
+}
+
 /// Lanes of the median (i16): 16 neighbouring columns, two SSE2 registers or one AVX2 register
 /// per operation.
 const QLANES: usize = 16;
@@ -1166,8 +1206,8 @@ impl<const P: usize> RingFals<P> {
         let mut trimmed = 0u32;
         let mut valid = 0u32;
         let mut invalid = 0u32;
-        let mut partial = WindowBatch::EMPTY;
-        let mut batch = WindowBatch::EMPTY;
+        let mut partial = BatchPair::EMPTY;
+        let mut trim = BatchPair::EMPTY;
         for r in 0..rows {
             let rc = &table.row[r];
             let base = (r + PAD) * stride + PAD;
@@ -1196,13 +1236,17 @@ impl<const P: usize> RingFals<P> {
                     bits &= bits - 1;
                     let px = base + c;
                     let w9 = core::array::from_fn(|k| self.inv[px + (k / 3) * stride + (k % 3) - stride - 1]);
-                    if partial.push(px, w9, table.azimuth_cs(r, c)) {
-                        trimmed += self.finish_partial(rc, &table.config, &mut partial, &mut batch);
+                    if let Some(full) = partial.push(px, w9, table.azimuth_cs(r, c)) {
+                        trimmed += self.finish_partial(rc, &table.config, full, &mut trim);
                     }
                 }
             }
-            trimmed += self.finish_partial(rc, &table.config, &mut partial, &mut batch);
-            self.finish_trimmed(rc, &table.config, &mut batch);
+            while let Some(b) = partial.pending() {
+                trimmed += self.finish_partial(rc, &table.config, b, &mut trim);
+            }
+            while let Some(b) = trim.pending() {
+                self.finish_trimmed(rc, &table.config, b);
+            }
             for &st in &self.state[base..base + cols] {
                 valid += u32::from((st == FULL) | (st == GAP));
                 gap_solves += u32::from(st == GAP);
@@ -1223,7 +1267,7 @@ impl<const P: usize> RingFals<P> {
         rc: &RowCoeffs,
         cfg: &RingFalsConfig,
         batch: &mut WindowBatch,
-        trim: &mut WindowBatch,
+        trim: &mut BatchPair,
     ) -> u32 {
         if batch.len == 0 {
             return 0;
@@ -1242,8 +1286,8 @@ impl<const P: usize> RingFals<P> {
                 TRIM => {
                     trimmed += 1;
                     let w9 = core::array::from_fn(|k| batch.w9[k][l]);
-                    if trim.push(px, w9, (batch.ca[l], batch.sa[l])) {
-                        self.finish_trimmed(rc, cfg, trim);
+                    if let Some(full) = trim.push(px, w9, (batch.ca[l], batch.sa[l])) {
+                        self.finish_trimmed(rc, cfg, full);
                     }
                 }
                 _ => {
