@@ -1871,6 +1871,7 @@ const TRIM: u8 = 5;
 /// and `b'` as masked sums. Per lane: GAP with the normal when the plane fits every point,
 /// TRIM when the system is sound but some point is off the plane, INVALID when too few points
 /// are present or the system is ill-conditioned (which includes all points on one image line).
+#[inline(always)]
 fn solve_group_masked(
     rc: &RowCoeffs,
     cfg: &RingFalsConfig,
@@ -2028,6 +2029,7 @@ fn solve_trimmed(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa:
 /// passes with its own mask of points, until every lane has its verdict. The arithmetic is
 /// [`solve_trimmed`]'s, term by term in the same order, so the results are the same bits.
 /// Returns the normals and which lanes have one.
+#[inline(always)]
 fn solve_trimmed_lanes(
     rc: &RowCoeffs,
     cfg: &RingFalsConfig,
