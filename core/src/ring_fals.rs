@@ -1260,8 +1260,9 @@ impl<const P: usize> RingFals<P> {
     }
 
     /// Runs the masked solve on the gathered incomplete windows of one row: writes the normals
-    /// and states of those it decides and moves those to be trimmed into `trim` (solving it
-    /// whenever it fills). Empties the batch; returns how many went to the trimmed solve.
+    /// and states of those it decides and moves those to be trimmed into `trim` (solving the
+    /// full batch `trim` hands back). Empties the batch; returns how many went to the trimmed
+    /// solve.
     fn finish_partial(
         &mut self,
         rc: &RowCoeffs,
