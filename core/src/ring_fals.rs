@@ -1719,20 +1719,16 @@ fn log2_approx(x: f32) -> f32 {
 }
 
 /// 1/sqrt(x) for x > 0 in f32 arithmetic only (so that it vectorises and gives the same bits on
-/// every target): a bit-level first guess refined by three Newton steps, relative error below
-/// 2e-7.
+/// every target): [`rsqrt_norm`] refined by a third Newton step, relative error below 2e-7.
 #[inline(always)]
 fn rsqrt(x: f32) -> f32 {
-    let y = f32::from_bits(0x5f37_5a86u32.wrapping_sub(x.to_bits() >> 1));
-    let h = 0.5 * x;
-    let y = y * (1.5 - h * y * y);
-    let y = y * (1.5 - h * y * y);
-    y * (1.5 - h * y * y)
+    let y = rsqrt_norm(x);
+    y * (1.5 - 0.5 * x * y * y)
 }
 
-/// 1/sqrt(x) for normalising a vector: as [`rsqrt`] with two Newton steps instead of three,
-/// relative error below 5e-6 (the median quantises normals to 3e-5). The third step is a
-/// quarter of the full-window solve's arithmetic.
+/// 1/sqrt(x) for normalising a vector: a bit-level first guess refined by two Newton steps,
+/// relative error below 5e-6 (the median quantises normals to 3e-5). [`rsqrt`]'s third step
+/// would be a quarter of the full-window solve's arithmetic.
 #[inline(always)]
 fn rsqrt_norm(x: f32) -> f32 {
     let y = f32::from_bits(0x5f37_5a86u32.wrapping_sub(x.to_bits() >> 1));
