@@ -818,6 +818,9 @@ const PARTIAL: u8 = 2;
 const GAP: u8 = 3;
 /// Has a return but no reliable normal.
 const INVALID: u8 = 4;
+/// Owner of a pixel without a valid normal once [`RingFals::write_points`] has run (point
+/// indices stay below it: `project` refuses more than `u32::MAX` points).
+const NO_OWNER: u32 = u32::MAX;
 
 /// Padded pixel count that a [`RingFals`] needs for a `rows` x `cols` layout: use it as the
 /// const parameter, e.g. `RingFals<{ storage_pixels(32, 1800) }>`.
@@ -1592,6 +1595,15 @@ impl<const P: usize> RingFals<P> {
         }
         let cfg = table.config;
         let (min2, max2) = (cfg.min_range * cfg.min_range, cfg.max_range * cfg.max_range);
+        // Pixels without a normal get the owner no point has, so that the loop below tells
+        // "owned and valid" by one load and compare instead of two (the state's load and test
+        // were 40 % of its samples).
+        for r in PAD..PAD + rows {
+            let i = r * stride + PAD..r * stride + PAD + cols;
+            for (o, &s) in self.owner[i.clone()].iter_mut().zip(&self.state[i]) {
+                *o = if (s == FULL) | (s == GAP) { *o } else { NO_OWNER };
+            }
+        }
         let ix = table.pixel_index(stride);
         for (i, (p, o)) in points.iter().zip(out.iter_mut()).enumerate() {
             let (row, col) = (p.row as usize, p.col as usize);
@@ -1600,14 +1612,14 @@ impl<const P: usize> RingFals<P> {
                 continue;
             }
             let px = ix.px(row, col);
-            let s = self.state[px];
-            if s != FULL && s != GAP {
-                *o = PointNormal::INVALID;
-                continue;
-            }
             // The pixel's owner was projected this scan (a pixel with a return was written),
             // so it passed the range filter already.
-            if self.owner[px] != i as u32 {
+            let owner = self.owner[px];
+            if owner != i as u32 {
+                if owner == NO_OWNER {
+                    *o = PointNormal::INVALID;
+                    continue;
+                }
                 let [x, y, z] = p.xyz;
                 let r2 = x * x + y * y + z * z;
                 // A point that lost its pixel to a nearer one shares the pixel's normal only if
