@@ -2009,12 +2009,8 @@ fn solve_trimmed(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa:
             let e = (u[0] * sol[0] + u[1] * sol[1] + u[2] * sol[2] - w[k]).abs();
             ssr += e * e;
             if k != CENTRE {
-                // Leverage h = u^T M'^-1 u.
-                let h = (adj[0] * u[0] * u[0]
-                    + adj[3] * u[1] * u[1]
-                    + adj[5] * u[2] * u[2]
-                    + 2.0 * (adj[1] * u[0] * u[1] + adj[2] * u[0] * u[2] + adj[4] * u[1] * u[2]))
-                    * s;
+                let uu: [f32; 6] = core::array::from_fn(|i| rc.uu[i][k]);
+                let h = leverage(&adj, &uu, s);
                 let d = e / (1.0 - h).max(1e-3);
                 if !(d <= worst.0) {
                     worst = (d, k);
@@ -2064,32 +2060,38 @@ fn solve_trimmed_lanes(
     let mut done: [bool; LANES] = core::array::from_fn(|l| !active[l] | !(wc[l] > 0.0));
     let mut valid = [false; LANES];
     let mut out = [[0.0f32; LANES]; 3];
+    // The right-hand side's terms u_i w of every window point, the same in every pass.
+    let mut uw = [[[0.0f32; LANES]; 3]; 9];
+    for k in 0..9 {
+        for i in 0..3 {
+            let u = rc.u[i][k];
+            for l in 0..LANES {
+                uw[k][i][l] = u * w9[k][l];
+            }
+        }
+    }
     for pass in 0..=MAX_TRIM {
         if done.iter().all(|&d| d) {
             break;
         }
-        // Each step runs over all lanes at once (vector code): the points present as 0/1
-        // factors, their count and spread over the image (SPANS_PLANE, computed), and the
-        // system as masked sums in window order. Adding a product by 0.0 leaves a sum's bits
-        // as they were, so these are the scalar loop's sums over the points present.
-        let mut pf = [[0.0f32; LANES]; 9];
+        // Each step runs over all lanes at once (vector code): the points present, their count
+        // and spread over the image (SPANS_PLANE, from bit counts of the mask), and the system
+        // as masked sums in window order. Adding a product by 0.0 leaves a sum's bits as they
+        // were, so these are the scalar loop's sums over the points present. (Written as an
+        // add under a condition, the sums stopped vectorising: the solve took 35 % longer.)
         let mut count = [0i32; LANES];
         let (mut srr, mut scc, mut src) = ([0i32; LANES], [0i32; LANES], [0i32; LANES]);
-        for k in 0..9 {
-            let (dr, dc) = (k as i32 / 3 - 1, k as i32 % 3 - 1);
-            for l in 0..LANES {
-                let p = ((mask[l] >> k) & 1) as i32;
-                pf[k][l] = p as f32;
-                count[l] += p;
-                srr[l] += p * (dr * dr);
-                scc[l] += p * (dc * dc);
-                src[l] += p * (dr * dc);
-            }
+        for l in 0..LANES {
+            let bits = |m: u32| (mask[l] & m).count_ones() as i32;
+            count[l] = bits(0x1ff);
+            srr[l] = bits(ROW_OFF);
+            scc[l] = bits(COL_OFF);
+            src[l] = bits(DIAG_SAME) - bits(DIAG_OPPOSITE);
         }
         let mut m = [[0.0f32; LANES]; 6];
         let mut b = [[0.0f32; LANES]; 3];
         for k in 0..9 {
-            let (w, p) = (&w9[k], &pf[k]);
+            let p: [f32; LANES] = core::array::from_fn(|l| ((mask[l] >> k) & 1) as f32);
             for i in 0..6 {
                 let uu = rc.uu[i][k];
                 for l in 0..LANES {
@@ -2097,9 +2099,8 @@ fn solve_trimmed_lanes(
                 }
             }
             for i in 0..3 {
-                let u = rc.u[i][k];
                 for l in 0..LANES {
-                    b[i][l] += p[l] * (u * w[l]);
+                    b[i][l] += p[l] * uw[k][i][l];
                 }
             }
         }
@@ -2132,7 +2133,8 @@ fn solve_trimmed_lanes(
         let mut worst_k = [u32::MAX; LANES];
         for k in 0..9 {
             let u = [rc.u[0][k], rc.u[1][k], rc.u[2][k]];
-            let (w, p) = (&w9[k], &pf[k]);
+            let w = &w9[k];
+            let p: [f32; LANES] = core::array::from_fn(|l| ((mask[l] >> k) & 1) as f32);
             let e: [f32; LANES] = core::array::from_fn(|l| {
                 (u[0] * sol[0][l] + u[1] * sol[1][l] + u[2] * sol[2][l] - w[l]).abs()
             });
@@ -2143,12 +2145,10 @@ fn solve_trimmed_lanes(
             if k == CENTRE || pass == MAX_TRIM {
                 continue;
             }
+            let uu: [f32; 6] = core::array::from_fn(|i| rc.uu[i][k]);
             for l in 0..LANES {
-                let h = (adj[0][l] * u[0] * u[0]
-                    + adj[3][l] * u[1] * u[1]
-                    + adj[5][l] * u[2] * u[2]
-                    + 2.0 * (adj[1][l] * u[0] * u[1] + adj[2][l] * u[0] * u[2] + adj[4][l] * u[1] * u[2]))
-                    * inv[l];
+                let a = [adj[0][l], adj[1][l], adj[2][l], adj[3][l], adj[4][l], adj[5][l]];
+                let h = leverage(&a, &uu, inv[l]);
                 let d = e[l] / (1.0 - h).max(1e-3);
                 // A blend by bit masks: as a select, it compiled to masked stores that the next
                 // k's loads waited on (no store forwarding from a masked store).
@@ -2174,6 +2174,25 @@ fn solve_trimmed_lanes(
         }
     }
     (out, valid)
+}
+
+/// Window points off the centre row (dr != 0), off the centre column (dc != 0), and on the
+/// diagonals where dr dc = 1 and -1: their bit counts in a mask of present points are the
+/// sums of dr^2, dc^2 and dr dc that tell whether the points span a plane.
+const ROW_OFF: u32 = 0b111_000_111;
+const COL_OFF: u32 = 0b101_101_101;
+const DIAG_SAME: u32 = (1 << 0) | (1 << 8);
+const DIAG_OPPOSITE: u32 = (1 << 2) | (1 << 6);
+
+/// Leverage `h = u^T M'^-1 u` of a window point from the adjugate of `M'`, `1 / det`, and the
+/// point's products `u_i u_j` (00, 01, 02, 11, 12, 22) from the table.
+#[inline(always)]
+fn leverage(adj: &[f32; 6], uu: &[f32; 6], inv_det: f32) -> f32 {
+    (adj[0] * uu[0]
+        + adj[3] * uu[3]
+        + adj[5] * uu[5]
+        + 2.0 * (adj[1] * uu[1] + adj[2] * uu[2] + adj[4] * uu[4]))
+        * inv_det
 }
 
 /// Most points the trimmed solve may drop from a window (an occluding edge takes two or three,
