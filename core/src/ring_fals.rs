@@ -1472,22 +1472,26 @@ impl<const P: usize> RingFals<P> {
         }
         // The shared-strip path needs, in every lane that uses its median, all valid pixels
         // within the row's smallest gate of the centre's key (then none is left out by the
-        // gate), and the lower median of the valid pixels at rank 10, 11 or 12 of all 25
-        // values: invalid pixels sort as +inf, and pad pixels as -inf and +inf in the numbers
-        // `pad_neg` gives. Without pad rows that is up to 4 invalid pixels.
+        // gate), and the lower median of the valid pixels at rank 6 to 12 of all 25 values:
+        // invalid pixels sort as +inf, and pad pixels as -inf and +inf in the numbers
+        // `pad_neg` gives. Without pad rows that is up to 12 invalid pixels; ranks 10 to 12
+        // (up to 4) take a smaller network.
         let mut rank: Lane = [0; QLANES];
         let mut general: Lane = [0; QLANES];
+        let mut low: Lane = [0; QLANES];
         for l in 0..QLANES {
             let neg = if (c0 + l) & 1 == 0 { pad_neg.0 } else { pad_neg.1 };
             rank[l] = neg + ((24 - out[l]) >> 1);
             let used = ((st[l] == FULL) | (st[l] == GAP)) & (25 - out[l] >= min_valid);
-            general[l] = -((used & !(one_surface[l] & (10..=12).contains(&rank[l]))) as i16);
+            general[l] = -((used & !(one_surface[l] & (6..=12).contains(&rank[l]))) as i16);
+            low[l] = -((used & (rank[l] < 10)) as i16);
         }
         let mut med = [[0i16; QLANES]; 3];
         let mut neg_count: Lane = [0; QLANES];
         if general == [0; QLANES] {
             // The sorted column strips are shared between windows.
             neg_count = out.map(|o| -o);
+            let narrow = low == [0; QLANES];
             for (ch, m) in med.iter_mut().enumerate() {
                 let mut v = [[0i16; QLANES]; 25];
                 for dc in 0..5 {
@@ -1495,10 +1499,20 @@ impl<const P: usize> RingFals<P> {
                         v[5 * dc + k] = lane_load(&self.strips[ch * 5 + k][sc + dc - 2..]);
                     }
                 }
-                let [r10, r11, r12] = ranks25_presorted(&v);
-                for l in 0..QLANES {
-                    let (is12, is11) = (-i16::from(rank[l] == 12), -i16::from(rank[l] == 11));
-                    m[l] = (r12[l] & is12) | (r11[l] & is11) | (r10[l] & !(is12 | is11));
+                if narrow {
+                    let [r10, r11, r12] = ranks25_presorted(&v);
+                    for l in 0..QLANES {
+                        let (is12, is11) = (-i16::from(rank[l] == 12), -i16::from(rank[l] == 11));
+                        m[l] = (r12[l] & is12) | (r11[l] & is11) | (r10[l] & !(is12 | is11));
+                    }
+                } else {
+                    let r = ranks25_presorted_wide(&v);
+                    for l in 0..QLANES {
+                        m[l] = 0;
+                        for (k, rk) in r.iter().enumerate() {
+                            m[l] |= rk[l] & -i16::from(rank[l] == 6 + k as i16);
+                        }
+                    }
                 }
             }
         } else {
@@ -2370,6 +2384,26 @@ median_network! {
     (11, 13, L), (9, 10, H), (11, 12, B)
 }
 
+median_network! {
+    /// Ranks 6 to 12 (from 0) of 25 values given as five sorted columns of five, for windows
+    /// with up to 12 pixels left out as +inf: the rows by five-sorters and Batcher's network,
+    /// pruned backwards from the seven outputs and stripped of every comparator the exhaustive
+    /// 0-1 check on sorted columns shows unneeded (87 comparators, 156 min/max operations).
+    RANKS25_PRESORTED_WIDE, ranks25_presorted_wide, [6, 7, 8, 9, 10, 11, 12];
+    (10, 15, B), (0, 15, B), (0, 10, B), (5, 15, B), (5, 10, B), (1, 6, B), (16, 21, B),
+    (11, 21, B), (11, 16, B), (1, 16, B), (1, 11, H), (6, 21, B), (6, 16, B), (6, 11, B),
+    (2, 7, B), (17, 22, B), (12, 17, B), (2, 17, B), (2, 12, B), (7, 22, B), (7, 17, B),
+    (7, 12, B), (3, 8, B), (18, 23, B), (13, 18, B), (3, 18, B), (8, 18, B), (8, 13, B), (4, 9, B),
+    (19, 24, B), (14, 24, L), (4, 19, B), (9, 19, L), (4, 5, B), (14, 15, B), (22, 23, L),
+    (0, 2, H), (5, 7, B), (8, 10, B), (9, 11, B), (12, 14, B), (5, 6, B), (9, 10, B), (13, 14, B),
+    (21, 22, L), (3, 7, B), (11, 15, L), (16, 20, B), (17, 21, L), (2, 4, H), (3, 5, B),
+    (10, 12, B), (11, 13, B), (18, 20, L), (3, 4, B), (5, 6, B), (9, 10, B), (11, 12, B),
+    (13, 14, L), (17, 18, B), (4, 8, B), (5, 9, B), (6, 10, B), (7, 11, B), (6, 8, B), (7, 9, B),
+    (10, 12, B), (11, 13, B), (5, 6, B), (7, 8, B), (9, 10, B), (11, 12, B), (8, 16, B),
+    (9, 17, B), (10, 18, L), (4, 8, H), (12, 16, L), (13, 17, L), (3, 5, H), (6, 8, B), (7, 9, B),
+    (10, 12, B), (11, 13, L), (5, 6, H), (7, 8, B), (9, 10, B), (11, 12, B)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -2423,10 +2457,16 @@ mod tests {
         }
     }
 
-    /// The presorted network on every 0/1 input whose five columns are sorted (6^5 of them).
+    /// The presorted networks on every 0/1 input whose five columns are sorted (6^5 of them).
     #[test]
     fn ranks25_presorted_is_exact_for_sorted_columns() {
-        let (net, outs) = RANKS25_PRESORTED;
+        for (net, outs) in [RANKS25_PRESORTED, RANKS25_PRESORTED_WIDE] {
+            check_presorted(net, outs);
+        }
+    }
+
+    fn check_presorted(net: &[(u8, u8, Cx)], outs: &[usize]) {
+        let first = 13 - outs.len();
         for code in 0..6u32.pow(5) {
             let mut v = [0u64; 25];
             let mut ones = 0;
@@ -2441,8 +2481,9 @@ mod tests {
             }
             run_bits(net, &mut v);
             for (k, &out) in outs.iter().enumerate() {
-                // Rank 10 + k (from 0) is 1 iff at least 15 - k ones.
-                assert_eq!(v[out] == 1, ones >= 15 - k, "code {code}, rank {}", 10 + k);
+                // Rank r = first + k (from 0) is 1 iff at least 25 - r ones.
+                let r = first + k;
+                assert_eq!(v[out] == 1, ones >= 25 - r, "code {code}, rank {r}");
             }
         }
     }
@@ -2487,6 +2528,7 @@ mod tests {
                 }
             }
             assert_eq!(ranks25_presorted(&p), [rank(10), rank(11), rank(12)]);
+            assert_eq!(ranks25_presorted_wide(&p), core::array::from_fn(|k| rank(6 + k)));
         }
     }
 
