@@ -278,7 +278,7 @@ struct RowCoeffs {
     /// elevation tangent divided by the row step. Zero for neighbours outside the image.
     u: [[f32; 9]; 3],
     /// Products `u_k u_k^T` (00, 01, 02, 11, 12, 22) of every window ray, to build `M'` of an
-    /// incomplete window as a masked sum.
+    /// incomplete window as a masked sum (and the trimmed solve's leverages).
     uu: [[f32; 9]; 6],
     /// Relative range-jump gate per neighbour (see [`RingFalsConfig::max_incidence_deg`]);
     /// +inf for neighbours outside the image.
