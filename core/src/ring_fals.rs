@@ -1500,21 +1500,11 @@ impl<const P: usize> RingFals<P> {
                         v[5 * dc + k] = lane_load(&self.strips[ch * 5 + k][sc + dc - 2..]);
                     }
                 }
-                if narrow {
-                    let [r10, r11, r12] = ranks25_presorted(&v);
-                    for l in 0..QLANES {
-                        let (is12, is11) = (-i16::from(rank[l] == 12), -i16::from(rank[l] == 11));
-                        m[l] = (r12[l] & is12) | (r11[l] & is11) | (r10[l] & !(is12 | is11));
-                    }
+                *m = if narrow {
+                    pick_rank(&ranks25_presorted(&v), 10, &rank)
                 } else {
-                    let r = ranks25_presorted_wide(&v);
-                    for l in 0..QLANES {
-                        m[l] = 0;
-                        for (k, rk) in r.iter().enumerate() {
-                            m[l] |= rk[l] & -i16::from(rank[l] == 6 + k as i16);
-                        }
-                    }
-                }
+                    pick_rank(&ranks25_presorted_wide(&v), 6, &rank)
+                };
             }
         } else {
             let mut masks = [[0i16; QLANES]; 25];
@@ -2266,6 +2256,19 @@ fn sort_strips(s: [&[i16]; 5], d: [&mut [i16]; 5]) {
         d3[j] = v[3];
         d4[j] = v[4];
     }
+}
+
+/// Per lane, the value of rank `rank[l]` from `ranks` (ranks `first`, `first + 1`, ...); 0 in
+/// lanes whose rank is not among them (lanes that do not use their median).
+#[inline(always)]
+fn pick_rank(ranks: &[Lane], first: i16, rank: &Lane) -> Lane {
+    let mut m: Lane = [0; QLANES];
+    for (k, rk) in ranks.iter().enumerate() {
+        for l in 0..QLANES {
+            m[l] |= rk[l] & -i16::from(rank[l] == first + k as i16);
+        }
+    }
+    m
 }
 
 #[inline(always)]
