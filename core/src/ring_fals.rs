@@ -41,9 +41,10 @@
 //!   missing neighbour as a point at infinity, which biases the normal (notes A.7).
 //! - **Every window must fit its plane.** After the solve, the squared range residuals of the
 //!   window's points must stay within a tolerance ([`RingFalsConfig::fit_tolerance_rel`]); a
-//!   window with a few points off the plane (an occluding edge, a crease, a pole in front of a
-//!   wall where rows are degrees apart) is solved again without them, dropped one at a time by
-//!   largest deleted residual, at most three; clutter that needs more is invalid.
+//!   window with some points off the plane (a bad return, an occluding edge, a step or crease
+//!   along the scan lines, a pole in front of a wall where rows are degrees apart) is solved
+//!   again without its worst point, else without each of its four edge lines (a row or column
+//!   of three), taking the plane that fits best; clutter that no such plane fits is invalid.
 //! - **Invalid is explicit.** A pixel that cannot give a reliable normal has a zero normal and
 //!   a cleared validity flag, never NaN; its point is kept.
 //! - **The median uses valid pixels only** (per channel, 5x5, columns wrapped, rows cut at the
@@ -127,8 +128,9 @@ pub struct RingFalsConfig {
     /// the fitted plane: the squares of their range residuals (along their rays) may sum to at
     /// most `4 (range_jump_abs + fit_tolerance_rel r)^2` (noise up to 0.8 of that tolerance per
     /// point passes, one point off by more than 2.2 times it fails). A window that fails is
-    /// solved again without its worst point (the one with the largest deleted residual: a
-    /// trimmed least squares) until it fits; if too few points remain, the pixel is invalid.
+    /// solved again without its worst point, else without each of its edge lines (top or
+    /// bottom row, left or right column), taking the plane that fits its remaining points best;
+    /// if none fits, the pixel is invalid.
     /// This is what separates a pole from the wall behind it where the rows are degrees apart
     /// (the top and bottom beams of a VLP-32C) and the range gate alone must admit large
     /// jumps. In [0.002, 1] (the full-window test sums squared inverse ranges in f32, whose
@@ -278,7 +280,7 @@ struct RowCoeffs {
     /// elevation tangent divided by the row step. Zero for neighbours outside the image.
     u: [[f32; 9]; 3],
     /// Products `u_k u_k^T` (00, 01, 02, 11, 12, 22) of every window ray, to build `M'` of an
-    /// incomplete window as a masked sum (and the trimmed solve's leverages).
+    /// incomplete window as a masked sum.
     uu: [[f32; 9]; 6],
     /// Relative range-jump gate per neighbour (see [`RingFalsConfig::max_incidence_deg`]);
     /// +inf for neighbours outside the image.
@@ -914,8 +916,8 @@ pub struct RingFalsStats {
     pub invalid_pixels: u32,
     /// Valid pixels solved from an incomplete window (gap-aware path).
     pub gap_solves: u32,
-    /// Pixels whose window had a point off the fitted plane (a crease, an occluding edge) and
-    /// went through the trimmed solve (valid or not).
+    /// Pixels whose window had a point off the fitted plane (a step, a crease, an occluding
+    /// edge) and went through the trimmed solve (valid or not).
     pub trimmed_solves: u32,
     /// Valid pixels that kept their own normal because their median window was too sparse or
     /// the median was degenerate.
@@ -1877,7 +1879,8 @@ fn on_surface(w: f32, wc: f32, gate: f32) -> bool {
     (w > 0.0) & ((wc - w).abs() <= w * gate)
 }
 
-/// Verdict of the masked solve: the window fits but should be trimmed point by point.
+/// Verdict of the masked solve: the system is sound but some points are off the plane (the
+/// trimmed solve is next).
 const TRIM: u8 = 5;
 
 /// The gap-aware solve of 8 neighbouring pixels at once (branch-free, so it vectorises): the
@@ -1954,12 +1957,21 @@ fn solve_group_masked(
 }
 
 /// The trimmed solve of one pixel whose masked solve did not fit (the scalar reference of
-/// [`solve_trimmed_lanes`], which runs it on a row's pixels in parallel): while a point is off the
-/// fitted plane, drop the neighbour with the largest deleted residual (its residual divided by
-/// 1 - its leverage, the residual it would have in a fit without it, which an outlier cannot
-/// hide by pulling the plane toward itself) and solve again. `None` when too few points remain,
-/// they lie on one image line, the system is ill-conditioned, or only the centre is off the
-/// plane of its neighbours, or more than [`MAX_TRIM`] points would have to go.
+/// [`solve_trimmed_lanes`], which runs it on a row's pixels in parallel). Some of the window's
+/// points are off the plane of the rest: a bad return, an occluding edge, the far side of a
+/// step or a crease. In order, the first that fits gives the normal:
+///
+/// 1. every point (the masked solve's sum of squares, formed differently, may have failed by a
+///    rounding); `None` if its system is unsound (no fewer points will do);
+/// 2. every point but the one farthest off that plane (a single bad return or edge point);
+/// 3. the window without one of its edge lines ([`TRIM_LINES`]: top row, bottom row, left
+///    column, right column, at most three points each), the one whose plane fits its points
+///    best (smallest sum of squares; the first of equals in that order).
+///
+/// `None` when nothing fits (clutter without a plane). Dropping one worst point at a time, as
+/// this did before step 3, cannot find a step along the scan lines: the first fit is pulled so
+/// far toward the other surface's three points that good points look worst. That left 5 % of
+/// a 16 x 1024 street scan's pixels without a normal (1 % now) and took four passes.
 #[cfg(test)]
 fn solve_trimmed(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa: f32) -> Option<[f32; 3]> {
     let wc = w[CENTRE];
@@ -1975,9 +1987,9 @@ fn solve_trimmed(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa:
             mask |= 1 << k;
         }
     }
-    // Each pass removes one neighbour, at most MAX_TRIM: a window that needs more is not a
-    // surface with a few points off it (an edge, a crease) but clutter without a plane.
-    for pass in 0..=MAX_TRIM {
+    // The least squares over the points of `mask`: its solution and sum of squared residuals,
+    // or `None` when the system is unsound.
+    let fit = |mask: usize| -> Option<([f32; 3], f32)> {
         if (mask.count_ones() as u8) < cfg.min_points || !SPANS_PLANE[mask] {
             return None;
         }
@@ -2005,40 +2017,61 @@ fn solve_trimmed(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa:
             (adj[2] * b[0] + adj[4] * b[1] + adj[5] * b[2]) * s,
         ];
         let mut ssr = 0.0f32;
-        let mut worst = (0.0f32, usize::MAX);
         for k in 0..9 {
-            if mask & (1 << k) == 0 {
-                continue;
-            }
-            let u = [rc.u[0][k], rc.u[1][k], rc.u[2][k]];
-            let e = (u[0] * sol[0] + u[1] * sol[1] + u[2] * sol[2] - w[k]).abs();
-            ssr += e * e;
-            if k != CENTRE {
-                let uu: [f32; 6] = core::array::from_fn(|i| rc.uu[i][k]);
-                let h = leverage(&adj, &uu, s);
-                let d = e / (1.0 - h).max(1e-3);
-                if !(d <= worst.0) {
-                    worst = (d, k);
-                }
+            if mask & (1 << k) != 0 {
+                let e = (rc.u[0][k] * sol[0] + rc.u[1][k] * sol[1] + rc.u[2][k] * sol[2] - w[k]).abs();
+                ssr += e * e;
             }
         }
-        if ssr <= FIT_K * tol * tol {
-            let (n, ok) = to_global(rc, sol[0], sol[1], sol[2], ca, sa);
-            return if ok { Some(n) } else { None };
-        }
-        if worst.1 == usize::MAX || pass == MAX_TRIM {
-            return None;
-        }
-        mask &= !(1 << worst.1);
+        Some((sol, ssr))
+    };
+    let fits = |ssr: f32| ssr <= FIT_K * tol * tol;
+    let normal = |sol: [f32; 3]| {
+        let (n, ok) = to_global(rc, sol[0], sol[1], sol[2], ca, sa);
+        ok.then_some(n)
+    };
+    // 1. Every point.
+    let (sol, ssr) = fit(mask)?;
+    if fits(ssr) {
+        return normal(sol);
     }
-    None
+    // 2. Without the point farthest off that plane.
+    let mut worst = (0.0f32, usize::MAX);
+    for k in 0..9 {
+        if mask & (1 << k) == 0 || k == CENTRE {
+            continue;
+        }
+        let e = (rc.u[0][k] * sol[0] + rc.u[1][k] * sol[1] + rc.u[2][k] * sol[2] - w[k]).abs();
+        if !(e <= worst.0) {
+            worst = (e, k);
+        }
+    }
+    if worst.1 != usize::MAX
+        && let Some((sol, ssr)) = fit(mask & !(1 << worst.1))
+        && fits(ssr)
+        && let Some(n) = normal(sol)
+    {
+        return Some(n);
+    }
+    // 3. Without one edge line: the best fit.
+    let mut best: Option<(f32, [f32; 3])> = None;
+    for line in TRIM_LINES {
+        if let Some((sol, ssr)) = fit(mask & !(line as usize))
+            && fits(ssr)
+            && let Some(n) = normal(sol)
+            && best.is_none_or(|(b, _)| ssr < b)
+        {
+            best = Some((ssr, n));
+        }
+    }
+    best.map(|(_, n)| n)
 }
 
 /// [`solve_trimmed`] for up to [`LANES`] pixels of one row at once (lanes with `active` unset
-/// are ignored), branch-free across lanes so that it vectorises: every lane runs the same
-/// passes with its own mask of points, until every lane has its verdict. The arithmetic is
-/// [`solve_trimmed`]'s, term by term in the same order, so the results are the same bits.
-/// Returns the normals and which lanes have one.
+/// are ignored), branch-free across lanes so that it vectorises: every lane solves the same
+/// candidates with its own mask of points, until every lane has its verdict. The arithmetic is [`solve_trimmed`]'s, term by term
+/// in the same order, so the results are the same bits. Returns the normals and which lanes
+/// have one.
 #[inline(always)]
 fn solve_trimmed_lanes(
     rc: &RowCoeffs,
@@ -2062,7 +2095,7 @@ fn solve_trimmed_lanes(
             mask[l] |= u32::from(present) << k;
         }
     }
-    let mut done: [bool; LANES] = core::array::from_fn(|l| !active[l] | !(wc[l] > 0.0));
+    let done: [bool; LANES] = core::array::from_fn(|l| !active[l] | !(wc[l] > 0.0));
     let mut valid = [false; LANES];
     let mut out = [[0.0f32; LANES]; 3];
     // The right-hand side's terms u_i w of every window point, the same in every pass.
@@ -2075,110 +2108,211 @@ fn solve_trimmed_lanes(
             }
         }
     }
-    for pass in 0..=MAX_TRIM {
-        if done.iter().all(|&d| d) {
-            break;
-        }
-        // Each step runs over all lanes at once (vector code): the points present, their count
-        // and spread over the image (SPANS_PLANE, from bit counts of the mask), and the system
-        // as masked sums in window order. Adding a product by 0.0 leaves a sum's bits as they
-        // were, so these are the scalar loop's sums over the points present. (Written as an
-        // add under a condition, the sums stopped vectorising: the solve took 35 % longer.)
-        let mut count = [0i32; LANES];
-        let (mut srr, mut scc, mut src) = ([0i32; LANES], [0i32; LANES], [0i32; LANES]);
+    // Every point present (the masked solve's points; its sum of squares, formed differently,
+    // may have failed by a rounding), and the point farthest off its plane (first of equals in
+    // window order, as the scalar loop keeps it).
+    let sys = lane_system::<0>(rc, cfg, &uw, &mask);
+    let mut ssr = [0.0f32; LANES];
+    let mut worst_e = [0.0f32; LANES];
+    let mut worst_k = [u32::MAX; LANES];
+    for k in 0..9 {
+        let u = [rc.u[0][k], rc.u[1][k], rc.u[2][k]];
         for l in 0..LANES {
-            let bits = |m: u32| (mask[l] & m).count_ones() as i32;
-            count[l] = bits(0x1ff);
-            srr[l] = bits(ROW_OFF);
-            scc[l] = bits(COL_OFF);
-            src[l] = bits(DIAG_SAME) - bits(DIAG_OPPOSITE);
-        }
-        let mut m = [[0.0f32; LANES]; 6];
-        let mut b = [[0.0f32; LANES]; 3];
-        for k in 0..9 {
-            let p: [f32; LANES] = core::array::from_fn(|l| ((mask[l] >> k) & 1) as f32);
-            for i in 0..6 {
-                let uu = rc.uu[i][k];
-                for l in 0..LANES {
-                    m[i][l] += p[l] * uu;
-                }
-            }
-            for i in 0..3 {
-                for l in 0..LANES {
-                    b[i][l] += p[l] * uw[k][i][l];
-                }
-            }
-        }
-        let mut adj = [[0.0f32; LANES]; 6];
-        let mut sol = [[0.0f32; LANES]; 3];
-        let mut inv = [0.0f32; LANES];
-        let mut sound = [false; LANES];
-        for l in 0..LANES {
-            let mm = [m[0][l], m[1][l], m[2][l], m[3][l], m[4][l], m[5][l]];
-            let (a, det) = adjugate_f32(&mm);
-            let tr = mm[0] + mm[3] + mm[5];
-            sound[l] = (count[l] >= i32::from(cfg.min_points))
-                & (srr[l] * scc[l] - src[l] * src[l] > 0)
-                & (det > 0.0)
-                & (27.0 * det >= cfg.min_conditioning * tr * tr * tr);
-            let s = 1.0 / det;
-            let bb = [b[0][l], b[1][l], b[2][l]];
-            sol[0][l] = (a[0] * bb[0] + a[1] * bb[1] + a[2] * bb[2]) * s;
-            sol[1][l] = (a[1] * bb[0] + a[3] * bb[1] + a[4] * bb[2]) * s;
-            sol[2][l] = (a[2] * bb[0] + a[4] * bb[1] + a[5] * bb[2]) * s;
-            inv[l] = s;
-            for i in 0..6 {
-                adj[i][l] = a[i];
-            }
-        }
-        // Residuals, and the point with the largest deleted residual (first of equals in
-        // window order, as the scalar loop keeps it).
-        let mut ssr = [0.0f32; LANES];
-        let mut worst_d = [0.0f32; LANES];
-        let mut worst_k = [u32::MAX; LANES];
-        for k in 0..9 {
-            let u = [rc.u[0][k], rc.u[1][k], rc.u[2][k]];
-            let w = &w9[k];
-            let p: [f32; LANES] = core::array::from_fn(|l| ((mask[l] >> k) & 1) as f32);
-            let e: [f32; LANES] = core::array::from_fn(|l| {
-                (u[0] * sol[0][l] + u[1] * sol[1][l] + u[2] * sol[2][l] - w[l]).abs()
-            });
-            for l in 0..LANES {
-                ssr[l] += p[l] * (e[l] * e[l]);
-            }
-            // The last pass drops nothing: no leverage needed (most lanes get that far).
-            if k == CENTRE || pass == MAX_TRIM {
+            let present = (mask[l] >> k) & 1 != 0;
+            let sol = [sys.sol[0][l], sys.sol[1][l], sys.sol[2][l]];
+            let e = (u[0] * sol[0] + u[1] * sol[1] + u[2] * sol[2] - w9[k][l]).abs();
+            ssr[l] += f32::from(u8::from(present)) * (e * e);
+            if k == CENTRE {
                 continue;
             }
-            let uu: [f32; 6] = core::array::from_fn(|i| rc.uu[i][k]);
-            for l in 0..LANES {
-                let a = [adj[0][l], adj[1][l], adj[2][l], adj[3][l], adj[4][l], adj[5][l]];
-                let h = leverage(&a, &uu, inv[l]);
-                let d = e[l] / (1.0 - h).max(1e-3);
-                // A blend by bit masks: as a select, it compiled to masked stores that the next
-                // k's loads waited on (no store forwarding from a masked store).
-                let take = u32::from((p[l] != 0.0) & !(d <= worst_d[l])).wrapping_neg();
-                worst_d[l] = f32::from_bits((d.to_bits() & take) | (worst_d[l].to_bits() & !take));
-                worst_k[l] = (k as u32 & take) | (worst_k[l] & !take);
-            }
-        }
-        for l in 0..LANES {
-            let fits = ssr[l] <= FIT_K * tol[l] * tol[l];
-            let (n, ok) = to_global(rc, sol[0][l], sol[1][l], sol[2][l], ca[l], sa[l]);
-            let live = !done[l];
-            // Decided now: unsound (None), fits (its normal if usable), or nothing left to drop.
-            let decide = !sound[l] | fits | (worst_k[l] == u32::MAX) | (pass == MAX_TRIM);
-            let good = live & sound[l] & fits & ok;
-            valid[l] |= good;
-            for c in 0..3 {
-                out[c][l] = if good { n[c] } else { out[c][l] };
-            }
-            let drop = if live & !decide { 1u32 << (worst_k[l] & 15) } else { 0 };
-            mask[l] &= !drop;
-            done[l] |= decide;
+            // A blend by bit masks: as a select, it compiled to masked stores that the next
+            // k's loads waited on (no store forwarding from a masked store).
+            let take = u32::from(present & !(e <= worst_e[l])).wrapping_neg();
+            worst_e[l] = f32::from_bits((e.to_bits() & take) | (worst_e[l].to_bits() & !take));
+            worst_k[l] = (k as u32 & take) | (worst_k[l] & !take);
         }
     }
+    let mut done = done;
+    for l in 0..LANES {
+        let fits = ssr[l] <= FIT_K * tol[l] * tol[l];
+        let (n, ok) = to_global(rc, sys.sol[0][l], sys.sol[1][l], sys.sol[2][l], ca[l], sa[l]);
+        let good = !done[l] & sys.sound[l] & fits & ok;
+        valid[l] = good;
+        for c in 0..3 {
+            out[c][l] = if good { n[c] } else { 0.0 };
+        }
+        // Unsound with every point: no fewer will do.
+        done[l] |= !sys.sound[l] | fits;
+    }
+    if done.iter().all(|&d| d) {
+        return (out, valid);
+    }
+    // Without the worst point.
+    let single: [u32; LANES] = core::array::from_fn(|l| mask[l] & !(1u32 << (worst_k[l] & 15)));
+    let sys = lane_system::<0>(rc, cfg, &uw, &single);
+    let ssr = lane_ssr::<0>(rc, w9, &single, &sys.sol);
+    for l in 0..LANES {
+        let fits = ssr[l] <= FIT_K * tol[l] * tol[l];
+        let (n, ok) = to_global(rc, sys.sol[0][l], sys.sol[1][l], sys.sol[2][l], ca[l], sa[l]);
+        let good = !done[l] & (worst_k[l] != u32::MAX) & sys.sound[l] & fits & ok;
+        valid[l] |= good;
+        for c in 0..3 {
+            out[c][l] = if good { n[c] } else { out[c][l] };
+        }
+        done[l] |= good;
+    }
+    if done.iter().all(|&d| d) {
+        return (out, valid);
+    }
+    // The four lines, each left out in turn (its points never enter the sums).
+    let mut best = [f32::INFINITY; LANES];
+    let cand = Candidate { rc, cfg, w9, uw: &uw, mask: &mask, tol: &tol, ca, sa, done: &done };
+    cand.solve::<LINE_TOP>(&mut best, &mut valid, &mut out);
+    cand.solve::<LINE_BOTTOM>(&mut best, &mut valid, &mut out);
+    cand.solve::<LINE_LEFT>(&mut best, &mut valid, &mut out);
+    cand.solve::<LINE_RIGHT>(&mut best, &mut valid, &mut out);
     (out, valid)
+}
+
+/// What [`solve_trimmed_lanes`]'s candidates share.
+struct Candidate<'a> {
+    rc: &'a RowCoeffs,
+    cfg: &'a RingFalsConfig,
+    w9: &'a [[f32; LANES]; 9],
+    uw: &'a [[[f32; LANES]; 3]; 9],
+    mask: &'a [u32; LANES],
+    tol: &'a [f32; LANES],
+    ca: &'a [f32; LANES],
+    sa: &'a [f32; LANES],
+    done: &'a [bool; LANES],
+}
+
+impl Candidate<'_> {
+    /// Solves every lane's window without the points of `DROP` and keeps, per lane, the normal
+    /// of the best fit so far (`best`: its sum of squared residuals).
+    #[inline(always)]
+    fn solve<const DROP: u32>(
+        &self,
+        best: &mut [f32; LANES],
+        valid: &mut [bool; LANES],
+        out: &mut [[f32; LANES]; 3],
+    ) {
+        let (rc, cfg) = (self.rc, self.cfg);
+        let mask: [u32; LANES] = core::array::from_fn(|l| self.mask[l] & !DROP);
+        let sys = lane_system::<DROP>(rc, cfg, self.uw, &mask);
+        let ssr = lane_ssr::<DROP>(rc, self.w9, &mask, &sys.sol);
+        for l in 0..LANES {
+            let fits = ssr[l] <= FIT_K * self.tol[l] * self.tol[l];
+            let (n, ok) = to_global(rc, sys.sol[0][l], sys.sol[1][l], sys.sol[2][l], self.ca[l], self.sa[l]);
+            let take = !self.done[l] & sys.sound[l] & fits & ok & (ssr[l] < best[l]);
+            best[l] = if take { ssr[l] } else { best[l] };
+            valid[l] |= take;
+            for c in 0..3 {
+                out[c][l] = if take { n[c] } else { out[c][l] };
+            }
+        }
+    }
+}
+
+/// The window's edge lines, the points the trimmed solve's candidates leave out in turn: top
+/// row, bottom row, left column, right column (bits k = 3 dr + dc of the 3x3 window).
+const LINE_TOP: u32 = 0b000_000_111;
+const LINE_BOTTOM: u32 = 0b111_000_000;
+const LINE_LEFT: u32 = 0b001_001_001;
+const LINE_RIGHT: u32 = 0b100_100_100;
+/// [`solve_trimmed`]'s candidates, in order.
+#[cfg(test)]
+const TRIM_LINES: [u32; 4] = [LINE_TOP, LINE_BOTTOM, LINE_LEFT, LINE_RIGHT];
+
+/// Lane-parallel least-squares solutions over the points of a mask, and whether each lane's
+/// system is sound.
+struct LaneSystem {
+    sol: [[f32; LANES]; 3],
+    sound: [bool; LANES],
+}
+
+/// Solves each lane's window over the points of its mask (vector code over the lanes): the
+/// points' count and spread over the image (from bit counts of the mask), the system as masked
+/// sums in window order, its adjugate and solution. Adding a product by 0.0 leaves a sum's bits
+/// as they were, so these are the scalar loop's sums over the points present. (Written as an
+/// add under a condition, the sums stopped vectorising: the solve took 35 % longer.)
+/// The points of `DROP` (never in the mask) are skipped: adding nothing leaves the same bits as
+/// adding their products by 0.0.
+#[inline(always)]
+fn lane_system<const DROP: u32>(
+    rc: &RowCoeffs,
+    cfg: &RingFalsConfig,
+    uw: &[[[f32; LANES]; 3]; 9],
+    mask: &[u32; LANES],
+) -> LaneSystem {
+    let mut count = [0i32; LANES];
+    let (mut srr, mut scc, mut src) = ([0i32; LANES], [0i32; LANES], [0i32; LANES]);
+    for l in 0..LANES {
+        let bits = |m: u32| (mask[l] & m).count_ones() as i32;
+        count[l] = bits(0x1ff);
+        srr[l] = bits(ROW_OFF);
+        scc[l] = bits(COL_OFF);
+        src[l] = bits(DIAG_SAME) - bits(DIAG_OPPOSITE);
+    }
+    let mut m = [[0.0f32; LANES]; 6];
+    let mut b = [[0.0f32; LANES]; 3];
+    for k in 0..9 {
+        if DROP & (1 << k) != 0 {
+            continue;
+        }
+        let p: [f32; LANES] = core::array::from_fn(|l| ((mask[l] >> k) & 1) as f32);
+        for i in 0..6 {
+            let uu = rc.uu[i][k];
+            for l in 0..LANES {
+                m[i][l] += p[l] * uu;
+            }
+        }
+        for i in 0..3 {
+            for l in 0..LANES {
+                b[i][l] += p[l] * uw[k][i][l];
+            }
+        }
+    }
+    let mut sys = LaneSystem { sol: [[0.0; LANES]; 3], sound: [false; LANES] };
+    for l in 0..LANES {
+        let mm = [m[0][l], m[1][l], m[2][l], m[3][l], m[4][l], m[5][l]];
+        let (a, det) = adjugate_f32(&mm);
+        let tr = mm[0] + mm[3] + mm[5];
+        sys.sound[l] = (count[l] >= i32::from(cfg.min_points))
+            & (srr[l] * scc[l] - src[l] * src[l] > 0)
+            & (det > 0.0)
+            & (27.0 * det >= cfg.min_conditioning * tr * tr * tr);
+        let s = 1.0 / det;
+        let bb = [b[0][l], b[1][l], b[2][l]];
+        sys.sol[0][l] = (a[0] * bb[0] + a[1] * bb[1] + a[2] * bb[2]) * s;
+        sys.sol[1][l] = (a[1] * bb[0] + a[3] * bb[1] + a[4] * bb[2]) * s;
+        sys.sol[2][l] = (a[2] * bb[0] + a[4] * bb[1] + a[5] * bb[2]) * s;
+    }
+    sys
+}
+
+/// The sum of squared residuals over each lane's mask (the points of `DROP` skipped).
+#[inline(always)]
+fn lane_ssr<const DROP: u32>(
+    rc: &RowCoeffs,
+    w9: &[[f32; LANES]; 9],
+    mask: &[u32; LANES],
+    sol: &[[f32; LANES]; 3],
+) -> [f32; LANES] {
+    let mut ssr = [0.0f32; LANES];
+    for k in 0..9 {
+        if DROP & (1 << k) != 0 {
+            continue;
+        }
+        let u = [rc.u[0][k], rc.u[1][k], rc.u[2][k]];
+        let w = &w9[k];
+        for l in 0..LANES {
+            let p = ((mask[l] >> k) & 1) as f32;
+            let e = (u[0] * sol[0][l] + u[1] * sol[1][l] + u[2] * sol[2][l] - w[l]).abs();
+            ssr[l] += p * (e * e);
+        }
+    }
+    ssr
 }
 
 /// Window points off the centre row (dr != 0), off the centre column (dc != 0), and on the
@@ -2188,21 +2322,6 @@ const ROW_OFF: u32 = 0b111_000_111;
 const COL_OFF: u32 = 0b101_101_101;
 const DIAG_SAME: u32 = (1 << 0) | (1 << 8);
 const DIAG_OPPOSITE: u32 = (1 << 2) | (1 << 6);
-
-/// Leverage `h = u^T M'^-1 u` of a window point from the adjugate of `M'`, `1 / det`, and the
-/// point's products `u_i u_j` (00, 01, 02, 11, 12, 22) from the table.
-#[inline(always)]
-fn leverage(adj: &[f32; 6], uu: &[f32; 6], inv_det: f32) -> f32 {
-    (adj[0] * uu[0]
-        + adj[3] * uu[3]
-        + adj[5] * uu[5]
-        + 2.0 * (adj[1] * uu[1] + adj[2] * uu[2] + adj[4] * uu[4]))
-        * inv_det
-}
-
-/// Most points the trimmed solve may drop from a window (an occluding edge takes two or three,
-/// a crease between two planes three).
-const MAX_TRIM: usize = 3;
 
 /// Quantises one padded row of normals for the median: valid pixels to 1/QSCALE, the rest to
 /// the invalid sentinel with `qinv = -1`.
@@ -2642,11 +2761,18 @@ mod tests {
             let (mut ca, mut sa) = ([0.0f32; LANES], [0.0f32; LANES]);
             for l in 0..LANES {
                 let r0 = 2.0 + 40.0 * rng.uniform();
-                // A plane's inverse ranges vary smoothly over the window; a few points are off it.
+                // A plane's inverse ranges vary smoothly over the window; a few points are off it,
+                // and in a third of the windows one edge line is on another surface (a step).
                 let (gx, gy) = (0.05 * (rng.uniform() - 0.5), 0.05 * (rng.uniform() - 0.5));
+                let step =
+                    if rng.uniform() < 0.33 { TRIM_LINES[(rng.uniform() * 4.0) as usize % 4] } else { 0 };
+                let step_to = 0.85 + 0.1 * rng.uniform();
                 for k in 0..9 {
                     let (dr, dc) = ((k / 3) as f64 - 1.0, (k % 3) as f64 - 1.0);
                     let mut r = r0 * (1.0 + gx * dc + gy * dr) + 0.01 * rng.gauss();
+                    if step & (1 << k) != 0 {
+                        r *= step_to;
+                    }
                     let u = rng.uniform();
                     if u < 0.12 {
                         r *= 0.6 + 0.8 * rng.uniform(); // another surface
