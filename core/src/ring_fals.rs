@@ -2069,9 +2069,9 @@ fn solve_trimmed(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa:
 
 /// [`solve_trimmed`] for up to [`LANES`] pixels of one row at once (lanes with `active` unset
 /// are ignored), branch-free across lanes so that it vectorises: every lane solves the same
-/// candidates with its own mask of points, until every lane has its verdict. The arithmetic is [`solve_trimmed`]'s, term by term
-/// in the same order, so the results are the same bits. Returns the normals and which lanes
-/// have one.
+/// candidates with its own mask of points, until every lane has its verdict. The arithmetic is
+/// [`solve_trimmed`]'s, term by term in the same order, so the results are the same bits.
+/// Returns the normals and which lanes have one.
 #[inline(always)]
 fn solve_trimmed_lanes(
     rc: &RowCoeffs,
