@@ -928,8 +928,13 @@ pub struct RingFalsStats {
 
 /// Lanes of the gap-aware solve (f32): 8 neighbouring columns.
 const LANES: usize = 8;
+/// What the masked solve hands the trimmed solve per window: the solution over every point
+/// present (3 values, the same bits as solving it again) and 1.0 where its system passed the
+/// determinant and conditioning tests (else 0.0).
+const PRE: usize = 4;
+
 /// Pixels of one row waiting for the lane-parallel masked or trimmed solve: their windows'
-/// inverse ranges and azimuths.
+/// inverse ranges and azimuths (and, for the trimmed solve, [`PRE`]).
 #[derive(Clone, Copy, Debug)]
 struct WindowBatch {
     len: usize,
@@ -937,11 +942,18 @@ struct WindowBatch {
     w9: [[f32; LANES]; 9],
     ca: [f32; LANES],
     sa: [f32; LANES],
+    pre: [[f32; LANES]; PRE],
 }
 
 impl WindowBatch {
-    const EMPTY: Self =
-        Self { len: 0, px: [0; LANES], w9: [[0.0; LANES]; 9], ca: [0.0; LANES], sa: [0.0; LANES] };
+    const EMPTY: Self = Self {
+        len: 0,
+        px: [0; LANES],
+        w9: [[0.0; LANES]; 9],
+        ca: [0.0; LANES],
+        sa: [0.0; LANES],
+        pre: [[0.0; LANES]; PRE],
+    };
 
     /// Adds pixel `px` with its window's inverse ranges and azimuth; whether the batch is full.
     #[inline(always)]
@@ -974,6 +986,24 @@ impl BatchPair {
     /// returned if it holds the previous full batch, to be solved (and emptied) at once.
     #[inline(always)]
     fn push(&mut self, px: usize, w9: [f32; 9], cs: (f32, f32)) -> Option<&mut WindowBatch> {
+        self.push_pre(px, w9, cs, None)
+    }
+
+    /// [`Self::push`] with the masked solve's [`PRE`] values of the pixel.
+    #[inline(always)]
+    fn push_pre(
+        &mut self,
+        px: usize,
+        w9: [f32; 9],
+        cs: (f32, f32),
+        pre: Option<[f32; PRE]>,
+    ) -> Option<&mut WindowBatch> {
+        if let Some(v) = pre {
+            let b = &mut self.b[self.cur];
+            for i in 0..PRE {
+                b.pre[i][b.len] = v[i];
+            }
+        }
         if self.b[self.cur].push(px, w9, cs) {
             self.cur ^= 1;
             let other = &mut self.b[self.cur];
@@ -1279,7 +1309,7 @@ impl<const P: usize> RingFals<P> {
         if batch.len == 0 {
             return 0;
         }
-        let (n, verdict) = solve_group_masked(rc, cfg, &batch.w9, &batch.ca, &batch.sa);
+        let (n, verdict, pre) = solve_group_masked(rc, cfg, &batch.w9, &batch.ca, &batch.sa);
         let mut trimmed = 0;
         for l in 0..batch.len {
             let px = batch.px[l];
@@ -1293,7 +1323,8 @@ impl<const P: usize> RingFals<P> {
                 TRIM => {
                     trimmed += 1;
                     let w9 = core::array::from_fn(|k| batch.w9[k][l]);
-                    if let Some(full) = trim.push(px, w9, (batch.ca[l], batch.sa[l])) {
+                    let p = core::array::from_fn(|i| pre[i][l]);
+                    if let Some(full) = trim.push_pre(px, w9, (batch.ca[l], batch.sa[l]), Some(p)) {
                         self.finish_trimmed(rc, cfg, full);
                     }
                 }
@@ -1316,7 +1347,7 @@ impl<const P: usize> RingFals<P> {
             return;
         }
         let active: [bool; LANES] = core::array::from_fn(|l| l < batch.len);
-        let (n, valid) = solve_trimmed_lanes(rc, cfg, &batch.w9, &batch.ca, &batch.sa, &active);
+        let (n, valid) = solve_trimmed_lanes(rc, cfg, &batch.w9, &batch.ca, &batch.sa, &active, &batch.pre);
         for l in 0..batch.len {
             let px = batch.px[l];
             self.nx[px] = n[0][l];
@@ -1888,6 +1919,7 @@ const TRIM: u8 = 5;
 /// and `b'` as masked sums. Per lane: GAP with the normal when the plane fits every point,
 /// TRIM when the system is sound but some point is off the plane, INVALID when too few points
 /// are present or the system is ill-conditioned (which includes all points on one image line).
+/// Also returns the solutions for the trimmed solve ([`PRE`]).
 #[inline(always)]
 fn solve_group_masked(
     rc: &RowCoeffs,
@@ -1895,7 +1927,7 @@ fn solve_group_masked(
     w9: &[[f32; LANES]; 9],
     ca: &[f32; LANES],
     sa: &[f32; LANES],
-) -> ([[f32; LANES]; 3], [u8; LANES]) {
+) -> ([[f32; LANES]; 3], [u8; LANES], [[f32; LANES]; PRE]) {
     let wc = w9[CENTRE];
     let t: [f32; LANES] = core::array::from_fn(|l| cfg.range_jump_abs * wc[l]);
     let mut m = [[0.0f32; LANES]; 6];
@@ -1926,19 +1958,20 @@ fn solve_group_masked(
     }
     let mut out = [[0.0f32; LANES]; 3];
     let mut verdict = [INVALID; LANES];
+    let mut pre = [[0.0f32; LANES]; PRE];
     for l in 0..LANES {
         let mm = [m[0][l], m[1][l], m[2][l], m[3][l], m[4][l], m[5][l]];
         let bb = [b[0][l], b[1][l], b[2][l]];
         let (adj, det) = adjugate_f32(&mm);
         let tr = mm[0] + mm[3] + mm[5];
-        let sound = (wc[l] > 0.0)
-            & (count[l] >= cfg.min_points as f32)
-            & (det > 0.0)
-            & (27.0 * det >= cfg.min_conditioning * tr * tr * tr);
+        let system = (det > 0.0) & (27.0 * det >= cfg.min_conditioning * tr * tr * tr);
+        let sound = (wc[l] > 0.0) & (count[l] >= cfg.min_points as f32) & system;
         let s = 1.0 / det;
         let m0 = (adj[0] * bb[0] + adj[1] * bb[1] + adj[2] * bb[2]) * s;
         let m1 = (adj[1] * bb[0] + adj[3] * bb[1] + adj[4] * bb[2]) * s;
         let m2 = (adj[2] * bb[0] + adj[4] * bb[1] + adj[5] * bb[2]) * s;
+        (pre[0][l], pre[1][l], pre[2][l]) = (m0, m1, m2);
+        pre[3][l] = if system { 1.0 } else { 0.0 };
         let tol = wc[l] * (cfg.fit_tolerance_rel + t[l]);
         let fits = ww[l] - (m0 * bb[0] + m1 * bb[1] + m2 * bb[2]) <= FIT_K * tol * tol;
         let (v, ok) = to_global(rc, m0, m1, m2, ca[l], sa[l]);
@@ -1953,7 +1986,7 @@ fn solve_group_masked(
         out[1][l] = v[1];
         out[2][l] = v[2];
     }
-    (out, verdict)
+    (out, verdict, pre)
 }
 
 /// The trimmed solve of one pixel whose masked solve did not fit (the scalar reference of
@@ -1961,8 +1994,8 @@ fn solve_group_masked(
 /// points are off the plane of the rest: a bad return, an occluding edge, the far side of a
 /// step or a crease. In order, the first that fits gives the normal:
 ///
-/// 1. every point (the masked solve's sum of squares, formed differently, may have failed by a
-///    rounding); `None` if its system is unsound (no fewer points will do);
+/// 1. every point: the masked solve's plane, which did not fit; `None` if its system is unsound
+///    (no fewer points will do);
 /// 2. every point but the one farthest off that plane (a single bad return or edge point);
 /// 3. the window without one of its edge lines ([`TRIM_LINES`]: top row, bottom row, left
 ///    column, right column, at most three points each), the one whose plane fits its points
@@ -2030,11 +2063,8 @@ fn solve_trimmed(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa:
         let (n, ok) = to_global(rc, sol[0], sol[1], sol[2], ca, sa);
         ok.then_some(n)
     };
-    // 1. Every point.
-    let (sol, ssr) = fit(mask)?;
-    if fits(ssr) {
-        return normal(sol);
-    }
+    // 1. Every point (the masked solve's plane).
+    let (sol, _) = fit(mask)?;
     // 2. Without the point farthest off that plane.
     let mut worst = (0.0f32, usize::MAX);
     for k in 0..9 {
@@ -2069,7 +2099,8 @@ fn solve_trimmed(rc: &RowCoeffs, cfg: &RingFalsConfig, w: [f32; 9], ca: f32, sa:
 
 /// [`solve_trimmed`] for up to [`LANES`] pixels of one row at once (lanes with `active` unset
 /// are ignored), branch-free across lanes so that it vectorises: every lane solves the same
-/// candidates with its own mask of points, until every lane has its verdict. The arithmetic is
+/// candidates with its own mask of points, until every lane has its verdict. `pre` is
+/// [`solve_group_masked`]'s solution of the same windows ([`PRE`]). The arithmetic is
 /// [`solve_trimmed`]'s, term by term in the same order, so the results are the same bits.
 /// Returns the normals and which lanes have one.
 #[inline(always)]
@@ -2080,6 +2111,7 @@ fn solve_trimmed_lanes(
     ca: &[f32; LANES],
     sa: &[f32; LANES],
     active: &[bool; LANES],
+    pre: &[[f32; LANES]; PRE],
 ) -> ([[f32; LANES]; 3], [bool; LANES]) {
     let wc = w9[CENTRE];
     let t: [f32; LANES] = core::array::from_fn(|l| cfg.range_jump_abs * wc[l]);
@@ -2108,23 +2140,18 @@ fn solve_trimmed_lanes(
             }
         }
     }
-    // Every point present (the masked solve's points; its sum of squares, formed differently,
-    // may have failed by a rounding), and the point farthest off its plane (first of equals in
-    // window order, as the scalar loop keeps it).
-    let sys = lane_system::<0>(rc, cfg, &uw, &mask);
-    let mut ssr = [0.0f32; LANES];
+    // The masked solve's plane of every point present (`pre`), and the point farthest off it
+    // (first of equals in window order, as the scalar loop keeps it).
     let mut worst_e = [0.0f32; LANES];
     let mut worst_k = [u32::MAX; LANES];
     for k in 0..9 {
+        if k == CENTRE {
+            continue;
+        }
         let u = [rc.u[0][k], rc.u[1][k], rc.u[2][k]];
         for l in 0..LANES {
             let present = (mask[l] >> k) & 1 != 0;
-            let sol = [sys.sol[0][l], sys.sol[1][l], sys.sol[2][l]];
-            let e = (u[0] * sol[0] + u[1] * sol[1] + u[2] * sol[2] - w9[k][l]).abs();
-            ssr[l] += f32::from(u8::from(present)) * (e * e);
-            if k == CENTRE {
-                continue;
-            }
+            let e = (u[0] * pre[0][l] + u[1] * pre[1][l] + u[2] * pre[2][l] - w9[k][l]).abs();
             // A blend by bit masks: as a select, it compiled to masked stores that the next
             // k's loads waited on (no store forwarding from a masked store).
             let take = u32::from(present & !(e <= worst_e[l])).wrapping_neg();
@@ -2134,15 +2161,14 @@ fn solve_trimmed_lanes(
     }
     let mut done = done;
     for l in 0..LANES {
-        let fits = ssr[l] <= FIT_K * tol[l] * tol[l];
-        let (n, ok) = to_global(rc, sys.sol[0][l], sys.sol[1][l], sys.sol[2][l], ca[l], sa[l]);
-        let good = !done[l] & sys.sound[l] & fits & ok;
-        valid[l] = good;
-        for c in 0..3 {
-            out[c][l] = if good { n[c] } else { 0.0 };
-        }
+        // The points' count and spread over the image (SPANS_PLANE, from bit counts of the mask).
+        let bits = |m: u32| (mask[l] & m).count_ones() as i32;
+        let src = bits(DIAG_SAME) - bits(DIAG_OPPOSITE);
+        let sound = (pre[3][l] != 0.0)
+            & (bits(0x1ff) >= i32::from(cfg.min_points))
+            & (bits(ROW_OFF) * bits(COL_OFF) - src * src > 0);
         // Unsound with every point: no fewer will do.
-        done[l] |= !sys.sound[l] | fits;
+        done[l] |= !sound;
     }
     if done.iter().all(|&d| d) {
         return (out, valid);
@@ -2784,7 +2810,8 @@ mod tests {
                 let a = core::f64::consts::TAU * rng.uniform();
                 (ca[l], sa[l]) = (libm::cos(a) as f32, libm::sin(a) as f32);
             }
-            let (n, ok) = solve_trimmed_lanes(rc, &cfg, &w9, &ca, &sa, &active);
+            let (_, _, pre) = solve_group_masked(rc, &cfg, &w9, &ca, &sa);
+            let (n, ok) = solve_trimmed_lanes(rc, &cfg, &w9, &ca, &sa, &active, &pre);
             for l in 0..LANES {
                 if !active[l] {
                     continue;
@@ -2882,7 +2909,7 @@ mod tests {
                 let w9: [[f32; LANES]; 9] =
                     core::array::from_fn(|k| [fals.inv[px + (k / 3) * stride + (k % 3) - stride - 1]; LANES]);
                 let (ca, sa) = table.azimuth_cs(r, c);
-                let (_, verdict) = solve_group_masked(rc, &cfg, &w9, &[ca; LANES], &[sa; LANES]);
+                let (_, verdict, _) = solve_group_masked(rc, &cfg, &w9, &[ca; LANES], &[sa; LANES]);
                 trimmed += u32::from(verdict[0] == TRIM);
             }
         }
