@@ -1648,26 +1648,31 @@ impl<const P: usize> RingFals<P> {
         if st.no_pixel > 0 || st.rejected_range > 0 {
             out.fill(PointNormal::INVALID);
         }
-        let mut valid_points = 0u32;
+        let (mut valid_points, mut lost) = (0u32, 0u32);
         for r in PAD..PAD + rows {
             let i = r * stride + PAD..r * stride + PAD + cols;
-            let px = self.state[i.clone()]
-                .iter()
-                .zip(&self.owner[i.clone()])
-                .zip(self.nx[i.clone()].iter().zip(&self.ny[i.clone()]).zip(&self.nz[i]));
-            for ((&s, &owner), ((&x, &y), &z)) in px {
+            let (state, owner) = (&self.state[i.clone()], &self.owner[i.clone()]);
+            let (nx, ny, nz) = (&self.nx[i.clone()], &self.ny[i.clone()], &self.nz[i]);
+            for j in 0..cols {
+                let s = state[j];
                 if s == EMPTY {
                     continue;
                 }
                 let valid = (s == FULL) | (s == GAP);
+                // Invalid pixels hold zero normals already; the mask makes sure of it without a
+                // second store path.
+                let keep = u32::from(valid).wrapping_neg();
+                let normal = [nx[j], ny[j], nz[j]].map(|v| f32::from_bits(v.to_bits() & keep));
                 // The owner was projected from these points; `get_mut` only keeps a caller who
                 // passed other points from a panic.
-                if let Some(o) = out.get_mut(owner as usize) {
-                    *o = if valid { PointNormal { normal: [x, y, z], valid } } else { PointNormal::INVALID };
-                    valid_points += u32::from(valid);
+                match out.get_mut(owner[j] as usize) {
+                    Some(o) => *o = PointNormal { normal, valid },
+                    None => lost += u32::from(valid),
                 }
             }
+            valid_points += state.iter().fold(0u32, |n, &s| n + u32::from((s == FULL) | (s == GAP)));
         }
+        valid_points -= lost;
         valid_points
     }
 
