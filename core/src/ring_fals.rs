@@ -1623,7 +1623,9 @@ impl<const P: usize> RingFals<P> {
         (valid - use_med.iter().filter(|&&u| u).count()) as u32
     }
 
-    /// Stage 4: the normal of every point, from its pixel.
+    /// Stage 4: the normal of every point, from its pixel. `points` are those of the last
+    /// [`Self::project`] (as [`Self::estimate`] passes them); other points get meaningless
+    /// normals, never a panic.
     pub fn write_points(&mut self, table: &RingTable, points: &[ScanPoint], out: &mut [PointNormal]) {
         let (rows, cols) = (self.rows, self.cols);
         if rows == 0 || table.rows() != rows || table.cols() != cols || out.len() != points.len() {
