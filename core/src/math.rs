@@ -1,5 +1,5 @@
 //! Square roots that compile to the target's own instruction in its own encoding, and a cache
-//! warm-up read ([`read_in`]).
+//! warm-up read (`read_in`).
 //!
 //! `libm::sqrt` on x86 is inline assembly with the legacy SSE encoding (`sqrtsd`). In a build
 //! for a CPU with AVX (`-C target-cpu=native`, see `.cargo/config.toml`) the code around it is

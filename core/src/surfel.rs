@@ -324,7 +324,7 @@ pub fn eigen_sym3(m: &Sym3) -> ([f64; 3], [[f64; 3]; 3]) {
 /// whose rows span the plane orthogonal to it), its eigenvalue refined as the Rayleigh
 /// quotient, and the pair solved exactly as the 2x2 problem in the orthogonal plane (one
 /// Jacobi rotation). Accuracy as Jacobi's: vectors to about `1e-16 spread / gap`. No
-/// iteration and no trigonometry (see [`cos_third_acos`]): a handful of square roots and
+/// iteration and no trigonometry (see `cos_third_acos`): a handful of square roots and
 /// divisions.
 pub fn eigen_sym3_closed(m: &Sym3) -> Option<([f64; 3], [[f64; 3]; 3])> {
     let [a00, a01, a02, a11, a12, a22] = *m;

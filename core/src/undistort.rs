@@ -235,7 +235,7 @@ impl<const N: usize> ImuTrajectory<N> {
     /// state `end` (the filter state at the scan end), using each point's `t`.
     ///
     /// The transform of a time is that of [`Self::pose_at`] composed with the end state and
-    /// the extrinsic, evaluated through the time's [`Segment`] (the same formula regrouped:
+    /// the extrinsic, evaluated through the time's `Segment` (the same formula regrouped:
     /// results agree to rounding).
     pub fn undistort(
         &self,
