@@ -1642,8 +1642,8 @@ impl<const P: usize> RingFals<P> {
 
     /// [`Self::write_points`] when every point with a pixel owns it (no collisions): each
     /// pixel's normal goes to its owner, the image read in order instead of four planes read in
-    /// the points' order (16 % faster). A point without a pixel (none, or a filtered range) is
-    /// invalid. Returns the valid points.
+    /// the points' order (a third faster on the bench scans). A point without a pixel (none,
+    /// or a filtered range) is invalid. Returns the valid points.
     fn write_by_pixel(&self, out: &mut [PointNormal]) -> u32 {
         let (rows, cols, stride) = (self.rows, self.cols, self.stride);
         let st = self.stats;
