@@ -825,6 +825,12 @@ const INVALID: u8 = 4;
 /// indices stay below it: `project` refuses more than `u32::MAX` points).
 const NO_OWNER: u32 = u32::MAX;
 
+/// Whether a pixel of state `s` has a normal.
+#[inline(always)]
+fn has_normal(s: u8) -> bool {
+    (s == FULL) | (s == GAP)
+}
+
 /// Padded pixel count that a [`RingFals`] needs for a `rows` x `cols` layout: use it as the
 /// const parameter, e.g. `RingFals<{ storage_pixels(32, 1800) }>`.
 pub const fn storage_pixels(rows: usize, cols: usize) -> usize {
@@ -1284,7 +1290,7 @@ impl<const P: usize> RingFals<P> {
                 self.finish_trimmed(rc, &table.config, b);
             }
             for &st in &self.state[base..base + cols] {
-                valid += u32::from((st == FULL) | (st == GAP));
+                valid += u32::from(has_normal(st));
                 gap_solves += u32::from(st == GAP);
                 invalid += u32::from(st == INVALID);
             }
@@ -1516,7 +1522,7 @@ impl<const P: usize> RingFals<P> {
         for l in 0..QLANES {
             let neg = if (c0 + l) & 1 == 0 { pad_neg.0 } else { pad_neg.1 };
             rank[l] = neg + ((24 - out[l]) >> 1);
-            let used = ((st[l] == FULL) | (st[l] == GAP)) & (25 - out[l] >= min_valid);
+            let used = has_normal(st[l]) & (25 - out[l] >= min_valid);
             general[l] = -((used & !(one_surface[l] & (6..=12).contains(&rank[l]))) as i16);
             low[l] = -((used & (rank[l] < 10)) as i16);
         }
@@ -1607,7 +1613,7 @@ impl<const P: usize> RingFals<P> {
         }
         let mut use_med = [false; QLANES];
         for l in 0..QLANES {
-            let valid = (st[l] == FULL) | (st[l] == GAP);
+            let valid = has_normal(st[l]);
             use_med[l] = valid & (25 + neg_count[l] >= min_valid) & sound[l];
         }
         // A blend by bit masks: a conditional store per lane compiled to jumps.
@@ -1619,7 +1625,7 @@ impl<const P: usize> RingFals<P> {
                 dst[l] = f32::from_bits((n[ch][l].to_bits() & keep[l]) | (dst[l].to_bits() & !keep[l]));
             }
         }
-        let valid = st.iter().filter(|&&s| s == FULL || s == GAP).count();
+        let valid = st.iter().filter(|&&s| has_normal(s)).count();
         (valid - use_med.iter().filter(|&&u| u).count()) as u32
     }
 
@@ -1660,7 +1666,7 @@ impl<const P: usize> RingFals<P> {
                 if s == EMPTY {
                     continue;
                 }
-                let valid = (s == FULL) | (s == GAP);
+                let valid = has_normal(s);
                 // Invalid pixels hold zero normals already; the mask makes sure of it without a
                 // second store path.
                 let keep = u32::from(valid).wrapping_neg();
@@ -1672,7 +1678,7 @@ impl<const P: usize> RingFals<P> {
                     None => lost += u32::from(valid),
                 }
             }
-            valid_points += state.iter().fold(0u32, |n, &s| n + u32::from((s == FULL) | (s == GAP)));
+            valid_points += state.iter().fold(0u32, |n, &s| n + u32::from(has_normal(s)));
         }
         valid_points -= lost;
         valid_points
@@ -1691,7 +1697,7 @@ impl<const P: usize> RingFals<P> {
         for r in PAD..PAD + rows {
             let i = r * stride + PAD..r * stride + PAD + cols;
             for (o, &s) in self.owner[i.clone()].iter_mut().zip(&self.state[i]) {
-                *o = if (s == FULL) | (s == GAP) { *o } else { NO_OWNER };
+                *o = if has_normal(s) { *o } else { NO_OWNER };
             }
         }
         let ix = table.pixel_index(stride);
@@ -2179,7 +2185,7 @@ fn solve_trimmed_lanes(
             mask[l] |= u32::from(present) << k;
         }
     }
-    let done: [bool; LANES] = core::array::from_fn(|l| !active[l] | !(wc[l] > 0.0));
+    let mut done: [bool; LANES] = core::array::from_fn(|l| !active[l] | !(wc[l] > 0.0));
     let mut valid = [false; LANES];
     let mut out = [[0.0f32; LANES]; 3];
     // The right-hand side's terms u_i w of every window point, the same in every pass.
@@ -2211,44 +2217,32 @@ fn solve_trimmed_lanes(
             worst_k[l] = (k as u32 & take) | (worst_k[l] & !take);
         }
     }
-    let mut done = done;
     for l in 0..LANES {
-        // The points' count and spread over the image (SPANS_PLANE, from bit counts of the mask).
-        let bits = |m: u32| (mask[l] & m).count_ones() as i32;
-        let src = bits(DIAG_SAME) - bits(DIAG_OPPOSITE);
-        let sound = (pre[3][l] != 0.0)
-            & (bits(0x1ff) >= i32::from(cfg.min_points))
-            & (bits(ROW_OFF) * bits(COL_OFF) - src * src > 0);
+        let sound = (pre[3][l] != 0.0) & mask_spans_plane(mask[l], cfg.min_points);
         // Unsound with every point: no fewer will do.
         done[l] |= !sound;
     }
     if done.iter().all(|&d| d) {
         return (out, valid);
     }
-    // Without the worst point.
+    let cand = Candidate { rc, cfg, w9, uw: &uw, tol: &tol, ca, sa };
+    let mut best = [f32::INFINITY; LANES];
+    // Without the worst point: any fit is taken (`best` is still infinite).
     let single: [u32; LANES] = core::array::from_fn(|l| mask[l] & !(1u32 << (worst_k[l] & 15)));
-    let sys = lane_system::<0>(rc, cfg, &uw, &single);
-    let ssr = lane_ssr::<0>(rc, w9, &single, &sys.sol);
+    let eligible: [bool; LANES] = core::array::from_fn(|l| !done[l] & (worst_k[l] != u32::MAX));
+    cand.solve::<0>(&single, &eligible, &mut best, &mut valid, &mut out);
     for l in 0..LANES {
-        let fits = ssr[l] <= FIT_K * tol[l] * tol[l];
-        let (n, ok) = to_global(rc, sys.sol[0][l], sys.sol[1][l], sys.sol[2][l], ca[l], sa[l]);
-        let good = !done[l] & (worst_k[l] != u32::MAX) & sys.sound[l] & fits & ok;
-        valid[l] |= good;
-        for c in 0..3 {
-            out[c][l] = if good { n[c] } else { out[c][l] };
-        }
-        done[l] |= good;
+        done[l] |= valid[l];
     }
     if done.iter().all(|&d| d) {
         return (out, valid);
     }
-    // The four lines, each left out in turn (its points never enter the sums).
-    let mut best = [f32::INFINITY; LANES];
-    let cand = Candidate { rc, cfg, w9, uw: &uw, mask: &mask, tol: &tol, ca, sa, done: &done };
-    cand.solve::<LINE_TOP>(&mut best, &mut valid, &mut out);
-    cand.solve::<LINE_BOTTOM>(&mut best, &mut valid, &mut out);
-    cand.solve::<LINE_LEFT>(&mut best, &mut valid, &mut out);
-    cand.solve::<LINE_RIGHT>(&mut best, &mut valid, &mut out);
+    // The four lines, each left out in turn (its points never enter the sums): the best fit.
+    let eligible = done.map(|d| !d);
+    cand.solve::<LINE_TOP>(&mask, &eligible, &mut best, &mut valid, &mut out);
+    cand.solve::<LINE_BOTTOM>(&mask, &eligible, &mut best, &mut valid, &mut out);
+    cand.solve::<LINE_LEFT>(&mask, &eligible, &mut best, &mut valid, &mut out);
+    cand.solve::<LINE_RIGHT>(&mask, &eligible, &mut best, &mut valid, &mut out);
     (out, valid)
 }
 
@@ -2258,31 +2252,32 @@ struct Candidate<'a> {
     cfg: &'a RingFalsConfig,
     w9: &'a [[f32; LANES]; 9],
     uw: &'a [[[f32; LANES]; 3]; 9],
-    mask: &'a [u32; LANES],
     tol: &'a [f32; LANES],
     ca: &'a [f32; LANES],
     sa: &'a [f32; LANES],
-    done: &'a [bool; LANES],
 }
 
 impl Candidate<'_> {
-    /// Solves every lane's window without the points of `DROP` and keeps, per lane, the normal
-    /// of the best fit so far (`best`: its sum of squared residuals).
+    /// Solves every lane's window over the points of `mask` without those of `DROP` and keeps,
+    /// in the `eligible` lanes, the normal of the best fit so far (`best`: its sum of squared
+    /// residuals).
     #[inline(always)]
     fn solve<const DROP: u32>(
         &self,
+        mask: &[u32; LANES],
+        eligible: &[bool; LANES],
         best: &mut [f32; LANES],
         valid: &mut [bool; LANES],
         out: &mut [[f32; LANES]; 3],
     ) {
         let (rc, cfg) = (self.rc, self.cfg);
-        let mask: [u32; LANES] = core::array::from_fn(|l| self.mask[l] & !DROP);
+        let mask: [u32; LANES] = core::array::from_fn(|l| mask[l] & !DROP);
         let sys = lane_system::<DROP>(rc, cfg, self.uw, &mask);
         let ssr = lane_ssr::<DROP>(rc, self.w9, &mask, &sys.sol);
         for l in 0..LANES {
             let fits = ssr[l] <= FIT_K * self.tol[l] * self.tol[l];
             let (n, ok) = to_global(rc, sys.sol[0][l], sys.sol[1][l], sys.sol[2][l], self.ca[l], self.sa[l]);
-            let take = !self.done[l] & sys.sound[l] & fits & ok & (ssr[l] < best[l]);
+            let take = eligible[l] & sys.sound[l] & fits & ok & (ssr[l] < best[l]);
             best[l] = if take { ssr[l] } else { best[l] };
             valid[l] |= take;
             for c in 0..3 {
@@ -2310,7 +2305,7 @@ struct LaneSystem {
 }
 
 /// Solves each lane's window over the points of its mask (vector code over the lanes): the
-/// points' count and spread over the image (from bit counts of the mask), the system as masked
+/// points' count and spread over the image ([`mask_spans_plane`]), the system as masked
 /// sums in window order, its adjugate and solution. Adding a product by 0.0 leaves a sum's bits
 /// as they were, so these are the scalar loop's sums over the points present. (Written as an
 /// add under a condition, the sums stopped vectorising: the solve took 35 % longer.)
@@ -2323,15 +2318,7 @@ fn lane_system<const DROP: u32>(
     uw: &[[[f32; LANES]; 3]; 9],
     mask: &[u32; LANES],
 ) -> LaneSystem {
-    let mut count = [0i32; LANES];
-    let (mut srr, mut scc, mut src) = ([0i32; LANES], [0i32; LANES], [0i32; LANES]);
-    for l in 0..LANES {
-        let bits = |m: u32| (mask[l] & m).count_ones() as i32;
-        count[l] = bits(0x1ff);
-        srr[l] = bits(ROW_OFF);
-        scc[l] = bits(COL_OFF);
-        src[l] = bits(DIAG_SAME) - bits(DIAG_OPPOSITE);
-    }
+    let spans: [bool; LANES] = core::array::from_fn(|l| mask_spans_plane(mask[l], cfg.min_points));
     let mut m = [[0.0f32; LANES]; 6];
     let mut b = [[0.0f32; LANES]; 3];
     for k in 0..9 {
@@ -2356,10 +2343,7 @@ fn lane_system<const DROP: u32>(
         let mm = [m[0][l], m[1][l], m[2][l], m[3][l], m[4][l], m[5][l]];
         let (a, det) = adjugate_f32(&mm);
         let tr = mm[0] + mm[3] + mm[5];
-        sys.sound[l] = (count[l] >= i32::from(cfg.min_points))
-            & (srr[l] * scc[l] - src[l] * src[l] > 0)
-            & (det > 0.0)
-            & (27.0 * det >= cfg.min_conditioning * tr * tr * tr);
+        sys.sound[l] = spans[l] & (det > 0.0) & (27.0 * det >= cfg.min_conditioning * tr * tr * tr);
         let s = 1.0 / det;
         let bb = [b[0][l], b[1][l], b[2][l]];
         sys.sol[0][l] = (a[0] * bb[0] + a[1] * bb[1] + a[2] * bb[2]) * s;
@@ -2391,6 +2375,15 @@ fn lane_ssr<const DROP: u32>(
         }
     }
     ssr
+}
+
+/// Whether the window points of `mask` are enough to solve from: at least `min_points`, and
+/// spread over both image directions (the bit-count form of [`SPANS_PLANE`]).
+#[inline(always)]
+fn mask_spans_plane(mask: u32, min_points: u8) -> bool {
+    let bits = |m: u32| (mask & m).count_ones() as i32;
+    let src = bits(DIAG_SAME) - bits(DIAG_OPPOSITE);
+    (bits(0x1ff) >= i32::from(min_points)) & (bits(ROW_OFF) * bits(COL_OFF) - src * src > 0)
 }
 
 /// Window points off the centre row (dr != 0), off the centre column (dc != 0), and on the
