@@ -106,8 +106,9 @@ pub struct AssociationConfig {
     pub surfel_variance: f64,
     /// Noise variance of a point-to-plane residual, m². Default 0.001.
     pub plane_variance: f64,
-    /// Measurement budget: at most this many downsampled points (evenly spread over the scan
-    /// order) are associated and measured; the map still receives them all. 0: no limit.
+    /// Measurement budget: at most this many downsampled points (evenly spread over their
+    /// order, the voxels' Morton order) are associated and measured; the map still receives
+    /// them all. 0: no limit.
     pub max_points: u32,
     /// Search again when the iterate's position moved more than this since the last search, m.
     pub research_pos: f64,

@@ -28,12 +28,14 @@
 //!    state after every sample is a knot of the scan's [`ImuTrajectory`]; the filter is then
 //!    propagated to the scan end, and every point and normal is moved to the LiDAR frame at the
 //!    scan end (backward propagation).
-//! 4. Voxel downsampling on the map's grid keeps one point per voxel with the averaged normal.
+//! 4. Voxel downsampling on the map's grid keeps one point per voxel with the averaged normal,
+//!    in the Morton order of the voxels (nearby points together: the association's and the
+//!    map's lookups then find the caches warm).
 //! 5. The first scan after initialisation only builds the map. Later scans run the iterated
 //!    update ([`Eskf::update`]) with the association of [`crate::association`]; the filter
 //!    handles degenerate directions (the status says [`Status::Degraded`]). With a
 //!    measurement budget (`association.max_points` > 0, off by default) at most that many
-//!    downsampled points, evenly spread over the scan order, are associated and measured:
+//!    downsampled points, evenly spread over their (Morton) order, are associated and measured:
 //!    the association's cost is per point, and a dense scan gives more constraints than the
 //!    update needs (the reference subsamples every 4th raw point for the same reason).
 //! 6. The scan goes into the voxel map at the updated pose (also when it had too few
@@ -756,7 +758,7 @@ impl Clock for NoClock {
 mod tests {
     use super::*;
 
-    /// The measurement budget takes `floor(j n / b)` for `j < b` (evenly spread, in scan order),
+    /// The measurement budget takes `floor(j n / b)` for `j < b` (evenly spread, in order),
     /// moves them to the front with their normals, and loses no point: the rest still go to the
     /// map.
     #[test]

@@ -1527,7 +1527,8 @@ impl<'a> VoxelMap<'a> {
     /// those of [`Self::knn`] called on each query in turn, obtained faster: queries go in
     /// groups of 8, and all the index lines, then all the voxels, of a group's neighbourhoods
     /// are read before any member is searched, so the cache misses overlap instead of being paid
-    /// one after another. Give the queries in scan order (nearby points close together).
+    /// one after another. Give nearby queries together (the odometry's downsampled points come in
+    /// the Morton order of their voxels).
     pub fn knn_many(&self, queries: &[[f32; 3]], query: &KnnQuery, out: &mut [Neighbours]) -> usize {
         let m = queries.len().min(out.len());
         for o in out[..m].iter_mut() {
