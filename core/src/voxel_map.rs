@@ -576,6 +576,9 @@ impl Neighbour {
 
     /// The point's normal (unit, within 0.5 degrees of the one inserted), if it had one.
     /// Computed on demand: the reference's association never reads per-point normals.
+    /// Inlined: out of line (another codegen unit) the association called it through the GOT
+    /// and read its result back from memory, a stall per neighbour.
+    #[inline]
     pub fn normal(&self) -> Option<[f32; 3]> {
         rep_normal(self.normal_q)
     }
@@ -594,10 +597,12 @@ impl Neighbours {
         Self { items: [Neighbour::NONE; KNN_MAX], len: 0 }
     }
     /// The neighbours, nearest first.
+    #[inline]
     pub fn as_slice(&self) -> &[Neighbour] {
         &self.items[..self.len]
     }
     /// How many were found.
+    #[inline]
     pub fn len(&self) -> usize {
         self.len
     }
@@ -2006,6 +2011,7 @@ fn rep_d2(v: &Voxel, rq: [f32; 3], s: f32) -> [f32; OCTANTS] {
 }
 
 /// A quantised normal as a unit vector; `None` for the "no normal" marker `[0, 0, 0]`.
+#[inline]
 fn rep_normal(q: [i8; 3]) -> Option<[f32; 3]> {
     if q == [0, 0, 0] {
         return None;
