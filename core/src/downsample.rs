@@ -21,7 +21,8 @@
 //! together in memory order, which is what the association and the map insertion want: their
 //! map lookups for consecutive points then hit the voxels and index lines the previous ones
 //! brought into the caches (in the scan's column order they jump across the scene; in Morton
-//! order the association of a VLP-32C vehicle scan takes 7 % less time, the map insertion 5 %).
+//! order the association of a VLP-32C vehicle scan takes 11 % less time, the map insertion 8 %,
+//! medians of five alternated `loglio bench` runs).
 //! The points are first compacted in the order the voxels were first seen (safe in place: a
 //! voxel's chosen point never comes before the voxel's position in that order), then permuted
 //! in place by a radix sort of the keys' Morton codes.
@@ -362,10 +363,12 @@ impl<const N: usize> VoxelDownsampler<N> {
             }
         }
 
-        // Output, compacted in first-seen order; the index is emptied for the next scan.
+        // Output, compacted in first-seen order; the index is emptied for the next scan, and
+        // the cells' Morton codes noted for the reordering below.
         for k in 0..used {
             let c = self.cells[k];
             self.index[c.pos as usize] = 0;
+            self.codes[k] = morton30(c.key);
             points[k] = points[c.best as usize];
             if let Some(ns) = normals.as_deref_mut() {
                 ns[k] = if c.ncount == 0 {
@@ -391,18 +394,15 @@ impl<const N: usize> VoxelDownsampler<N> {
     }
 
     /// Permutes the first `used` points (and normals), compacted in the cells' order, into the
-    /// Morton order of the cells' keys: an LSD radix sort of the 30-bit codes (three 10-bit
-    /// digits, stable) between `perm` and the index (empty again afterwards), then the
-    /// permutation applied in place cycle by cycle.
+    /// Morton order of the cells' keys (`codes[..used]`, noted by the compaction): an LSD radix
+    /// sort of the 30-bit codes (three 10-bit digits, stable) between `perm` and the index
+    /// (empty again afterwards), then the permutation applied in place cycle by cycle.
     #[inline(never)]
     fn morton_order(&mut self, used: usize, points: &mut [ScanPoint], mut normals: Option<&mut [[f32; 3]]>) {
         if used < 2 {
             return;
         }
-        let codes = &mut self.codes[..used];
-        for (d, c) in codes.iter_mut().zip(&self.cells[..used]) {
-            *d = morton30(c.key);
-        }
+        let codes = &self.codes[..used];
         // The three digits' histograms in one pass, then each turned into bucket starts.
         let mut hists = [[0u32; 1024]; 3];
         for &c in codes.iter() {
@@ -586,9 +586,7 @@ mod tests {
             let d = (n[0] - libm::cosf(a)).abs() + (n[1] - libm::sinf(a)).abs() + n[2].abs();
             assert!(d < 2e-5, "{n:?} voxel {i}");
         }
-        let _ = orig_n;
-        // Ties in code keep the first-seen order: the same voxel twice in a row cannot happen,
-        // and wrapped duplicates are rare; the same run twice gives the same bytes.
+        // The same input again gives the same bytes.
         let (mut p2, mut n2) = (orig.clone(), orig_n.clone());
         ds.downsample(&cfg(1.0), &mut p2, Some(&mut n2)).unwrap();
         assert_eq!(&p2[..2000], out);
