@@ -11,10 +11,11 @@
 //! # Storage
 //!
 //! The core's [`OdometryStorage`] is generic over its capacities, so the host compiles a few
-//! size classes and picks the smallest that fits (see [`StorageClass`]): up to 32 x 2048 pixels
-//! and 131,072 points per scan, or up to 128 x 2048 and 524,288 (dual-return OS1-128); a voxel
-//! pool of 2^18 voxels (52 MiB with its index) or, when `mapping.map_capacity` asks for more,
-//! 2^20 (218 MiB). The storage is tens to hundreds of MiB, far beyond a thread's stack, so it is
+//! size classes and picks the smallest that fits (see [`StorageClass`]): up to 32 rows and the
+//! pixels of 32 x 2048 (so 32 x 2170 for an HDL-32E at 10 Hz takes the next class, 16 x 3600
+//! does not) and 131,072 points per scan, or the pixels of 128 x 2048 and 524,288 points
+//! (dual-return OS1-128); a voxel pool of 2^18 voxels (52 MiB with its index) or, when
+//! `mapping.map_capacity` asks for more, 2^20 (218 MiB). The storage is tens to hundreds of MiB, far beyond a thread's stack, so it is
 //! never built on the main thread's stack: a short-lived thread whose stack is sized to hold
 //! the value twice runs `Box::new(OdometryStorage::new())` (see [`boxed_storage`]). This needs
 //! no `unsafe`: the storage is *not* all-zero bytes (the ring table's default settings and an
@@ -38,7 +39,7 @@ use loglio_core::odometry::{
     AssociationMode as CoreMode, Clock, Odometry, OdometryConfig, OdometryError, OdometryStorage,
 };
 use loglio_core::output::{ScanResult, StageTimes, Status};
-use loglio_core::range_image::RangeImageLayout;
+use loglio_core::range_image::{MAX_COLS, MAX_ROWS, RangeImageLayout};
 use loglio_core::ring_fals::storage_pixels;
 use loglio_core::scan::{ScanPoint, ScanView};
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
@@ -216,13 +217,13 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> Engine for CoreEngine<
 /// The compiled storage size classes (see the module docs).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum StorageClass {
-    /// Up to 32 x 2048 pixels, 131,072 points and a 2^18-voxel pool.
+    /// Up to 32 rows and the pixels of 32 x 2048, 131,072 points and a 2^18-voxel pool.
     Small,
-    /// Up to 32 x 2048 pixels, 131,072 points and a 2^20-voxel pool.
+    /// Up to 32 rows and the pixels of 32 x 2048, 131,072 points and a 2^20-voxel pool.
     SmallBigMap,
-    /// Up to 128 x 2048 pixels, 524,288 points and a 2^18-voxel pool.
+    /// Up to the pixels of 128 x 2048, 524,288 points and a 2^18-voxel pool.
     Large,
-    /// Up to 128 x 2048 pixels, 524,288 points and a 2^20-voxel pool.
+    /// Up to the pixels of 128 x 2048, 524,288 points and a 2^20-voxel pool.
     LargeBigMap,
 }
 
@@ -242,19 +243,26 @@ type LargeBigMapStorage = OdometryStorage<LARGE_PIX, LARGE_PTS, LARGE_DS, BIG_PO
 
 impl StorageClass {
     /// The smallest class for a layout of `rows` x `cols` and a map of `map_capacity` voxels.
+    /// A class holds a number of pixels (with Ring FALS's border), not a fixed width: an
+    /// HDL-32E at 10 Hz (32 x 2170) or a VLP-16 at 5 Hz (16 x 3616 -> 3600) fits as well as a
+    /// 32 x 2048 image.
     pub fn choose(rows: usize, cols: usize, map_capacity: u64) -> Result<StorageClass, PipelineError> {
-        if cols > 2048 || rows > 128 {
+        let pixels = storage_pixels(rows, cols);
+        if rows > MAX_ROWS || cols > MAX_COLS || pixels > LARGE_PIX {
             return Err(PipelineError(format!(
-                "a {rows} x {cols} range image is larger than the largest supported (128 x 2048)"
+                "a {rows} x {cols} range image is larger than the largest supported ({LARGE_PIX} pixels with \
+                 the border, e.g. 128 x 2048; at most {MAX_ROWS} rows and {MAX_COLS} columns)"
             )));
         }
+        // More than 32 rows: the large class as well, for its points (dual returns).
+        let large = rows > 32 || pixels > SMALL_PIX;
         let big_map = map_capacity > POOL as u64;
         if map_capacity > BIG_POOL as u64 {
             crate::diag::warn(format!(
                 "mapping.map_capacity = {map_capacity} is more than the largest compiled pool; using {BIG_POOL} voxels"
             ));
         }
-        Ok(match (rows > 32, big_map) {
+        Ok(match (large, big_map) {
             (false, false) => StorageClass::Small,
             (false, true) => StorageClass::SmallBigMap,
             (true, false) => StorageClass::Large,
@@ -825,4 +833,32 @@ pub fn status_summary(st: &RunStats) -> String {
     let parts: Vec<String> =
         names.iter().zip(st.status).filter(|(_, n)| *n > 0).map(|(name, n)| format!("{n} {name}")).collect();
     parts.join(", ")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Classes by pixels: every layout the core accepts and a class can hold gets one (the
+    /// HDL-32E at 10 Hz, 32 x 2170, was refused as wider than 2048), the rest a one-line error.
+    #[test]
+    fn storage_class_is_chosen_by_pixels() {
+        let small = POOL as u64;
+        assert_eq!(StorageClass::choose(32, 1800, small), Ok(StorageClass::Small));
+        assert_eq!(StorageClass::choose(32, 2048, small), Ok(StorageClass::Small));
+        assert_eq!(StorageClass::choose(16, 3600, small), Ok(StorageClass::Small));
+        assert_eq!(StorageClass::choose(32, 2170, small), Ok(StorageClass::Large));
+        assert_eq!(StorageClass::choose(32, 2170, 2 * small), Ok(StorageClass::LargeBigMap));
+        assert_eq!(StorageClass::choose(32, 3600, small), Ok(StorageClass::Large));
+        assert_eq!(StorageClass::choose(64, 1024, small), Ok(StorageClass::Large));
+        assert_eq!(StorageClass::choose(128, 2048, small), Ok(StorageClass::Large));
+        assert_eq!(StorageClass::choose(16, 1024, 2 * small), Ok(StorageClass::SmallBigMap));
+        for (rows, cols) in [(128, 2100), (64, 3601), (129, 1024)] {
+            let e = StorageClass::choose(rows, cols, small).unwrap_err().0;
+            assert!(e.starts_with(&format!("a {rows} x {cols} range image is larger than")), "{e}");
+            assert!(!e.contains('\n'));
+        }
+        // What a class holds, the core's check agrees with.
+        assert!(storage_pixels(32, 2170) <= LARGE_PIX && storage_pixels(32, 2170) > SMALL_PIX);
+    }
 }
