@@ -15,13 +15,14 @@
 //! pixels of 32 x 2048 (so 32 x 2170 for an HDL-32E at 10 Hz takes the next class, 16 x 3600
 //! does not) and 131,072 points per scan, or the pixels of 128 x 2048 and 524,288 points
 //! (dual-return OS1-128); a voxel pool of 2^18 voxels (52 MiB with its index) or, when
-//! `mapping.map_capacity` asks for more, 2^20 (218 MiB). The storage is tens to hundreds of MiB, far beyond a thread's stack, so it is
-//! never built on the main thread's stack: a short-lived thread whose stack is sized to hold
-//! the value twice runs `Box::new(OdometryStorage::new())` (see [`boxed_storage`]). This needs
-//! no `unsafe`: the storage is *not* all-zero bytes (the ring table's default settings and an
-//! `Option<u64>` in the IMU queue), so a zeroed allocation (`Box::new_zeroed`, `alloc_zeroed`)
-//! would not be sound without relying on unspecified layouts, and a `static` would put the
-//! non-zero value in `.data`, i.e. in the binary. Every page is written once at start-up, so the
+//! `mapping.map_capacity` asks for more, 2^20 (218 MiB). The storage is tens to hundreds of
+//! MiB, far beyond a thread's stack, so it is never built on the main thread's stack: a
+//! short-lived thread whose stack is sized to hold the value several times over runs
+//! `Box::new(OdometryStorage::new())` (see [`boxed_storage`]). This needs no `unsafe`: the
+//! storage is *not* all-zero bytes (the ring table's default settings and an `Option<u64>` in
+//! the IMU queue), so a zeroed allocation (`Box::new_zeroed`, `alloc_zeroed`) would not be
+//! sound without relying on unspecified layouts, and a `static` would put the non-zero value in
+//! `.data`, i.e. in the binary. Every page is written once at start-up, so the
 //! memory is committed before the first scan and nothing is allocated or faulted in later by the
 //! core.
 
@@ -289,11 +290,14 @@ impl StorageClass {
     }
 }
 
-/// `Box::new(make())` on a thread whose stack can hold the value (twice, for an unoptimised
-/// build's temporary), so that the value never lands on a small stack (see the module docs).
+/// `Box::new(make())` on a thread whose stack can hold the value several times over, so that
+/// the value never lands on a small stack (see the module docs). Twice was not always enough:
+/// how many temporaries of the value a build keeps depends on its inlining (a profile-guided
+/// build with one codegen unit overflowed). The reservation is address space only: the pages
+/// the construction does not touch are never committed.
 pub fn boxed_storage<T: Send + 'static>(make: fn() -> T) -> Result<Box<T>, PipelineError> {
     let size = std::mem::size_of::<T>();
-    let stack = size.saturating_mul(2).saturating_add(8 << 20);
+    let stack = size.saturating_mul(4).saturating_add(16 << 20);
     let handle = std::thread::Builder::new()
         .name("loglio-alloc".into())
         .stack_size(stack)
