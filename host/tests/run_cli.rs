@@ -125,17 +125,18 @@ fn sim_handheld_ouster_accuracy() {
 }
 
 /// The HDL-32E at 10 Hz has 2,170 columns, more than the 2,048 the host once allowed: it runs
-/// on the next storage class.
+/// on the next storage class. 4 s (2 s of them at rest): short enough for the aarch64 run
+/// under qemu-user.
 #[test]
 fn sim_hdl32e_runs_on_a_wider_image() {
     let out =
-        loglio(&["sim", "--scenario", "vehicle", "--sensor", "hdl32e", "--seconds", "6", "--seed", "3"]);
+        loglio(&["sim", "--scenario", "vehicle", "--sensor", "hdl32e", "--seconds", "4", "--seed", "3"]);
     let text = stdout(&out);
-    assert!(text.contains("scenario vehicle (6 s, hdl32e, seed 3): 59 scans"), "{text}");
+    assert!(text.contains("scenario vehicle (4 s, hdl32e, seed 3): 39 scans"), "{text}");
     let ate = number_after(&text, "rmse");
     assert!(ate <= 0.02, "ATE {ate} m: {text}");
     let tracked = status_count(&text, "ok") + status_count(&text, "degraded");
-    assert!(tracked >= 45, "scans updated by the LiDAR: {text}");
+    assert!(tracked >= 25, "scans updated by the LiDAR: {text}");
 }
 
 #[test]
