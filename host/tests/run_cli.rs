@@ -112,16 +112,25 @@ fn demo_writes_every_output_and_tracks_the_ground_truth() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Runs `loglio sim` for `seconds` (seed 3) and checks its summary: `scans` scans, an ATE of at
+/// most `max_ate` m and at least `min_tracked` scans updated by the LiDAR.
+fn sim_tracks(scenario: &str, sensor: &str, seconds: u32, scans: usize, max_ate: f64, min_tracked: u64) {
+    let secs = seconds.to_string();
+    let out = loglio(&["sim", "--scenario", scenario, "--sensor", sensor, "--seconds", &secs, "--seed", "3"]);
+    let text = stdout(&out);
+    assert!(
+        text.contains(&format!("scenario {scenario} ({seconds} s, {sensor}, seed 3): {scans} scans")),
+        "{text}"
+    );
+    let ate = number_after(&text, "rmse");
+    assert!(ate <= max_ate, "ATE {ate} m: {text}");
+    let tracked = status_count(&text, "ok") + status_count(&text, "degraded");
+    assert!(tracked >= min_tracked, "scans updated by the LiDAR: {text}");
+}
+
 #[test]
 fn sim_handheld_ouster_accuracy() {
-    let out =
-        loglio(&["sim", "--scenario", "handheld", "--sensor", "os1-16", "--seconds", "6", "--seed", "3"]);
-    let text = stdout(&out);
-    assert!(text.contains("scenario handheld (6 s, os1-16, seed 3): 60 scans"), "{text}");
-    let ate = number_after(&text, "rmse");
-    assert!(ate <= 0.10, "ATE {ate} m: {text}");
-    let tracked = status_count(&text, "ok") + status_count(&text, "degraded");
-    assert!(tracked >= 45, "scans updated by the LiDAR: {text}");
+    sim_tracks("handheld", "os1-16", 6, 60, 0.10, 45);
 }
 
 /// The HDL-32E at 10 Hz has 2,170 columns, more than the 2,048 the host once allowed: it runs
@@ -129,14 +138,7 @@ fn sim_handheld_ouster_accuracy() {
 /// under qemu-user.
 #[test]
 fn sim_hdl32e_runs_on_a_wider_image() {
-    let out =
-        loglio(&["sim", "--scenario", "vehicle", "--sensor", "hdl32e", "--seconds", "4", "--seed", "3"]);
-    let text = stdout(&out);
-    assert!(text.contains("scenario vehicle (4 s, hdl32e, seed 3): 39 scans"), "{text}");
-    let ate = number_after(&text, "rmse");
-    assert!(ate <= 0.02, "ATE {ate} m: {text}");
-    let tracked = status_count(&text, "ok") + status_count(&text, "degraded");
-    assert!(tracked >= 25, "scans updated by the LiDAR: {text}");
+    sim_tracks("vehicle", "hdl32e", 4, 39, 0.02, 25);
 }
 
 #[test]
