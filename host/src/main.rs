@@ -458,7 +458,8 @@ fn replay_cmd(a: ReplayArgs) -> anyhow::Result<()> {
         opt.pcap.display(),
         r.stream.lidar_packets,
         if r.stream.imu_packets > 0 {
-            format!(", {} IMU packets", r.stream.imu_packets)
+            let unused = if r.imu_packets_used { "" } else { " (not used: the IMU comes from a file)" };
+            format!(", {} IMU packets{unused}", r.stream.imu_packets)
         } else {
             String::new()
         },

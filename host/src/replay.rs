@@ -173,6 +173,8 @@ pub struct ReplayReport {
     pub finished: Finished,
     /// Packet counts.
     pub stream: lidar_stream::StreamStats,
+    /// Whether the Ouster's IMU packets were the IMU (else they were counted and left out).
+    pub imu_packets_used: bool,
     /// The scan period, s.
     pub scan_period_s: f64,
     /// Wall time, s.
@@ -220,6 +222,7 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
         )));
     }
     let PacketSetup { dec, lidar_port, imu_port, class, core } = PacketSetup::new(&cfg)?;
+    let imu_packets_used = imu == ImuInput::OusterPackets;
     let mut feed = match &imu {
         ImuInput::Csv(p) => {
             ImuFeed::Samples(crate::imu_csv::load(p).map_err(|e| PipelineError(e.to_string()))?.into_iter())
@@ -266,7 +269,10 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
             }
             let (port, payload, ts) = (udp.dst_port, udp.payload, udp.ts_ns);
             match stream.packet(port, payload, ts) {
-                Some(Decoded::Imu(s)) => runner.imu(s)?,
+                // The sensor's own IMU only when it is the one chosen: with an IMU file, a second
+                // IMU (another frame, another clock) must not be mixed into the file's samples.
+                Some(Decoded::Imu(s)) if imu_packets_used => runner.imu(s)?,
+                Some(Decoded::Imu(_)) => {}
                 Some(Decoded::Scan(scan)) => {
                     // The file IMU up to a little past this scan's end first.
                     let until = scan.end_ns().saturating_add(200_000_000);
@@ -316,6 +322,7 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
         stats,
         finished,
         stream: stream.stats,
+        imu_packets_used,
         scan_period_s: 1.0 / cfg.sensor.scan_rate_hz,
         wall_s: wall.elapsed().as_secs_f64(),
     })

@@ -215,6 +215,39 @@ fn replay_pcap_with_imu_csv_or_serial_capture() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// An Ouster pcap holds the sensor's own IMU packets as well. With `--ouster-imu` they are the
+/// IMU; with `--imu FILE` the file is, and the packets are counted but not mixed into it (they
+/// were: 1,200 samples from two IMUs, 404 of them dropped as out of order).
+#[test]
+fn replay_ouster_takes_one_imu() {
+    let dir = sim_files("replay-ouster", loglio_firmware_sim::lidar::SensorModel::Os1_16, 4.0);
+    let p = |f: &str| dir.join(f).to_str().unwrap().to_string();
+    let run = |imu: &[&str]| {
+        let out = p(&format!("out{}", imu.len()));
+        let (pcap, meta) = (p("sim/lidar.pcap"), p("sim/ouster_metadata.json"));
+        let (cfg, gt) = (p("config.toml"), p("sim/groundtruth.tum"));
+        let mut args = vec!["replay", pcap.as_str()];
+        args.extend_from_slice(imu);
+        args.extend_from_slice(&["--metadata", &meta, "--config", &cfg, "--gt", &gt, "--out", &out]);
+        stdout(&loglio(&args))
+    };
+    let packets = run(&["--ouster-imu"]);
+    assert!(packets.contains("2560 LiDAR packets, 400 IMU packets\n"), "{packets}");
+    assert!(packets.contains("41 scans") && packets.contains(", 400 IMU samples;"), "{packets}");
+    let csv = p("sim/imu.csv");
+    let file = run(&["--imu", &csv]);
+    assert!(
+        file.contains("2560 LiDAR packets, 400 IMU packets (not used: the IMU comes from a file)\n"),
+        "{file}"
+    );
+    assert!(file.contains(", 800 IMU samples;") && !file.contains("dropped"), "{file}");
+    for text in [&packets, &file] {
+        let ate = number_after(text, "rmse");
+        assert!(ate <= 0.10, "ATE {ate} m: {text}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn replay_bad_input_is_one_line() {
     let dir = sim_files("replay-bad", loglio_firmware_sim::lidar::SensorModel::Vlp16, 3.0);
