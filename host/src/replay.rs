@@ -215,14 +215,14 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
             ));
         }
     };
-    if imu == ImuInput::OusterPackets && cfg.preset.family() != SensorFamily::Ouster {
+    let imu_packets_used = imu == ImuInput::OusterPackets;
+    if imu_packets_used && cfg.preset.family() != SensorFamily::Ouster {
         return Err(PipelineError(format!(
             "--ouster-imu needs an Ouster preset (os1-*), not {}",
             cfg.preset
         )));
     }
     let PacketSetup { dec, lidar_port, imu_port, class, core } = PacketSetup::new(&cfg)?;
-    let imu_packets_used = imu == ImuInput::OusterPackets;
     let mut feed = match &imu {
         ImuInput::Csv(p) => {
             ImuFeed::Samples(crate::imu_csv::load(p).map_err(|e| PipelineError(e.to_string()))?.into_iter())
