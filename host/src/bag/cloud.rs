@@ -1,9 +1,9 @@
 //! `sensor_msgs/PointCloud2` to [`ScanPoint`]s, through the message's own field table: any field
 //! order, datatype, `point_step`, row padding and byte order.
 //!
-//! - **Position**: `x`, `y`, `z` (any numeric type), LiDAR frame, metres. Non-finite points and
-//!   points at the origin (no return, as Ouster's organised clouds hold them) are skipped and
-//!   counted.
+//! - **Position**: `x`, `y`, `z` (any numeric type), LiDAR frame, metres. Non-finite points (in
+//!   `f32`, as the scan stores them), points at the origin (no return, as Ouster's organised
+//!   clouds hold them) and points whose time field is not finite are skipped and counted.
 //! - **Intensity**: `intensity` (Velodyne, Ouster) or else `reflectivity`, rounded and clamped to
 //!   `u16`.
 //! - **Row** from `ring`: Velodyne drivers number rings from the lowest beam, so
@@ -185,7 +185,15 @@ pub fn cloud_to_scan(c: &PointCloud2, opt: &CloudOptions) -> Result<CloudScan, S
         for i in 0..w {
             let p = &row_bytes[i * step..(i + 1) * step];
             let (x, y, z) = (read(p, fx, be), read(p, fy, be), read(p, fz, be));
-            if !(x.is_finite() && y.is_finite() && z.is_finite()) || x * x + y * y + z * z < 1e-6 {
+            // Finite as the f32 the scan stores: a float64 field past f32's range would become
+            // an infinite point.
+            let xyz = [x as f32, y as f32, z as f32];
+            // A point whose time is not a number is as broken as one without a position.
+            let raw_time = f_time.map(|f| read(p, f, be));
+            if !xyz.iter().all(|v| v.is_finite())
+                || x * x + y * y + z * z < 1e-6
+                || raw_time.is_some_and(|t| !t.is_finite())
+            {
                 skipped += 1;
                 continue;
             }
@@ -216,19 +224,11 @@ pub fn cloud_to_scan(c: &PointCloud2, opt: &CloudOptions) -> Result<CloudScan, S
             let intensity = f_int.map_or(0.0, |f| read(p, f, be));
             let intensity =
                 if intensity.is_finite() { intensity.round().clamp(0.0, 65535.0) as u16 } else { 0 };
-            if let Some(f) = f_time {
-                raw_t.push(read(p, f, be));
+            if let Some(t) = raw_time {
+                raw_t.push(t);
             }
             azimuths.push(az);
-            points.push(ScanPoint {
-                xyz: [x as f32, y as f32, z as f32],
-                t: 0.0,
-                row,
-                col,
-                intensity,
-                ret: 0,
-                flags: 0,
-            });
+            points.push(ScanPoint { xyz, t: 0.0, row, col, intensity, ret: 0, flags: 0 });
         }
     }
     let period = 1.0 / opt.scan_rate_hz.max(1e-3);
@@ -248,9 +248,8 @@ pub fn cloud_to_scan(c: &PointCloud2, opt: &CloudOptions) -> Result<CloudScan, S
         } else {
             &[(1e-9, None), (1e-6, Some("microseconds")), (1e-3, Some("milliseconds"))]
         };
-        if !(lo.is_finite() && hi.is_finite()) {
-            notes.time_field_problem = Some("non-finite values");
-        } else if hi == lo && points.len() > 1 {
+        // Every value is finite (points with another are skipped above).
+        if hi == lo && points.len() > 1 {
             notes.time_field_problem = Some("all values equal");
         } else if let Some(&(scale, name)) = candidates.iter().find(|(s, _)| (hi - lo) * s <= 2.0 * period) {
             notes.time_unit = name;
@@ -575,6 +574,37 @@ mod tests {
         let s = cloud_to_scan(&c, &opts(Preset::Vlp16)).unwrap();
         assert!(s.notes.times_from_azimuth);
         assert_eq!(s.notes.time_field_problem, Some("all values equal"));
+    }
+
+    /// Found by the `bag_messages` and `bag_file` fuzz targets: a float64 coordinate past f32's
+    /// range became an infinite point, and one point's NaN time (the time span is taken over
+    /// the others) a NaN point time. Both points are now skipped and counted; the rest of the
+    /// cloud is kept with the times of its own field.
+    #[test]
+    fn points_out_of_f32_range_or_with_a_nan_time_are_skipped() {
+        let fields = [
+            build::FieldSpec { name: "x", datatype: datatype::FLOAT64 },
+            build::FieldSpec { name: "y", datatype: datatype::FLOAT64 },
+            build::FieldSpec { name: "z", datatype: datatype::FLOAT64 },
+            build::FieldSpec { name: "time", datatype: datatype::FLOAT32 },
+        ];
+        let c = cloud(7, "v", &fields, 1, 5, None, false, |i, f| match (i, f) {
+            (1, "z") => -1e39,
+            (3, "time") => f64::NAN,
+            (_, "time") => i as f64 * 0.01,
+            (_, "x") => 2.0,
+            (_, "y") => i as f64,
+            _ => 0.5,
+        });
+        let s = cloud_to_scan(&c, &opts(Preset::Vlp16)).unwrap();
+        assert_eq!(s.skipped, 2);
+        assert_eq!(s.points.len(), 3);
+        assert!(!s.notes.times_from_azimuth);
+        for (p, (y, t)) in s.points.iter().zip([(0.0, 0.0), (2.0, 0.02), (4.0, 0.04)]) {
+            assert!(p.xyz.iter().all(|v| v.is_finite()), "{p:?}");
+            assert_eq!(p.xyz[1], y);
+            assert!((p.t - t).abs() < 1e-6, "{p:?}");
+        }
     }
 
     #[test]
