@@ -1,0 +1,161 @@
+//! Whole ROS 1 bag files through `BagReader`: a bag written by loglio's own writer from the
+//! input (clouds in the Velodyne or Ouster driver layout, IMU messages, VelodyneScan and
+//! Ouster packet messages, metadata strings, or raw bytes under any of those types; chunk size
+//! and compression from the input), then damaged as the input says (bytes flipped, the file
+//! cut short), so the fuzzer reaches every record type behind the magic and the index. Also the
+//! input as a file of its own, as `.bag` and as `.mcap`. The reader may refuse a file or drop
+//! messages; it must not panic, and what it delivers must be well formed.
+#![no_main]
+use std::io::Cursor;
+use std::path::PathBuf;
+
+use libfuzzer_sys::fuzz_target;
+use loglio_host::bag::cloud::build::{OUSTER, VELODYNE, cloud};
+use loglio_host::bag::msg::{self, Encoding, Imu, VelodyneScan};
+use loglio_host::bag::ros1_writer::{ChunkCompression, Ros1BagWriter};
+use loglio_host::bag::{BagEvent, BagOptions, BagReader};
+use loglio_host::config::{Config, Preset};
+
+/// Reads bytes off the front of the input; zeros once it is used up.
+struct Input<'a>(&'a [u8]);
+
+impl Input<'_> {
+    fn u8(&mut self) -> u8 {
+        match self.0.split_first() {
+            Some((&b, rest)) => {
+                self.0 = rest;
+                b
+            }
+            None => 0,
+        }
+    }
+    fn u16(&mut self) -> u16 {
+        u16::from_le_bytes([self.u8(), self.u8()])
+    }
+    fn f32(&mut self) -> f32 {
+        f32::from_le_bytes([self.u8(), self.u8(), self.u8(), self.u8()])
+    }
+    fn bytes(&mut self, n: usize) -> &[u8] {
+        let (a, b) = self.0.split_at(n.min(self.0.len()));
+        self.0 = b;
+        a
+    }
+}
+
+/// A bag from the input, or `None` if the writer refuses it.
+fn write_bag(inp: &mut Input<'_>) -> Option<Vec<u8>> {
+    let mut w = Ros1BagWriter::new(Cursor::new(Vec::new())).ok()?;
+    w.set_chunk_threshold(usize::from(inp.u16()) * 16);
+    w.set_compression(match inp.u8() % 3 {
+        0 => ChunkCompression::None,
+        1 => ChunkCompression::Bz2,
+        _ => ChunkCompression::Lz4,
+    });
+    let types = [&msg::POINTCLOUD2, &msg::IMU, &msg::VELODYNE_SCAN, &msg::OUSTER_PACKET, &msg::STRING];
+    let topics = ["/points", "/imu", "/velodyne_packets", "/os_node/lidar_packets", "/os_node/metadata"];
+    // Which topics the bag has (the reader picks its LiDAR topic by type, clouds first).
+    let mask = match inp.u8() % 32 {
+        0 => 31,
+        m => m,
+    };
+    let conns: Vec<_> = types
+        .iter()
+        .zip(topics)
+        .enumerate()
+        .filter(|(i, _)| mask >> i & 1 == 1)
+        .map(|(_, (t, topic))| w.add_typed_connection(topic, t))
+        .collect::<Result<_, _>>()
+        .ok()?;
+    let mut t_ns = 1_700_000_000_000_000_000u64;
+    for _ in 0..usize::from(inp.u8() % 24) {
+        let kind = inp.u8();
+        t_ns = t_ns.saturating_add(u64::from(inp.u16()) * 100_000);
+        let conn = conns[usize::from(kind) % conns.len()];
+        let data = match (kind >> 4) % 6 {
+            0 => {
+                // A driver-layout cloud with point values from the input.
+                let (fields, n) = if kind & 8 == 0 { (VELODYNE, 6) } else { (OUSTER, 9) };
+                let (h, wd) = (u32::from(inp.u8() % 4), u32::from(inp.u8() % 64));
+                let vals: Vec<f32> = (0..(h * wd) as usize * n).map(|_| inp.f32()).collect();
+                let c = cloud(t_ns, "lidar", fields, h, wd, None, kind & 4 != 0, |i, name| {
+                    let k = fields.iter().position(|f| f.name == name).unwrap_or(0);
+                    f64::from(vals.get(i * n + k).copied().unwrap_or(0.0))
+                });
+                c.encode(Encoding::Ros1)
+            }
+            1 => {
+                let v: Vec<f64> = (0..10).map(|_| f64::from(inp.f32())).collect();
+                Imu {
+                    stamp_ns: t_ns,
+                    orientation_xyzw: [v[0], v[1], v[2], v[3]],
+                    angular_velocity: [v[4], v[5], v[6]],
+                    linear_acceleration: [v[7], v[8], v[9]],
+                }
+                .encode("imu", Encoding::Ros1)
+            }
+            2 => {
+                let n = usize::from(inp.u8() % 4);
+                let packets = (0..n).map(|_| (t_ns, inp.bytes(1206).to_vec())).collect();
+                VelodyneScan { stamp_ns: t_ns, packets }.encode(Encoding::Ros1)
+            }
+            3 => {
+                let n = usize::from(inp.u16() % 8192);
+                msg::encode_packet_msg(inp.bytes(n), Encoding::Ros1)
+            }
+            _ => {
+                // Raw bytes under the connection's type.
+                let n = usize::from(inp.u16() % 4096);
+                inp.bytes(n).to_vec()
+            }
+        };
+        w.write(conn, t_ns, &data).ok()?;
+    }
+    let mut bytes = w.finish().ok()?.into_inner();
+    // Damage: bytes flipped, then perhaps the file cut short.
+    for _ in 0..usize::from(inp.u8() % 8) {
+        let pos = usize::from(inp.u16()) * 4 + usize::from(inp.u8());
+        let x = inp.u8();
+        if let Some(b) = bytes.get_mut(pos) {
+            *b ^= x;
+        }
+    }
+    if inp.u8() & 1 == 1 {
+        let cut = usize::from(inp.u16()) * 8;
+        bytes.truncate(cut);
+    }
+    Some(bytes)
+}
+
+fn read(path: &PathBuf, preset: Preset) {
+    let Ok(opt) = BagOptions::from_config(&Config::preset(preset)) else { return };
+    let Ok(mut bag) = BagReader::open(path, opt) else { return };
+    for item in (&mut bag).take(10_000) {
+        let Ok(item) = item else { break };
+        if let BagEvent::Scan(s) = item.event {
+            for p in &s.points {
+                assert!(p.xyz.iter().all(|v| v.is_finite()) && p.t.is_finite(), "{p:?}");
+            }
+        }
+    }
+    let _ = bag.stats().to_string();
+}
+
+fuzz_target!(|data: &[u8]| {
+    let mut inp = Input(data);
+    let sel = inp.u8();
+    let preset = [Preset::Vlp16, Preset::Vlp32c, Preset::Os1_16, Preset::Os1_64][usize::from(sel & 3)];
+    let dir = std::env::temp_dir().join(format!("loglio-fuzz-bag-{}", std::process::id()));
+    let _ = std::fs::create_dir_all(&dir);
+    let (name, bytes) = match (sel >> 2) % 4 {
+        0 => ("raw.bag", inp.0.to_vec()),
+        1 => ("raw.mcap", inp.0.to_vec()),
+        _ => match write_bag(&mut inp) {
+            Some(b) => ("built.bag", b),
+            None => return,
+        },
+    };
+    let path = dir.join(name);
+    if std::fs::write(&path, &bytes).is_ok() {
+        read(&path, preset);
+    }
+});
