@@ -181,10 +181,18 @@ pub fn parse_kitti(text: &str, name: &str, times: Option<(&str, &str)>) -> Resul
             continue;
         }
         let v = parse_numbers(line, name, i + 1, 12, "row-major 3x4 [R|t]")?;
-        poses.push(Pose {
-            r: Matrix3::new(v[0], v[1], v[2], v[4], v[5], v[6], v[8], v[9], v[10]),
-            t: Vector3::new(v[3], v[7], v[11]),
-        });
+        let r = Matrix3::new(v[0], v[1], v[2], v[4], v[5], v[6], v[8], v[9], v[10]);
+        // As lenient as the TUM quaternion-norm check: the rotation errors and the alignment
+        // assume a rotation (a zero or scaled block gave NaN errors, or a panic in the SVD).
+        let off = (r.transpose() * r - Matrix3::identity()).abs().max();
+        if !(off <= 1e-2 && r.determinant() > 0.0) {
+            bail!(
+                "{name} line {}: the 3x3 block is not a rotation (|R^T R - I| = {off:.3e}, det {:.3}; KITTI rows are r11 r12 r13 tx r21 r22 r23 ty r31 r32 r33 tz)",
+                i + 1,
+                r.determinant()
+            );
+        }
+        poses.push(Pose { r, t: Vector3::new(v[3], v[7], v[11]) });
     }
     if poses.is_empty() {
         bail!("{name}: no poses (KITTI format: 12 numbers per line)");
@@ -342,6 +350,10 @@ pub fn umeyama(x: &[Vector3<f64>], y: &[Vector3<f64>], with_scale: bool) -> Resu
         cov += (b - my) * (a - mx).transpose();
     }
     cov /= n;
+    if !(sigma_x.is_finite() && cov.iter().all(|v| v.is_finite())) {
+        // Coordinates near f64's limit: the SVD would see NaN (and nalgebra panics sorting it).
+        bail!("alignment failed: the positions are too large to align (their covariance overflows)");
+    }
     let mut svd = cov.svd(true, true);
     svd.sort_by_singular_values();
     let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else { bail!("alignment failed: SVD did not converge") };
@@ -613,6 +625,15 @@ pub fn evaluate(gt: &Trajectory, est: &Trajectory, opt: &EvalOptions) -> Result<
         rpe_t.push(err.t.norm());
         rpe_r.push(rotation_angle(&err.r).to_degrees());
     }
+    // Positions near f64's limit overflow the error sums (inf, then NaN in the statistics and
+    // in the JSON): refuse them as the alignment does.
+    let stats = [&ape_t, &ape_r, &rpe_t, &rpe_r].map(|v| Stats::of(v));
+    if !stats.iter().all(|s| s.sse.is_finite() && s.std.is_finite())
+        || !est_al.iter().all(|p| p.t.iter().all(|v| v.is_finite()))
+    {
+        bail!("the errors overflow: the positions are too large to compare");
+    }
+    let [ape_trans, ape_rot_deg, rpe_trans, rpe_rot_deg] = stats;
     let times: Vec<f64> = match &g.stamps {
         Some(s) => s.clone(),
         None => (0..g.len()).map(|i| i as f64).collect(),
@@ -623,10 +644,10 @@ pub fn evaluate(gt: &Trajectory, est: &Trajectory, opt: &EvalOptions) -> Result<
         est_poses: est.len(),
         matched: g.len(),
         alignment,
-        ape_trans: Stats::of(&ape_t),
-        ape_rot_deg: Stats::of(&ape_r),
-        rpe_trans: Stats::of(&rpe_t),
-        rpe_rot_deg: Stats::of(&rpe_r),
+        ape_trans,
+        ape_rot_deg,
+        rpe_trans,
+        rpe_rot_deg,
         ape_series: times.into_iter().zip(ape_t).collect(),
         has_stamps: g.stamps.is_some(),
         gt_positions: g.poses.iter().map(|p| [p.t.x, p.t.y, p.t.z]).collect(),
@@ -887,5 +908,48 @@ mod tests {
         let k = parse_kitti("1 0 0 1 0 1 0 2 0 0 1 3\n", "gt.txt", Some(("0.1\n0.2\n", "times.txt")))
             .unwrap_err();
         assert_eq!(k.0, "times.txt: 2 times for the 1 poses of gt.txt");
+    }
+
+    /// Found by the `eval_trajectories` fuzz target: a KITTI block that is no rotation gave NaN
+    /// rotation errors, and positions near f64's limit a NaN covariance, on which nalgebra's
+    /// SVD sort panicked. Both are now one-line errors.
+    #[test]
+    fn kitti_blocks_that_are_no_rotation_and_overflowing_positions_are_errors() {
+        let e = |t: &str| parse_kitti(t, "gt.txt", None).unwrap_err().0;
+        assert!(
+            e("1 0 0 1 0 1 0 2 0 0 1 3
+0 0 0 1 0 0 0 2 0 0 0 3
+")
+            .starts_with("gt.txt line 2: the 3x3 block is not a rotation (|R^T R - I| = 1.000e0, det 0.000;")
+        );
+        // A reflection is orthonormal but not a rotation.
+        assert!(
+            e("-1 0 0 1 0 1 0 2 0 0 1 3
+")
+            .starts_with("gt.txt line 1: the 3x3 block is not a rotation")
+        );
+        // A slightly non-orthonormal block (rounded output) is accepted.
+        assert!(
+            parse_kitti(
+                "1.001 0 0 1 0 0.999 0 2 0 0 1 3
+",
+                "gt.txt",
+                None
+            )
+            .is_ok()
+        );
+
+        let gt = helix(50);
+        let mut est = gt.clone();
+        est.poses[7].t.x = 4.4e300;
+        for align in [Alignment::Se3, Alignment::None] {
+            let opt = EvalOptions { align, ..EvalOptions::default() };
+            let err = evaluate(&gt, &est, &opt).unwrap_err().0;
+            assert!(
+                err == "alignment failed: the positions are too large to align (their covariance overflows)"
+                    || err == "the errors overflow: the positions are too large to compare",
+                "{err}"
+            );
+        }
     }
 }
