@@ -47,9 +47,12 @@
 //!
 //! ## Speed
 //! A search goes through the points in chunks of [`KNN_CHUNK`]: their k-NN queries go to the
-//! map together, then steps 2-4 run per point up to the point-to-plane fit, and the chunk's
-//! plane fits run [`PLANE_LANES`] at a time ([`surfel::fit_plane_lanes`]: the same results,
-//! with the fits' chains of square roots and divisions overlapping), then step 5.
+//! map together, then steps 2-4 run per point up to the large surfel's eigen-analysis or the
+//! point-to-plane fit. The chunk's large surfels are analysed [`PLANE_LANES`] at a time
+//! ([`surfel::eigen_normals_lanes`]), those without one go on to the small surfel, and the
+//! plane fits run [`PLANE_LANES`] at a time ([`surfel::fit_plane_lanes`]); both give the same
+//! results as one at a time, with the chains of square roots and divisions overlapping. Then
+//! step 5.
 //!
 //! Everything here is allocation-free: the caller lends the correspondence buffer and the k-NN
 //! chunk buffers.
@@ -64,8 +67,8 @@ use crate::eskf::{InfoAccumulator, Measurements, PointToPlane, State};
 use crate::odometry::{AssociationMode, Clock};
 use crate::output::AssociationCounts;
 use crate::scan::ScanPoint;
-use crate::surfel::{self, PLANE_LANES};
-use crate::voxel_map::{KNN_MAX, KnnQuery, Neighbours, VoxelHandle, VoxelMap};
+use crate::surfel::{self, PLANE_LANES, SurfelReject};
+use crate::voxel_map::{KNN_MAX, KnnQuery, LargeMerge, LargeSurfel, Neighbours, VoxelHandle, VoxelMap};
 
 type V3 = Vector3<f64>;
 
@@ -299,9 +302,17 @@ impl<'a, 'm> Associator<'a, 'm> {
         range: f32,
         nb: &Neighbours,
     ) -> Result<Correspondence, Reject> {
-        match self.head(p_w, n_w, range, nb)? {
-            Head::Done(c) => Ok(c),
-            Head::Plane(f) => self.tail(&f, surfel::fit_plane(&f.pts[..f.len], self.cfg.plane_max_dist)),
+        let next = match self.head(p_w, n_w, range, nb)? {
+            Head::Done(c) => Next::Done(c),
+            Head::Plane(f) => Next::Plane(f),
+            Head::Large(m, f) => {
+                let shape = surfel::Shape::of_covariance(&m.covariance());
+                self.large_or_next(self.map.large_surfel_finish(&m, shape.eigenvalues, shape.normal()), f)?
+            }
+        };
+        match next {
+            Next::Done(c) => Ok(c),
+            Next::Plane(f) => self.tail(&f, surfel::fit_plane(&f.pts[..f.len], self.cfg.plane_max_dist)),
         }
     }
 
@@ -376,21 +387,42 @@ impl<'a, 'm> Associator<'a, 'm> {
                 }
             }
         }
+        let fit = PlaneFit { pts, len: m, expect, p_w, range };
         if mode == AssociationMode::Full {
-            let mut corr = None;
-            if let Ok(s) = map.large_surfel(&voxels[..m]) {
-                corr = Some(Correspondence::through(s.normal, s.mean, Kind::LargeSurfel));
-            } else if let Ok(s) = map.small_surfel_at(p_w) {
-                let c = Correspondence::through(s.normal, s.mean, Kind::SmallSurfel);
-                if libm::fabs(c.distance(p_w)) <= f64::from(cfg.small_surfel_max_residual) {
-                    corr = Some(c);
-                }
+            // The large surfel's eigen-analysis waits for the chunk's others
+            // ([`ScanAssociation`] runs them [`PLANE_LANES`] at a time).
+            if let Ok(merge) = map.large_surfel_merge(&voxels[..m]) {
+                return Ok(Head::Large(merge, fit));
             }
-            if let Some(c) = corr {
-                return self.residual_test(c, p_w, range).map(Head::Done);
+            return self.after_large(fit).map(Head::from);
+        }
+        Ok(Head::Plane(fit))
+    }
+
+    /// Step 4 after the large surfel: its correspondence if `large` is one, else the small
+    /// surfel, else the point-to-plane fit still to do.
+    #[inline]
+    fn large_or_next(&self, large: Result<LargeSurfel, SurfelReject>, f: PlaneFit) -> Result<Next, Reject> {
+        match large {
+            Ok(s) => {
+                let c = Correspondence::through(s.normal, s.mean, Kind::LargeSurfel);
+                self.residual_test(c, f.p_w, f.range).map(Next::Done)
+            }
+            Err(_) => self.after_large(f),
+        }
+    }
+
+    /// Step 4 without a large surfel: the small surfel of the point's voxel, else the
+    /// point-to-plane fit still to do.
+    #[inline]
+    fn after_large(&self, f: PlaneFit) -> Result<Next, Reject> {
+        if let Ok(s) = self.map.small_surfel_at(f.p_w) {
+            let c = Correspondence::through(s.normal, s.mean, Kind::SmallSurfel);
+            if libm::fabs(c.distance(f.p_w)) <= f64::from(self.cfg.small_surfel_max_residual) {
+                return self.residual_test(c, f.p_w, f.range).map(Next::Done);
             }
         }
-        Ok(Head::Plane(PlaneFit { pts, len: m, expect, p_w, range }))
+        Ok(Next::Plane(f))
     }
 
     /// The point-to-plane fallback's verdict on `fit` (the plane of `f.pts`), then step 5.
@@ -427,12 +459,34 @@ impl<'a, 'm> Associator<'a, 'm> {
     }
 }
 
-/// Where [`Associator::head`] got to.
+/// Where [`Associator::head`] got to. Moved by value into the chunk's buffers (there is no
+/// allocator to box the large variant in, and each lives for one point).
+#[allow(clippy::large_enum_variant)]
 enum Head {
+    /// A surfel correspondence that passed the residual test.
+    Done(Correspondence),
+    /// The large surfel's eigen-analysis is next (then, without a surfel, the small surfel and
+    /// the point-to-plane fallback).
+    Large(LargeMerge, PlaneFit),
+    /// The point-to-plane fallback is next.
+    Plane(PlaneFit),
+}
+
+/// What is left after step 4's surfels.
+enum Next {
     /// A surfel correspondence that passed the residual test.
     Done(Correspondence),
     /// The point-to-plane fallback is next.
     Plane(PlaneFit),
+}
+
+impl From<Next> for Head {
+    fn from(n: Next) -> Self {
+        match n {
+            Next::Done(c) => Head::Done(c),
+            Next::Plane(f) => Head::Plane(f),
+        }
+    }
 }
 
 /// A point waiting for its point-to-plane fit: the neighbours to fit, and what the verdict
@@ -565,6 +619,7 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
         let n = self.points.len();
         let mut start = 0;
         let mut fits = [(0usize, PlaneFit::EMPTY); KNN_CHUNK];
+        let mut larges = [(0usize, PlaneFit::EMPTY, None::<LargeMerge>); KNN_CHUNK];
         while start < n {
             let len = (n - start).min(KNN_CHUNK);
             for i in 0..len {
@@ -572,7 +627,7 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
                 self.queries[i] = to32(&h.to_world(&V3::new(f64::from(px), f64::from(py), f64::from(pz))));
             }
             self.map.knn_many(&self.queries[..len], &query, &mut self.nbrs[..len]);
-            let mut nfit = 0;
+            let (mut nfit, mut nlarge) = (0, 0);
             for i in 0..len {
                 let j = start + i;
                 let p = &self.points[j];
@@ -589,10 +644,41 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
                         nfit += 1;
                         continue;
                     }
+                    Ok(Head::Large(m, f)) => {
+                        // Later, with the chunk's other large surfels.
+                        larges[nlarge] = (j, f, Some(m));
+                        nlarge += 1;
+                        continue;
+                    }
                     Ok(Head::Done(c)) => Ok(c),
                     Err(e) => Err(e),
                 };
                 self.corr[j] = count(&mut counts, res);
+            }
+            // The large surfels' eigen-analyses, PLANE_LANES at a time (the same results as
+            // one at a time); those without a surfel go on to the small surfel and the fits.
+            for group in larges[..nlarge].chunks(PLANE_LANES) {
+                let mut covs = [[0.0f64; 6]; PLANE_LANES];
+                for (c, (_, _, m)) in covs.iter_mut().zip(group) {
+                    if let Some(m) = m {
+                        *c = m.covariance();
+                    }
+                }
+                let shapes = surfel::eigen_normals_lanes(&covs, group.len());
+                for ((j, f, m), (values, normal)) in group.iter().zip(shapes) {
+                    let large: Result<LargeSurfel, SurfelReject> = match m {
+                        Some(m) => self.map.large_surfel_finish(m, values, normal),
+                        None => Err(SurfelReject::TooFewVoxels),
+                    };
+                    match assoc.large_or_next(large, *f) {
+                        Ok(Next::Plane(f)) => {
+                            fits[nfit] = (*j, f);
+                            nfit += 1;
+                        }
+                        Ok(Next::Done(c)) => self.corr[*j] = count(&mut counts, Ok(c)),
+                        Err(e) => self.corr[*j] = count(&mut counts, Err(e)),
+                    }
+                }
             }
             // The plane fits, PLANE_LANES at a time (their chains of square roots and
             // divisions overlap); the same results as one at a time.

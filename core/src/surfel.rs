@@ -150,6 +150,13 @@ pub struct Shape {
     pub eigenvectors: [[f64; 3]; 3],
 }
 
+/// `rho = 2 (λ2 - λ1) / (λ1 + λ2 + λ3)` of ascending eigenvalues (0 for a zero matrix).
+#[inline]
+fn planarity_of([l1, l2, l3]: [f64; 3]) -> f64 {
+    let s = l1 + l2 + l3;
+    if s > 0.0 { 2.0 * (l2 - l1) / s } else { 0.0 }
+}
+
 impl Shape {
     /// The eigen-analysis of a covariance (or scatter) matrix.
     ///
@@ -172,9 +179,7 @@ impl Shape {
 
     /// Planarity `rho = 2 (λ2 - λ1) / (λ1 + λ2 + λ3)`, in `[0, 1]`; 0 for a single point.
     pub fn planarity(&self) -> f64 {
-        let [l1, l2, l3] = self.eigenvalues;
-        let s = l1 + l2 + l3;
-        if s > 0.0 { 2.0 * (l2 - l1) / s } else { 0.0 }
+        planarity_of(self.eigenvalues)
     }
 
     /// `gamma = λ2 / λ1`; `+inf` for a perfectly flat set (`λ1 = 0 < λ2`), 0 when `λ2 = 0`.
@@ -250,11 +255,16 @@ impl SurfelCriteria {
     /// `Ok` if `shape` is a surfel. Degenerate shapes (no extent in two directions) fail first.
     /// NaN anywhere fails.
     pub fn check(&self, shape: &Shape) -> Result<(), SurfelReject> {
-        let [l1, l2, l3] = shape.eigenvalues;
+        self.check_eigenvalues(shape.eigenvalues)
+    }
+
+    /// [`Self::check`] from the ascending eigenvalues alone (all it reads).
+    pub fn check_eigenvalues(&self, eigenvalues: [f64; 3]) -> Result<(), SurfelReject> {
+        let [l1, l2, l3] = eigenvalues;
         if !(l3 > 0.0 && l2 > 1e-12 * l3) {
             return Err(SurfelReject::Degenerate);
         }
-        if !(shape.planarity() > f64::from(self.planarity_min)) {
+        if !(planarity_of(eigenvalues) > f64::from(self.planarity_min)) {
             return Err(SurfelReject::NotPlanar);
         }
         // gamma > gamma_min, written without the division (l1 may be 0).
@@ -713,6 +723,30 @@ pub fn fit_plane_lanes<const K: usize>(
         );
     }
     out
+}
+
+/// The eigenvalues and normal `e_d` that [`Shape::of_covariance`] gives, for [`PLANE_LANES`]
+/// covariances at once (the first `used`; the others are not analysed): the closed form on
+/// lanes, whose chains of square roots and divisions overlap, and the scalar analysis for the
+/// lanes it cannot answer, so each result is the scalar one bit for bit.
+pub fn eigen_normals_lanes(covs: &[Sym3; PLANE_LANES], used: usize) -> [([f64; 3], [f64; 3]); PLANE_LANES] {
+    // Unused lanes get a matrix the closed form answers (no scalar fallback for them).
+    const SPARE: Sym3 = [1.0, 0.0, 0.0, 2.0, 0.0, 3.0];
+    let m: [Lanes; 6] =
+        core::array::from_fn(|i| core::array::from_fn(|l| if l < used { covs[l][i] } else { SPARE[i] }));
+    let (values, normal, ok) = eigen_closed_lanes(&m);
+    core::array::from_fn(|l| {
+        if l >= used {
+            return ([0.0; 3], [0.0; 3]);
+        }
+        if !ok[l] {
+            let s = Shape::of_covariance(&covs[l]);
+            return (s.eigenvalues, s.normal());
+        }
+        // `Shape::of_covariance` clamps at 0.
+        let v = [0, 1, 2].map(|i| if values[i][l] < 0.0 { 0.0 } else { values[i][l] });
+        (v, [normal[0][l], normal[1][l], normal[2][l]])
+    })
 }
 
 /// [`eigen_sym3_closed`] on lanes, operation for operation: the ascending eigenvalues, the
@@ -1195,6 +1229,49 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// `eigen_normals_lanes` (the association's large surfels, eight at a time) gives what
+    /// `Shape::of_covariance` gives, bit for bit: surfel-like covariances (the lanes answer),
+    /// and ones the closed form refuses (a multiple of the identity, two equal eigenvalues,
+    /// zero, non-finite), which take the scalar path; partly used groups too.
+    #[test]
+    fn eigen_normals_lanes_equal_the_scalar_shape() {
+        let mut rng = Rng(0x5eed_1a7e);
+        let odd: [Sym3; 5] = [
+            [2.0, 0.0, 0.0, 2.0, 0.0, 2.0],
+            [1.0, 0.0, 0.0, 1.0, 0.0, 3.0],
+            [0.0; 6],
+            [f64::NAN, 0.0, 0.0, 1.0, 0.0, 1.0],
+            [1e-30, 0.0, 0.0, 1e-30, 0.0, 2e-30],
+        ];
+        let (mut lanes_answered, mut fallbacks) = (0, 0);
+        for case in 0..2000 {
+            let covs: [Sym3; PLANE_LANES] = core::array::from_fn(|_| {
+                if rng.uniform(0.0, 1.0) < 0.1 {
+                    return odd[(rng.uniform(0.0, 5.0) as usize).min(4)];
+                }
+                let l = rng.uniform(0.001, 0.04);
+                let e = [l * libm::pow(10.0, rng.uniform(-7.0, -1.0)), l * rng.uniform(0.05, 1.0), l];
+                rotated(&mut rng, e)
+            });
+            let used = 1 + case % PLANE_LANES;
+            let got = eigen_normals_lanes(&covs, used);
+            for l in 0..used {
+                let want = Shape::of_covariance(&covs[l]);
+                let same = (0..3).all(|i| {
+                    got[l].0[i].to_bits() == want.eigenvalues[i].to_bits()
+                        && got[l].1[i].to_bits() == want.normal()[i].to_bits()
+                });
+                assert!(same, "case {case} lane {l}: {:?} vs {want:?}", got[l]);
+                if eigen_sym3_closed(&covs[l]).is_some() {
+                    lanes_answered += 1;
+                } else {
+                    fallbacks += 1;
+                }
+            }
+        }
+        assert!(lanes_answered > 5000 && fallbacks > 300, "{lanes_answered} {fallbacks}");
     }
 
     #[test]

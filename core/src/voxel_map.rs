@@ -536,6 +536,23 @@ pub struct LargeSurfel {
     pub voxels: u32,
 }
 
+/// A large surfel's merged distribution before its eigen-analysis
+/// ([`VoxelMap::large_surfel_merge`]).
+#[derive(Clone, Copy, Debug)]
+pub struct LargeMerge {
+    distinct: [VoxelHandle; MERGE_MAX],
+    nd: u8,
+    merged: Moments,
+    ring: [f64; 3],
+}
+
+impl LargeMerge {
+    /// The merged covariance, for the eigen-analysis.
+    pub fn covariance(&self) -> surfel::Sym3 {
+        self.merged.covariance()
+    }
+}
+
 /// Parameters of a k-NN query.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -1569,6 +1586,7 @@ impl<'a> VoxelMap<'a> {
                             if slot != NO_HINT {
                                 let v = &self.pool[slot as usize];
                                 prefetch(v); // line 0: key and representatives
+                                prefetch(&v.last_seen); // line 1: the sums (large surfels)
                                 prefetch(&v.rep_normals); // line 2: their normals
                             }
                         }
@@ -1819,6 +1837,15 @@ impl<'a> VoxelMap<'a> {
     /// (`large.apply_criteria`), and every merged voxel's mean lies within
     /// `large.max_mean_distance` of the merged plane.
     pub fn large_surfel(&self, voxels: &[VoxelHandle]) -> Result<LargeSurfel, SurfelReject> {
+        let m = self.large_surfel_merge(voxels)?;
+        let shape = Shape::of_covariance(&m.covariance());
+        self.large_surfel_finish(&m, shape.eigenvalues, shape.normal())
+    }
+
+    /// [`Self::large_surfel`] up to its eigen-analysis: the distinct voxels merged, or why
+    /// there is no surfel yet. The association analyses several merges at once
+    /// ([`surfel::eigen_normals_lanes`]) and then calls [`Self::large_surfel_finish`].
+    pub fn large_surfel_merge(&self, voxels: &[VoxelHandle]) -> Result<LargeMerge, SurfelReject> {
         let mut distinct = [VoxelHandle(0); MERGE_MAX];
         let mut nd = 0usize;
         for &h in voxels {
@@ -1854,22 +1881,34 @@ impl<'a> VoxelMap<'a> {
         if merged.n < lc.min_points {
             return Err(SurfelReject::TooFewPoints);
         }
-        let shape = Shape::of_covariance(&merged.covariance());
-        let [l1, _, l3] = shape.eigenvalues;
+        Ok(LargeMerge { distinct, nd: nd as u8, merged, ring })
+    }
+
+    /// The rest of [`Self::large_surfel`], given the eigenvalues (ascending, clamped at 0) and
+    /// the normal of `m`'s covariance, as [`Shape::of_covariance`] gives them.
+    pub fn large_surfel_finish(
+        &self,
+        m: &LargeMerge,
+        eigenvalues: [f64; 3],
+        normal: [f64; 3],
+    ) -> Result<LargeSurfel, SurfelReject> {
+        let lc = &self.cfg.large;
+        let distinct = &m.distinct[..usize::from(m.nd)];
+        let [l1, _, l3] = eigenvalues;
         if !(l3 > 0.0) || l3 == l1 {
             return Err(SurfelReject::Degenerate);
         }
         if lc.apply_criteria {
-            self.cfg.criteria.check(&shape)?;
+            self.cfg.criteria.check_eigenvalues(eigenvalues)?;
         }
-        let mut nrm = shape.normal();
-        if surfel::dot3(nrm, ring) < 0.0 {
+        let mut nrm = normal;
+        if surfel::dot3(nrm, m.ring) < 0.0 {
             nrm = [-nrm[0], -nrm[1], -nrm[2]];
         }
-        let mean = merged.mean().unwrap_or(merged.origin);
-        for h in &distinct[..nd] {
-            let m = self.moments(&self.pool[h.index()]);
-            let mi = m.mean().unwrap_or(m.origin);
+        let mean = m.merged.mean().unwrap_or(m.merged.origin);
+        for h in distinct {
+            let mv = self.moments(&self.pool[h.index()]);
+            let mi = mv.mean().unwrap_or(mv.origin);
             let dist = surfel::dot3(nrm, surfel::sub3(mi, mean)).abs();
             if !(dist <= f64::from(lc.max_mean_distance)) {
                 return Err(SurfelReject::OffPlane);
@@ -1878,9 +1917,9 @@ impl<'a> VoxelMap<'a> {
         Ok(LargeSurfel {
             mean: to32(mean),
             normal: to32(nrm),
-            eigenvalues: to32(shape.eigenvalues),
-            count: merged.n,
-            voxels: nd as u32,
+            eigenvalues: to32(eigenvalues),
+            count: m.merged.n,
+            voxels: u32::from(m.nd),
         })
     }
 }
