@@ -10,37 +10,12 @@ use std::io::Cursor;
 use std::path::PathBuf;
 
 use libfuzzer_sys::fuzz_target;
+use loglio_fuzz::Input;
 use loglio_host::bag::cloud::build::{OUSTER, VELODYNE, cloud};
 use loglio_host::bag::msg::{self, Encoding, Imu, VelodyneScan};
 use loglio_host::bag::ros1_writer::{ChunkCompression, Ros1BagWriter};
 use loglio_host::bag::{BagEvent, BagOptions, BagReader};
 use loglio_host::config::{Config, Preset};
-
-/// Reads bytes off the front of the input; zeros once it is used up.
-struct Input<'a>(&'a [u8]);
-
-impl Input<'_> {
-    fn u8(&mut self) -> u8 {
-        match self.0.split_first() {
-            Some((&b, rest)) => {
-                self.0 = rest;
-                b
-            }
-            None => 0,
-        }
-    }
-    fn u16(&mut self) -> u16 {
-        u16::from_le_bytes([self.u8(), self.u8()])
-    }
-    fn f32(&mut self) -> f32 {
-        f32::from_le_bytes([self.u8(), self.u8(), self.u8(), self.u8()])
-    }
-    fn bytes(&mut self, n: usize) -> &[u8] {
-        let (a, b) = self.0.split_at(n.min(self.0.len()));
-        self.0 = b;
-        a
-    }
-}
 
 /// A bag from the input, or `None` if the writer refuses it.
 fn write_bag(inp: &mut Input<'_>) -> Option<Vec<u8>> {

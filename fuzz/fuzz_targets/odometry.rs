@@ -13,33 +13,13 @@ use loglio_core::odometry::{OdometryConfig, OdometryStorage};
 use loglio_core::range_image::RangeImageLayout;
 use loglio_core::ring_fals::storage_pixels;
 use loglio_core::scan::{ScanPoint, ScanView};
+use loglio_fuzz::Input;
 
 const ROWS: usize = 16;
 const COLS: usize = 128;
 type Storage = OdometryStorage<{ storage_pixels(ROWS, COLS) }, 4096, 4096, 8192, 16384>;
 
 static STORAGE: Mutex<Option<Box<Storage>>> = Mutex::new(None);
-
-/// Reads bytes off the front of the input; zeros once it is used up.
-struct Input<'a>(&'a [u8]);
-
-impl Input<'_> {
-    fn u8(&mut self) -> u8 {
-        match self.0.split_first() {
-            Some((&b, rest)) => {
-                self.0 = rest;
-                b
-            }
-            None => 0,
-        }
-    }
-    fn f32(&mut self) -> f32 {
-        f32::from_le_bytes([self.u8(), self.u8(), self.u8(), self.u8()])
-    }
-    fn u32(&mut self) -> u32 {
-        u32::from_le_bytes([self.u8(), self.u8(), self.u8(), self.u8()])
-    }
-}
 
 /// Range from `o` along `d` to the walls of a 10 x 8 m room, floor at `floor` (below -1.5 the
 /// beams, +-15 degrees, no longer reach it: z is then unobservable, which the status must say).

@@ -7,8 +7,13 @@ use loglio_core::sensor::ouster::{Decoder, OusterIntrinsics, Profile};
 
 fuzz_target!(|data: &[u8]| {
     let Some((&sel, packet)) = data.split_first() else { return };
-    let profile = [Profile::Legacy, Profile::Single, Profile::Dual, Profile::LowBandwidth, Profile::FusaDualLowBandwidth]
-        [sel as usize % 5];
+    let profile = [
+        Profile::Legacy,
+        Profile::Single,
+        Profile::Dual,
+        Profile::LowBandwidth,
+        Profile::FusaDualLowBandwidth,
+    ][sel as usize % 5];
     let beams = [8u16, 16, 32, 64, 128][(sel as usize / 5) % 5];
     let cols = [512u16, 1024, 2048][(sel as usize / 25) % 3];
     let mut intr = OusterIntrinsics::new(profile, beams, cols, 10);

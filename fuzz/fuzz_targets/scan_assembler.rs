@@ -9,7 +9,8 @@ use loglio_core::sensor::velodyne::{Config, Decoder, Model};
 
 fuzz_target!(|data: &[u8]| {
     let Some((&sel, data)) = data.split_first() else { return };
-    let mut dec = Decoder::new(Config::new([Model::Vlp16, Model::Vlp32c, Model::Hdl32e][sel as usize % 3])).unwrap();
+    let mut dec =
+        Decoder::new(Config::new([Model::Vlp16, Model::Vlp32c, Model::Hdl32e][sel as usize % 3])).unwrap();
     let mut cfg = AssemblerConfig::cut_at_degrees(sel as f32 * 1.5);
     cfg.reset_gap_packets = 1 + (sel as u32 >> 3);
     let (mut a, mut b) = ([ScanPoint::default(); 512], [ScanPoint::default(); 512]);
@@ -38,7 +39,11 @@ fuzz_target!(|data: &[u8]| {
             let scan = asm.scan();
             assert_eq!(scan.points.len(), info.points as usize);
             assert!(scan.points.len() <= 512);
-            assert!(scan.points.iter().all(|q| q.t >= 0.0 && q.t.is_finite() && q.xyz.iter().all(|v| v.is_finite())));
+            assert!(
+                scan.points
+                    .iter()
+                    .all(|q| q.t >= 0.0 && q.t.is_finite() && q.xyz.iter().all(|v| v.is_finite()))
+            );
         }
     }
     if let Some(info) = asm.flush() {
