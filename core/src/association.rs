@@ -619,7 +619,7 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
         let n = self.points.len();
         let mut start = 0;
         let mut fits = [(0usize, PlaneFit::EMPTY); KNN_CHUNK];
-        let mut larges = [(0usize, PlaneFit::EMPTY, None::<LargeMerge>); KNN_CHUNK];
+        let mut larges = [(0usize, PlaneFit::EMPTY, LargeMerge::EMPTY); KNN_CHUNK];
         while start < n {
             let len = (n - start).min(KNN_CHUNK);
             for i in 0..len {
@@ -646,7 +646,7 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
                     }
                     Ok(Head::Large(m, f)) => {
                         // Later, with the chunk's other large surfels.
-                        larges[nlarge] = (j, f, Some(m));
+                        larges[nlarge] = (j, f, m);
                         nlarge += 1;
                         continue;
                     }
@@ -660,17 +660,11 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
             for group in larges[..nlarge].chunks(PLANE_LANES) {
                 let mut covs = [[0.0f64; 6]; PLANE_LANES];
                 for (c, (_, _, m)) in covs.iter_mut().zip(group) {
-                    if let Some(m) = m {
-                        *c = m.covariance();
-                    }
+                    *c = m.covariance();
                 }
                 let shapes = surfel::eigen_normals_lanes(&covs, group.len());
                 for ((j, f, m), (values, normal)) in group.iter().zip(shapes) {
-                    let large: Result<LargeSurfel, SurfelReject> = match m {
-                        Some(m) => self.map.large_surfel_finish(m, values, normal),
-                        None => Err(SurfelReject::TooFewVoxels),
-                    };
-                    match assoc.large_or_next(large, *f) {
+                    match assoc.large_or_next(self.map.large_surfel_finish(m, values, normal), *f) {
                         Ok(Next::Plane(f)) => {
                             fits[nfit] = (*j, f);
                             nfit += 1;

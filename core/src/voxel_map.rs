@@ -547,6 +547,10 @@ pub struct LargeMerge {
 }
 
 impl LargeMerge {
+    /// No voxels (a placeholder for buffers; [`VoxelMap::large_surfel_finish`] refuses it).
+    pub const EMPTY: Self =
+        Self { distinct: [VoxelHandle(0); MERGE_MAX], nd: 0, merged: Moments::new([0.0; 3]), ring: [0.0; 3] };
+
     /// The merged covariance, for the eigen-analysis.
     pub fn covariance(&self) -> surfel::Sym3 {
         self.merged.covariance()
@@ -1894,6 +1898,9 @@ impl<'a> VoxelMap<'a> {
     ) -> Result<LargeSurfel, SurfelReject> {
         let lc = &self.cfg.large;
         let distinct = &m.distinct[..usize::from(m.nd)];
+        if distinct.is_empty() {
+            return Err(SurfelReject::TooFewVoxels);
+        }
         let [l1, _, l3] = eigenvalues;
         if !(l3 > 0.0) || l3 == l1 {
             return Err(SurfelReject::Degenerate);
