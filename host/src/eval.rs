@@ -910,9 +910,9 @@ mod tests {
         assert_eq!(k.0, "times.txt: 2 times for the 1 poses of gt.txt");
     }
 
-    /// Found by the `eval_trajectories` fuzz target: a KITTI block that is no rotation gave NaN
-    /// rotation errors, and positions near f64's limit a NaN covariance, on which nalgebra's
-    /// SVD sort panicked. Both are now one-line errors.
+    /// Positions near f64's limit gave a NaN covariance, on which nalgebra's SVD sort panicked
+    /// (found by the `eval_trajectories` fuzz target); a KITTI block that is no rotation gave
+    /// NaN rotation errors (found reading the code around it). Both are now one-line errors.
     #[test]
     fn kitti_blocks_that_are_no_rotation_and_overflowing_positions_are_errors() {
         let e = |t: &str| parse_kitti(t, "gt.txt", None).unwrap_err().0;
