@@ -2,9 +2,11 @@
 //! input (clouds in the Velodyne or Ouster driver layout, IMU messages, VelodyneScan and
 //! Ouster packet messages, metadata strings, or raw bytes under any of those types; chunk size
 //! and compression from the input), then damaged as the input says (bytes flipped, the file
-//! cut short), so the fuzzer reaches every record type behind the magic and the index. Also the
-//! input as a file of its own, as `.bag` and as `.mcap`. The reader may refuse a file or drop
-//! messages; it must not panic, and what it delivers must be well formed.
+//! cut short), so the fuzzer reaches every record type behind the magic and the index. Also
+//! rosbag2 sqlite3 files built from the input (with and without the timestamp index, rows in
+//! any time order, unknown topic ids, negative timestamps), damaged the same way, and the
+//! input as a file of its own, as `.bag`, `.mcap` and `.db3`. The reader may refuse a file or
+//! drop messages; it must not panic, and what it delivers must be well formed.
 #![no_main]
 use std::io::Cursor;
 use std::path::PathBuf;
@@ -46,47 +48,16 @@ fn write_bag(inp: &mut Input<'_>) -> Option<Vec<u8>> {
         let kind = inp.u8();
         t_ns = t_ns.saturating_add(u64::from(inp.u16()) * 100_000);
         let conn = conns[usize::from(kind) % conns.len()];
-        let data = match (kind >> 4) % 6 {
-            0 => {
-                // A driver-layout cloud with point values from the input.
-                let (fields, n) = if kind & 8 == 0 { (VELODYNE, 6) } else { (OUSTER, 9) };
-                let (h, wd) = (u32::from(inp.u8() % 4), u32::from(inp.u8() % 64));
-                let vals: Vec<f32> = (0..(h * wd) as usize * n).map(|_| inp.f32()).collect();
-                let c = cloud(t_ns, "lidar", fields, h, wd, None, kind & 4 != 0, |i, name| {
-                    let k = fields.iter().position(|f| f.name == name).unwrap_or(0);
-                    f64::from(vals.get(i * n + k).copied().unwrap_or(0.0))
-                });
-                c.encode(Encoding::Ros1)
-            }
-            1 => {
-                let v: Vec<f64> = (0..10).map(|_| f64::from(inp.f32())).collect();
-                Imu {
-                    stamp_ns: t_ns,
-                    orientation_xyzw: [v[0], v[1], v[2], v[3]],
-                    angular_velocity: [v[4], v[5], v[6]],
-                    linear_acceleration: [v[7], v[8], v[9]],
-                }
-                .encode("imu", Encoding::Ros1)
-            }
-            2 => {
-                let n = usize::from(inp.u8() % 4);
-                let packets = (0..n).map(|_| (t_ns, inp.bytes(1206).to_vec())).collect();
-                VelodyneScan { stamp_ns: t_ns, packets }.encode(Encoding::Ros1)
-            }
-            3 => {
-                let n = usize::from(inp.u16() % 8192);
-                msg::encode_packet_msg(inp.bytes(n), Encoding::Ros1)
-            }
-            _ => {
-                // Raw bytes under the connection's type.
-                let n = usize::from(inp.u16() % 4096);
-                inp.bytes(n).to_vec()
-            }
-        };
+        let data = message(inp, kind, t_ns, Encoding::Ros1);
         w.write(conn, t_ns, &data).ok()?;
     }
     let mut bytes = w.finish().ok()?.into_inner();
-    // Damage: bytes flipped, then perhaps the file cut short.
+    damage(inp, &mut bytes);
+    Some(bytes)
+}
+
+/// Damage as the input says: bytes flipped, then perhaps the file cut short.
+fn damage(inp: &mut Input<'_>, bytes: &mut Vec<u8>) {
     for _ in 0..usize::from(inp.u8() % 8) {
         let pos = usize::from(inp.u16()) * 4 + usize::from(inp.u8());
         let x = inp.u8();
@@ -98,7 +69,109 @@ fn write_bag(inp: &mut Input<'_>) -> Option<Vec<u8>> {
         let cut = usize::from(inp.u16()) * 8;
         bytes.truncate(cut);
     }
+}
+
+/// A rosbag2 sqlite3 file at `path` from the input: rosbag2's schema with or without the
+/// messages' timestamp index, topics of the message types loglio reads (or others, or another
+/// serialisation format; ids from the input), messages on those topics or on unknown ids, at
+/// any timestamp (negative ones included), then damaged. `None` if SQLite refuses the input.
+fn write_db3(inp: &mut Input<'_>, path: &std::path::Path) -> Option<Vec<u8>> {
+    let _ = std::fs::remove_file(path);
+    {
+        let db = rusqlite::Connection::open(path).ok()?;
+        db.execute_batch(
+            "CREATE TABLE schema(schema_version INTEGER PRIMARY KEY,ros_distro TEXT NOT NULL);
+             CREATE TABLE metadata(id INTEGER PRIMARY KEY,metadata_version INTEGER NOT NULL,metadata TEXT NOT NULL);
+             CREATE TABLE topics(id INTEGER PRIMARY KEY,name TEXT NOT NULL,type TEXT NOT NULL,serialization_format TEXT NOT NULL,offered_qos_profiles TEXT NOT NULL);
+             CREATE TABLE messages(id INTEGER PRIMARY KEY,topic_id INTEGER NOT NULL,timestamp INTEGER NOT NULL, data BLOB NOT NULL);",
+        )
+        .ok()?;
+        if inp.u8() & 1 == 0 {
+            db.execute_batch("CREATE INDEX timestamp_idx ON messages (timestamp ASC);").ok()?;
+        }
+        let types = [
+            msg::ros2_name(&msg::POINTCLOUD2),
+            msg::ros2_name(&msg::IMU),
+            msg::ros2_name(&msg::VELODYNE_SCAN),
+            msg::ros2_name(&msg::OUSTER_PACKET),
+            msg::ros2_name(&msg::STRING),
+            "sensor_msgs/msg/Image".to_string(),
+        ];
+        let names =
+            ["/points", "/imu", "/velodyne_packets", "/os_node/lidar_packets", "/os_node/metadata", "/x"];
+        for _ in 0..1 + usize::from(inp.u8() % 5) {
+            let (id, ty, name, ser) = (i64::from(inp.u8() % 8), inp.u8(), inp.u8(), inp.u8());
+            let ser = if ser % 8 == 0 { "ros1" } else { "cdr" };
+            let _ = db.execute(
+                "INSERT INTO topics VALUES (?1, ?2, ?3, ?4, '')",
+                rusqlite::params![
+                    id,
+                    names[usize::from(name) % names.len()],
+                    &types[usize::from(ty) % types.len()],
+                    ser
+                ],
+            );
+        }
+        let mut t = 1_700_000_000_000_000_000i64;
+        for _ in 0..usize::from(inp.u8() % 24) {
+            let kind = inp.u8();
+            let topic = i64::from(inp.u8() % 9);
+            // Mostly forward in time, sometimes back (rows need not be in time order), rarely
+            // anywhere.
+            let step = i64::from(inp.u16() as i16) * 100_000;
+            t = if kind & 3 == 3 { i64::from(inp.u32() as i32) << 32 } else { t.saturating_add(step) };
+            let data = message(inp, kind, t.max(0) as u64, Encoding::Cdr);
+            let _ = db.execute(
+                "INSERT INTO messages (topic_id, timestamp, data) VALUES (?1, ?2, ?3)",
+                rusqlite::params![topic, t, data],
+            );
+        }
+    }
+    let mut bytes = std::fs::read(path).ok()?;
+    damage(inp, &mut bytes);
     Some(bytes)
+}
+
+/// A message of the kind the input picks, stamped `t_ns`, in `enc`: a driver-layout cloud with
+/// point values from the input, an IMU sample, a VelodyneScan, an Ouster packet, or raw bytes.
+fn message(inp: &mut Input<'_>, kind: u8, t_ns: u64, enc: Encoding) -> Vec<u8> {
+    match (kind >> 4) % 6 {
+        0 => {
+            // A driver-layout cloud with point values from the input.
+            let (fields, n) = if kind & 8 == 0 { (VELODYNE, 6) } else { (OUSTER, 9) };
+            let (h, wd) = (u32::from(inp.u8() % 4), u32::from(inp.u8() % 64));
+            let vals: Vec<f32> = (0..(h * wd) as usize * n).map(|_| inp.f32()).collect();
+            let c = cloud(t_ns, "lidar", fields, h, wd, None, kind & 4 != 0, |i, name| {
+                let k = fields.iter().position(|f| f.name == name).unwrap_or(0);
+                f64::from(vals.get(i * n + k).copied().unwrap_or(0.0))
+            });
+            c.encode(enc)
+        }
+        1 => {
+            let v: Vec<f64> = (0..10).map(|_| f64::from(inp.f32())).collect();
+            Imu {
+                stamp_ns: t_ns,
+                orientation_xyzw: [v[0], v[1], v[2], v[3]],
+                angular_velocity: [v[4], v[5], v[6]],
+                linear_acceleration: [v[7], v[8], v[9]],
+            }
+            .encode("imu", enc)
+        }
+        2 => {
+            let n = usize::from(inp.u8() % 4);
+            let packets = (0..n).map(|_| (t_ns, inp.bytes(1206).to_vec())).collect();
+            VelodyneScan { stamp_ns: t_ns, packets }.encode(enc)
+        }
+        3 => {
+            let n = usize::from(inp.u16() % 8192);
+            msg::encode_packet_msg(inp.bytes(n), enc)
+        }
+        _ => {
+            // Raw bytes under the connection's type.
+            let n = usize::from(inp.u16() % 4096);
+            inp.bytes(n).to_vec()
+        }
+    }
 }
 
 fn read(path: &PathBuf, preset: Preset) {
@@ -121,11 +194,16 @@ fuzz_target!(|data: &[u8]| {
     let preset = [Preset::Vlp16, Preset::Vlp32c, Preset::Os1_16, Preset::Os1_64][usize::from(sel & 3)];
     let dir = std::env::temp_dir().join(format!("loglio-fuzz-bag-{}", std::process::id()));
     let _ = std::fs::create_dir_all(&dir);
-    let (name, bytes) = match (sel >> 2) % 4 {
+    let (name, bytes) = match (sel >> 2) % 6 {
         0 => ("raw.bag", inp.0.to_vec()),
         1 => ("raw.mcap", inp.0.to_vec()),
-        _ => match write_bag(&mut inp) {
+        2 | 3 => match write_bag(&mut inp) {
             Some(b) => ("built.bag", b),
+            None => return,
+        },
+        4 => ("raw.db3", inp.0.to_vec()),
+        _ => match write_db3(&mut inp, &dir.join("scratch.db3")) {
+            Some(b) => ("built.db3", b),
             None => return,
         },
     };
