@@ -798,6 +798,48 @@ fn late_messages_are_dropped_and_counted() {
     assert!(run.warnings[0].contains("was dropped (later ones are counted)"));
 }
 
+/// One corrupt record time far ahead (here 11.6 days) must not end the sorting for the rest of
+/// the bag: its slightly disordered messages were dropped as late (24 of the 52 after it). The
+/// message is dropped and counted wherever it stands; a real gap, which the next messages
+/// follow, is taken.
+#[test]
+fn a_corrupt_record_time_far_ahead_is_dropped_and_a_real_gap_is_taken() {
+    let dir = tmp("future");
+    let (msgs, _) = sequence(Encoding::Ros1, build::VELODYNE);
+    // Small disorder, as bags of several recording threads have it: each pair swapped.
+    let mut rows = msgs.clone();
+    for pair in rows.chunks_mut(2) {
+        pair.reverse();
+    }
+    for at in [10, 0, rows.len() - 1] {
+        let mut bad = rows.clone();
+        bad[at].0 += 1_000_000_000_000_000;
+        let path = dir.join(format!("f{at}.bag"));
+        write_ros1(&path, &bad, 768 * 1024, ChunkCompression::None);
+        let run = read_all(&path, opts(Preset::Vlp16)).unwrap();
+        run.end.as_ref().unwrap();
+        assert_eq!((run.stats.late, run.stats.out_of_sequence), (0, 1), "at {at}");
+        assert_eq!(run.items.len(), 62, "at {at}");
+        assert!(run.items.windows(2).all(|w| w[0].record_ns <= w[1].record_ns), "at {at}");
+        assert!(run.items.iter().all(|i| i.record_ns < T0 + 1_000_000_000), "at {at}");
+        assert_eq!(run.warnings.len(), 1, "at {at}: {:?}", run.warnings);
+        assert!(run.warnings[0].contains("a corrupt time"), "{}", run.warnings[0]);
+        assert!(run.stats.to_string().contains("1 out of sequence"));
+    }
+    // A gap of 100 s in the recording (the second half later), which the messages follow.
+    let mut gap = rows.clone();
+    for r in gap[30..].iter_mut() {
+        r.0 += 100_000_000_000;
+    }
+    let path = dir.join("gap.bag");
+    write_ros1(&path, &gap, 768 * 1024, ChunkCompression::None);
+    let run = read_all(&path, opts(Preset::Vlp16)).unwrap();
+    run.end.as_ref().unwrap();
+    assert!(run.warnings.is_empty(), "{:?}", run.warnings);
+    assert_eq!((run.stats.late, run.stats.out_of_sequence, run.items.len()), (0, 0, 63));
+    assert!(run.items.windows(2).all(|w| w[0].record_ns <= w[1].record_ns));
+}
+
 #[test]
 fn truncated_mcap_delivers_the_good_messages_then_one_error() {
     let dir = tmp("mcap-cut");

@@ -33,7 +33,12 @@
 //!
 //! **Order**: events come in the order of the bags' record (receive) times. Messages are
 //! held for [`BagOptions::reorder_window_ns`] to sort small disorder; a message older than one
-//! already delivered is dropped and counted ([`BagStats::late`]).
+//! already delivered is dropped and counted ([`BagStats::late`]). A record time more than
+//! [`JUMP_NS`] past the window's newest is held back until [`JUMP_CONFIRM`] messages in a row
+//! agree on the jump (a gap in the recording); a corrupt time, which the next messages do not
+//! follow, is dropped and counted ([`BagStats::out_of_sequence`]). Taken at its word, one such
+//! time would end the sorting for the rest of the bag, and its slightly disordered messages
+//! would be dropped as late (24 of 52 in the test).
 //!
 //! **Stamps**: with `use_record_time` off (`time.lidar_time_source = "packet"`) events carry the
 //! messages' own stamps: a scan's start is its header stamp plus its earliest point time (see
@@ -180,6 +185,12 @@ pub(crate) trait RawSource {
     fn next_raw(&mut self) -> Option<Result<RawEvent, BagError>>;
 }
 
+/// How far (ns) past the reorder window's newest record time a message may be before its time
+/// is doubted (see the module docs, "Order").
+pub const JUMP_NS: u64 = 10_000_000_000;
+/// How many messages in a row must agree on a jump in record time before it is taken.
+pub const JUMP_CONFIRM: usize = 3;
+
 /// How to read a bag.
 #[derive(Clone, Debug, PartialEq)]
 pub struct BagOptions {
@@ -284,6 +295,9 @@ pub struct BagStats {
     pub skipped_chunks: u64,
     /// Messages dropped because they arrived after later ones had been delivered.
     pub late: u64,
+    /// Messages dropped because their record time jumped far ahead of the others' and the
+    /// next messages did not follow (corrupt times).
+    pub out_of_sequence: u64,
     /// Points skipped in clouds (non-finite or no return).
     pub skipped_points: u64,
 }
@@ -292,13 +306,14 @@ impl fmt::Display for BagStats {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(
             f,
-            "{} messages: {} scans, {} IMU samples, {} packets; dropped {} malformed, {} late, {} corrupt chunks; {} points without a return skipped",
+            "{} messages: {} scans, {} IMU samples, {} packets; dropped {} malformed, {} late, {} out of sequence, {} corrupt chunks; {} points without a return skipped",
             self.messages,
             self.scans,
             self.imu,
             self.packets,
             self.malformed,
             self.late,
+            self.out_of_sequence,
             self.skipped_chunks,
             self.skipped_points
         )
@@ -358,7 +373,10 @@ pub struct BagReader {
     opt: BagOptions,
     heap: BinaryHeap<Pending>,
     seq: u64,
-    max_seen: u64,
+    /// The newest record time taken, once a message has been.
+    max_seen: Option<u64>,
+    /// Messages whose record time jumped past `max_seen`, held until the jump is confirmed.
+    jumped: Vec<RawMsg>,
     last_emitted: Option<u64>,
     source_done: bool,
     pending_error: Option<BagError>,
@@ -611,7 +629,8 @@ impl BagReader {
             opt,
             heap: BinaryHeap::new(),
             seq: 0,
-            max_seen: 0,
+            max_seen: None,
+            jumped: Vec::new(),
             last_emitted: None,
             source_done: false,
             pending_error: None,
@@ -758,7 +777,58 @@ impl BagReader {
             });
             return;
         }
-        self.max_seen = self.max_seen.max(raw.record_ns);
+        let limit =
+            self.max_seen.map(|m| m.saturating_add(self.opt.reorder_window_ns).saturating_add(JUMP_NS));
+        // The first messages, and any far ahead of the rest, are held until JUMP_CONFIRM
+        // messages in a row, each within JUMP_NS of the one before, agree on their time.
+        if limit.is_none_or(|limit| raw.record_ns > limit) {
+            if self.jumped.last().is_some_and(|m| m.record_ns.abs_diff(raw.record_ns) > JUMP_NS) {
+                self.drop_jumped(Some(raw.record_ns));
+            }
+            self.jumped.push(raw);
+            if self.jumped.len() >= JUMP_CONFIRM {
+                for m in std::mem::take(&mut self.jumped) {
+                    self.take(m);
+                }
+            }
+            return;
+        }
+        // A message in the usual range: whatever jumped before it had a corrupt time.
+        self.drop_jumped(Some(raw.record_ns));
+        self.take(raw);
+    }
+
+    /// Drops the held messages whose time was not confirmed, counted; `next` is the record
+    /// time of the message that did not follow them, if any.
+    fn drop_jumped(&mut self, next: Option<u64>) {
+        let Some(m) = self.jumped.first() else { return };
+        let Some(other) = next.or(self.max_seen) else { return };
+        let (topic, off) = (self.topics[m.topic].name.clone(), m.record_ns as f64 - other as f64);
+        self.stats.out_of_sequence += self.jumped.len() as u64;
+        self.warn_once("out of sequence", || {
+            format!(
+                "{topic}: dropped a message recorded {:+.3} s from the others, which the next messages do not follow (a corrupt time; later ones are counted)",
+                off * 1e-9
+            )
+        });
+        self.jumped.clear();
+    }
+
+    /// At the end of the source: the held messages are taken if nothing contradicts them (a
+    /// bag of fewer than JUMP_CONFIRM messages), dropped if they jumped from the rest.
+    fn flush_jumped(&mut self) {
+        if self.max_seen.is_none() {
+            for m in std::mem::take(&mut self.jumped) {
+                self.take(m);
+            }
+        }
+        self.drop_jumped(None);
+    }
+
+    /// Takes a message in: its record time is the newest if it is, and its events wait in the
+    /// reorder heap.
+    fn take(&mut self, raw: RawMsg) {
+        self.max_seen = Some(self.max_seen.map_or(raw.record_ns, |m| m.max(raw.record_ns)));
         match self.decode(&raw) {
             Ok(events) => {
                 for event in events {
@@ -798,7 +868,9 @@ impl Iterator for BagReader {
             }
             if let Some(top) = self.heap.peek()
                 && (self.source_done
-                    || top.record_ns.saturating_add(self.opt.reorder_window_ns) <= self.max_seen)
+                    || self
+                        .max_seen
+                        .is_some_and(|m| top.record_ns.saturating_add(self.opt.reorder_window_ns) <= m))
                 && let Some(p) = self.heap.pop()
             {
                 self.last_emitted = Some(p.record_ns);
@@ -809,9 +881,13 @@ impl Iterator for BagReader {
                 return self.pending_error.take().map(Err);
             }
             match self.source.next_raw() {
-                None => self.source_done = true,
+                None => {
+                    self.source_done = true;
+                    self.flush_jumped();
+                }
                 Some(Err(e)) => {
                     self.source_done = true;
+                    self.flush_jumped();
                     self.pending_error = Some(e);
                 }
                 Some(Ok(RawEvent::Skipped(why))) => {
