@@ -160,7 +160,9 @@ struct ReplayArgs {
     /// Take the IMU from the Ouster IMU packets in the pcap.
     #[arg(long)]
     ouster_imu: bool,
-    /// Pace the replay by the capture times (real time).
+    /// Pace the replay by the capture times (real time). A step back in capture time, or one of
+    /// more than 1 s ahead (a pause in the capture, a damaged record), is not waited out: the
+    /// pacing restarts from that packet.
     #[arg(long)]
     realtime: bool,
     /// Speed-up over real time with --realtime.
