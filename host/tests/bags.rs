@@ -811,7 +811,7 @@ fn a_corrupt_record_time_far_ahead_is_dropped_and_a_real_gap_is_taken() {
     for pair in rows.chunks_mut(2) {
         pair.reverse();
     }
-    for at in [10, 0, rows.len() - 1] {
+    for at in [10, 30, rows.len() - 1] {
         let mut bad = rows.clone();
         bad[at].0 += 1_000_000_000_000_000;
         let path = dir.join(format!("f{at}.bag"));
@@ -826,6 +826,25 @@ fn a_corrupt_record_time_far_ahead_is_dropped_and_a_real_gap_is_taken() {
         assert!(run.warnings[0].contains("a corrupt time"), "{}", run.warnings[0]);
         assert!(run.stats.to_string().contains("1 out of sequence"));
     }
+    // Among the first messages, which set the window's clock by their median, a corrupt time
+    // is delivered (last, in record-time order) and the sorting still works.
+    let mut bad = rows.clone();
+    bad[0].0 += 1_000_000_000_000_000;
+    let path = dir.join("first.bag");
+    write_ros1(&path, &bad, 768 * 1024, ChunkCompression::None);
+    let run = read_all(&path, opts(Preset::Vlp16)).unwrap();
+    assert_eq!((run.stats.late, run.stats.out_of_sequence, run.items.len()), (0, 0, 63));
+    assert!(run.items.windows(2).all(|w| w[0].record_ns <= w[1].record_ns));
+    assert_eq!(run.items[62].record_ns, bad[0].0);
+    // A first message well before the rest (a latched topic recorded before the sensor
+    // started) is kept.
+    let mut early = rows.clone();
+    early[0].0 -= 20_000_000_000;
+    let path = dir.join("early.bag");
+    write_ros1(&path, &early, 768 * 1024, ChunkCompression::None);
+    let run = read_all(&path, opts(Preset::Vlp16)).unwrap();
+    assert_eq!((run.stats.late, run.stats.out_of_sequence, run.items.len()), (0, 0, 63));
+    assert_eq!(run.items[0].record_ns, early[0].0);
     // A gap of 100 s in the recording (the second half later), which the messages follow.
     let mut gap = rows.clone();
     for r in gap[30..].iter_mut() {

@@ -38,7 +38,9 @@
 //! agree on the jump (a gap in the recording); a corrupt time, which the next messages do not
 //! follow, is dropped and counted ([`BagStats::out_of_sequence`]). Taken at its word, one such
 //! time would end the sorting for the rest of the bag, and its slightly disordered messages
-//! would be dropped as late (24 of 52 in the test).
+//! would be dropped as late (24 of 52 in the test). The window's newest time starts from the
+//! median of the first [`JUMP_CONFIRM`] messages, which are all delivered (a corrupt time among
+//! them comes first or last).
 //!
 //! **Stamps**: with `use_record_time` off (`time.lidar_time_source = "packet"`) events carry the
 //! messages' own stamps: a scan's start is its header stamp plus its earliest point time (see
@@ -779,9 +781,20 @@ impl BagReader {
         }
         let limit =
             self.max_seen.map(|m| m.saturating_add(self.opt.reorder_window_ns).saturating_add(JUMP_NS));
-        // The first messages, and any far ahead of the rest, are held until JUMP_CONFIRM
-        // messages in a row, each within JUMP_NS of the one before, agree on their time.
-        if limit.is_none_or(|limit| raw.record_ns > limit) {
+        let Some(limit) = limit else {
+            // The first JUMP_CONFIRM messages are all taken, but the newest time starts from
+            // their median, so that one corrupt time among them cannot set it (nor can a
+            // message dropped here be missed: an Ouster bag's one metadata message may stand
+            // well before its packets).
+            self.jumped.push(raw);
+            if self.jumped.len() >= JUMP_CONFIRM {
+                self.take_first();
+            }
+            return;
+        };
+        // A message far ahead of the rest is held until JUMP_CONFIRM messages in a row, each
+        // within JUMP_NS of the one before, agree on its time.
+        if raw.record_ns > limit {
             if self.jumped.last().is_some_and(|m| m.record_ns.abs_diff(raw.record_ns) > JUMP_NS) {
                 self.drop_jumped(Some(raw.record_ns));
             }
@@ -814,13 +827,22 @@ impl BagReader {
         self.jumped.clear();
     }
 
-    /// At the end of the source: the held messages are taken if nothing contradicts them (a
-    /// bag of fewer than JUMP_CONFIRM messages), dropped if they jumped from the rest.
+    /// Takes the first messages held, with the newest time at their median.
+    fn take_first(&mut self) {
+        let mut t: Vec<u64> = self.jumped.iter().map(|m| m.record_ns).collect();
+        t.sort_unstable();
+        let median = t[t.len() / 2];
+        for m in std::mem::take(&mut self.jumped) {
+            self.take(m);
+        }
+        self.max_seen = Some(median);
+    }
+
+    /// At the end of the source: the first messages of a bag shorter than JUMP_CONFIRM are
+    /// taken; messages that jumped from the rest are dropped.
     fn flush_jumped(&mut self) {
-        if self.max_seen.is_none() {
-            for m in std::mem::take(&mut self.jumped) {
-                self.take(m);
-            }
+        if self.max_seen.is_none() && !self.jumped.is_empty() {
+            self.take_first();
         }
         self.drop_jumped(None);
     }
