@@ -6,7 +6,8 @@
 //! rosbag2 sqlite3 files built from the input (with and without the timestamp index, rows in
 //! any time order, unknown topic ids, negative timestamps), damaged the same way, and the
 //! input as a file of its own, as `.bag`, `.mcap` and `.db3`. The reader may refuse a file or
-//! drop messages; it must not panic, and what it delivers must be well formed.
+//! drop messages; it must not panic, and what it delivers must be well formed and in
+//! record-time order.
 #![no_main]
 use std::io::Cursor;
 use std::path::PathBuf;
@@ -177,8 +178,12 @@ fn message(inp: &mut Input<'_>, kind: u8, t_ns: u64, enc: Encoding) -> Vec<u8> {
 fn read(path: &PathBuf, preset: Preset) {
     let Ok(opt) = BagOptions::from_config(&Config::preset(preset)) else { return };
     let Ok(mut bag) = BagReader::open(path, opt) else { return };
+    let mut last = 0;
     for item in (&mut bag).take(10_000) {
         let Ok(item) = item else { break };
+        // Events come in record-time order, whatever the file's order and damage.
+        assert!(item.record_ns >= last, "{} after {last}", item.record_ns);
+        last = item.record_ns;
         if let BagEvent::Scan(s) = item.event {
             for p in &s.points {
                 assert!(p.xyz.iter().all(|v| v.is_finite()) && p.t.is_finite(), "{p:?}");
