@@ -15,10 +15,19 @@ use std::path::PathBuf;
 use libfuzzer_sys::fuzz_target;
 use loglio_fuzz::Input;
 use loglio_host::bag::cloud::build::{OUSTER, VELODYNE, cloud};
-use loglio_host::bag::msg::{self, Encoding, Imu, VelodyneScan};
+use loglio_host::bag::msg::{self, Encoding, Imu, MessageType, VelodyneScan};
 use loglio_host::bag::ros1_writer::{ChunkCompression, Ros1BagWriter};
 use loglio_host::bag::{BagEvent, BagOptions, BagReader};
 use loglio_host::config::{Config, Preset};
+
+/// The message types loglio reads and a topic for each, for both kinds of bag.
+const KINDS: [(&MessageType, &str); 5] = [
+    (&msg::POINTCLOUD2, "/points"),
+    (&msg::IMU, "/imu"),
+    (&msg::VELODYNE_SCAN, "/velodyne_packets"),
+    (&msg::OUSTER_PACKET, "/os_node/lidar_packets"),
+    (&msg::STRING, "/os_node/metadata"),
+];
 
 /// A bag from the input, or `None` if the writer refuses it.
 fn write_bag(inp: &mut Input<'_>) -> Option<Vec<u8>> {
@@ -29,16 +38,13 @@ fn write_bag(inp: &mut Input<'_>) -> Option<Vec<u8>> {
         1 => ChunkCompression::Bz2,
         _ => ChunkCompression::Lz4,
     });
-    let types = [&msg::POINTCLOUD2, &msg::IMU, &msg::VELODYNE_SCAN, &msg::OUSTER_PACKET, &msg::STRING];
-    let topics = ["/points", "/imu", "/velodyne_packets", "/os_node/lidar_packets", "/os_node/metadata"];
     // Which topics the bag has (the reader picks its LiDAR topic by type, clouds first).
     let mask = match inp.u8() % 32 {
         0 => 31,
         m => m,
     };
-    let conns: Vec<_> = types
+    let conns: Vec<_> = KINDS
         .iter()
-        .zip(topics)
         .enumerate()
         .filter(|(i, _)| mask >> i & 1 == 1)
         .map(|(_, (t, topic))| w.add_typed_connection(topic, t))
@@ -90,16 +96,11 @@ fn write_db3(inp: &mut Input<'_>, path: &std::path::Path) -> Option<Vec<u8>> {
         if inp.u8() & 1 == 0 {
             db.execute_batch("CREATE INDEX timestamp_idx ON messages (timestamp ASC);").ok()?;
         }
-        let types = [
-            msg::ros2_name(&msg::POINTCLOUD2),
-            msg::ros2_name(&msg::IMU),
-            msg::ros2_name(&msg::VELODYNE_SCAN),
-            msg::ros2_name(&msg::OUSTER_PACKET),
-            msg::ros2_name(&msg::STRING),
-            "sensor_msgs/msg/Image".to_string(),
-        ];
-        let names =
-            ["/points", "/imu", "/velodyne_packets", "/os_node/lidar_packets", "/os_node/metadata", "/x"];
+        // loglio's types and topics, and one of neither.
+        let mut types: Vec<String> = KINDS.iter().map(|(t, _)| msg::ros2_name(t)).collect();
+        types.push("sensor_msgs/msg/Image".to_string());
+        let mut names: Vec<&str> = KINDS.iter().map(|(_, n)| *n).collect();
+        names.push("/x");
         for _ in 0..1 + usize::from(inp.u8() % 5) {
             let (id, ty, name, ser) = (i64::from(inp.u8() % 8), inp.u8(), inp.u8(), inp.u8());
             let ser = if ser % 8 == 0 { "ros1" } else { "cdr" };
