@@ -3,7 +3,7 @@
 //!
 //! rosbag2 indexes `messages` by timestamp (`timestamp_idx`), and each page is then one short
 //! index walk. Files without that index (older rosbag2 releases, hand-made or converted bags)
-//! would make every page a scan and sort of the whole table: quadratic, 36 s for 100,000
+//! would make every page a scan and sort of the whole table: quadratic, 34.5 s for 100,000
 //! messages and about 20 minutes for a 10-minute bag with a 1 kHz IMU. For those the message
 //! ids are sorted once, in one query (8 bytes per message of the selected topics), and the pages
 //! are read by id, which is the table's primary key.
@@ -134,11 +134,6 @@ impl SqliteSource {
     /// Reads the next page of the current file; `false` when the file has no more.
     fn page(&mut self) -> Result<bool, BagError> {
         let path = &self.files[self.file];
-        if self.db.is_none() {
-            self.db = Some(open_db(path)?);
-            self.last = (i64::MIN, i64::MIN);
-            self.order = None;
-        }
         let ids: Vec<String> = self.ids[self.file]
             .iter()
             .filter(|(_, t)| self.selected.contains(t))
@@ -147,23 +142,30 @@ impl SqliteSource {
         if ids.is_empty() {
             return Ok(false);
         }
-        let Some(db) = self.db.as_ref() else { return Ok(false) };
-        let mut rows = Vec::with_capacity(PAGE);
-        if self.order.is_none() && !has_timestamp_index(db).map_err(|e| sql_err(path, e))? {
-            let sql = format!(
-                "SELECT id FROM messages WHERE topic_id IN ({}) ORDER BY timestamp, id",
-                ids.join(",")
-            );
-            let mut st = db.prepare(&sql).map_err(|e| sql_err(path, e))?;
-            let order = st
-                .query_map([], |r| r.get::<_, i64>(0))
-                .map_err(|e| sql_err(path, e))?
-                .collect::<Result<_, _>>();
-            self.order = Some((order.map_err(|e| sql_err(path, e))?, 0));
+        if self.db.is_none() {
+            let db = open_db(path)?;
+            self.last = (i64::MIN, i64::MIN);
+            // Once per file: without the timestamp index, the ids in (timestamp, id) order.
+            self.order = if has_timestamp_index(&db).map_err(|e| sql_err(path, e))? {
+                None
+            } else {
+                let sql = format!(
+                    "SELECT id FROM messages WHERE topic_id IN ({}) ORDER BY timestamp, id",
+                    ids.join(",")
+                );
+                let mut st = db.prepare(&sql).map_err(|e| sql_err(path, e))?;
+                let order = st
+                    .query_map([], |r| r.get::<_, i64>(0))
+                    .map_err(|e| sql_err(path, e))?
+                    .collect::<Result<_, _>>()
+                    .map_err(|e| sql_err(path, e))?;
+                Some((order, 0))
+            };
+            self.db = Some(db);
         }
-        if let Some((order, done)) = &mut self.order {
-            // The next PAGE ids of the sorted list, by primary key; the rows come back in id
-            // order and are put back in the list's.
+        let Some(db) = self.db.as_ref() else { return Ok(false) };
+        let rows = if let Some((order, done)) = &mut self.order {
+            // The next PAGE ids of the sorted list, by primary key.
             let next = &order[*done..order.len().min(*done + PAGE)];
             if next.is_empty() {
                 return Ok(false);
@@ -175,17 +177,15 @@ impl SqliteSource {
                 (1..=PAGE).map(|i| format!("?{i}")).collect::<Vec<_>>().join(",")
             );
             let mut st = db.prepare_cached(&sql).map_err(|e| sql_err(path, e))?;
-            let got = st
+            let mut rows = st
                 .query_map(rusqlite::params_from_iter(params), row)
                 .map_err(|e| sql_err(path, e))?
                 .collect::<Result<Vec<_>, _>>()
                 .map_err(|e| sql_err(path, e))?;
-            let mut got: Vec<Option<_>> = got.into_iter().map(Some).collect();
-            for id in next {
-                if let Some(r) = got.iter_mut().find(|r| r.as_ref().is_some_and(|r| r.0 == *id)) {
-                    rows.extend(r.take());
-                }
-            }
+            // Only the listed ids (the padding's -1 may be a real one), in the list's order.
+            rows.retain(|r| next.contains(&r.0));
+            rows.sort_by_key(|r| next.iter().position(|&id| id == r.0));
+            rows
         } else {
             let sql = format!(
                 "SELECT id, topic_id, timestamp, data FROM messages WHERE topic_id IN ({}) \
@@ -193,13 +193,15 @@ impl SqliteSource {
                 ids.join(",")
             );
             let mut st = db.prepare_cached(&sql).map_err(|e| sql_err(path, e))?;
+            let mut rows = Vec::with_capacity(PAGE);
             for r in st.query_map([self.last.0, self.last.1], row).map_err(|e| sql_err(path, e))? {
                 rows.push(r.map_err(|e| sql_err(path, e))?);
             }
             if rows.is_empty() {
                 return Ok(false);
             }
-        }
+            rows
+        };
         for (id, topic_id, ts, data) in rows {
             self.last = (ts, id);
             if ts < 0 {
