@@ -779,9 +779,7 @@ impl BagReader {
             });
             return;
         }
-        let limit =
-            self.max_seen.map(|m| m.saturating_add(self.opt.reorder_window_ns).saturating_add(JUMP_NS));
-        let Some(limit) = limit else {
+        let Some(newest) = self.max_seen else {
             // The first JUMP_CONFIRM messages are all taken, but the newest time starts from
             // their median, so that one corrupt time among them cannot set it (nor can a
             // message dropped here be missed: an Ouster bag's one metadata message may stand
@@ -794,15 +792,13 @@ impl BagReader {
         };
         // A message far ahead of the rest is held until JUMP_CONFIRM messages in a row, each
         // within JUMP_NS of the one before, agree on its time.
-        if raw.record_ns > limit {
+        if raw.record_ns > newest.saturating_add(self.opt.reorder_window_ns).saturating_add(JUMP_NS) {
             if self.jumped.last().is_some_and(|m| m.record_ns.abs_diff(raw.record_ns) > JUMP_NS) {
                 self.drop_jumped(Some(raw.record_ns));
             }
             self.jumped.push(raw);
             if self.jumped.len() >= JUMP_CONFIRM {
-                for m in std::mem::take(&mut self.jumped) {
-                    self.take(m);
-                }
+                self.take_held();
             }
             return;
         }
@@ -832,10 +828,15 @@ impl BagReader {
         let mut t: Vec<u64> = self.jumped.iter().map(|m| m.record_ns).collect();
         t.sort_unstable();
         let median = t[t.len() / 2];
+        self.take_held();
+        self.max_seen = Some(median);
+    }
+
+    /// Takes every held message.
+    fn take_held(&mut self) {
         for m in std::mem::take(&mut self.jumped) {
             self.take(m);
         }
-        self.max_seen = Some(median);
     }
 
     /// At the end of the source: the first messages of a bag shorter than JUMP_CONFIRM are
