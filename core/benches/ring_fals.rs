@@ -18,6 +18,9 @@ use loglio_core::scan::ScanPoint;
 #[path = "../../tests/synth.rs"]
 mod synth;
 
+#[path = "../../host/src/machine.rs"]
+mod machine;
+
 #[path = "../../host/src/knn_pca.rs"]
 #[allow(dead_code)]
 mod knn_pca;
@@ -82,6 +85,7 @@ fn bench_layout(c: &mut Criterion, name: &str, layout: &RangeImageLayout) {
 }
 
 fn benches(c: &mut Criterion) {
+    println!("{}", machine::describe());
     bench_layout(c, "32x1800", &synth::vlp32c_layout());
     bench_layout(c, "16x1024", &synth::os1_16_layout());
 }

@@ -22,6 +22,9 @@
 //!   caches, `cold` after 64 MiB of other data went through them (as the map does between scans
 //!   in the odometry). The scan is restored outside the timed part.
 
+#[path = "../../host/src/machine.rs"]
+mod machine;
+
 use std::collections::HashMap;
 use std::hint::black_box;
 use std::num::NonZero;
@@ -558,6 +561,10 @@ fn bench_downsample(c: &mut Criterion) {
 criterion_group! {
     name = benches;
     config = Criterion::default().sample_size(20).measurement_time(Duration::from_secs(4)).warm_up_time(Duration::from_secs(1));
-    targets = bench_insert, bench_knn, bench_downsample
+    targets = print_machine, bench_insert, bench_knn, bench_downsample
+}
+
+fn print_machine(_: &mut Criterion) {
+    println!("{}", machine::describe());
 }
 criterion_main!(benches);

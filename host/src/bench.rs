@@ -14,6 +14,7 @@ use loglio_firmware_sim::scenario::{Event, ScenarioKind};
 use serde_json::json;
 
 use crate::config::{AssociationMode, Preset};
+use crate::machine;
 use crate::output::Progress;
 use crate::pipeline::{self, OutputOptions, Outputs, OwnedScan, PipelineError, Runner, StorageClass};
 use crate::sim::{self, SimOptions};
@@ -215,54 +216,6 @@ fn mode_json(m: &ModeTimes) -> serde_json::Value {
     })
 }
 
-/// The processor the figures were measured on, as the OS names it: x86's `model name` in
-/// `/proc/cpuinfo`; on ARM boards, which often have none, the device tree's model (a Jetson
-/// says "NVIDIA Jetson AGX Orin ...") or the `Hardware` line. Figures are only comparable on
-/// the same processor, so the report carries it.
-pub fn cpu_model() -> Option<String> {
-    let cpuinfo = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
-    let dt = std::fs::read("/proc/device-tree/model").ok().map(|b| String::from_utf8_lossy(&b).into_owned());
-    cpu_model_from(&cpuinfo, dt.as_deref())
-}
-
-fn cpu_model_from(cpuinfo: &str, device_tree_model: Option<&str>) -> Option<String> {
-    let field = |name: &str| {
-        cpuinfo.lines().find_map(|l| {
-            let (k, v) = l.split_once(':')?;
-            (k.trim() == name).then(|| v.trim().to_string()).filter(|v| !v.is_empty())
-        })
-    };
-    let clean = |s: &str| {
-        Some(s.trim_matches(|c: char| c == '\0' || c.is_whitespace()).to_string()).filter(|s| !s.is_empty())
-    };
-    field("model name").or_else(|| device_tree_model.and_then(clean)).or_else(|| field("Hardware"))
-}
-
-/// The vector extensions this build was compiled for (`.cargo/config.toml` builds x86-64 for
-/// the building CPU): the same source runs 8 or 16 lanes per instruction depending on them.
-pub fn vector_features() -> String {
-    let mut f: Vec<&str> = Vec::new();
-    if cfg!(target_feature = "sse4.2") {
-        f.push("sse4.2");
-    }
-    if cfg!(target_feature = "avx2") {
-        f.push("avx2");
-    }
-    if cfg!(target_feature = "fma") {
-        f.push("fma");
-    }
-    if cfg!(target_feature = "avx512f") {
-        f.push("avx512f");
-    }
-    if cfg!(target_feature = "avx512bw") {
-        f.push("avx512bw");
-    }
-    if cfg!(target_feature = "neon") {
-        f.push("neon");
-    }
-    if f.is_empty() { "baseline".to_string() } else { f.join(" ") }
-}
-
 impl BenchReport {
     /// Machine-readable.
     pub fn to_json(&self) -> String {
@@ -282,8 +235,8 @@ impl BenchReport {
                 "os": std::env::consts::OS,
                 "arch": std::env::consts::ARCH,
                 "threads": cpu,
-                "cpu": cpu_model(),
-                "built_for": vector_features(),
+                "cpu": machine::cpu_model(),
+                "built_for": machine::vector_features(),
             },
         });
         serde_json::to_string_pretty(&v).unwrap_or_default()
@@ -301,11 +254,8 @@ impl BenchReport {
             std::env::consts::ARCH,
             std::thread::available_parallelism().map_or(1, |n| n.get())
         );
-        s.push_str(&format!(
-            "cpu: {} (built for {})\n",
-            cpu_model().as_deref().unwrap_or("unknown"),
-            vector_features()
-        ));
+        s.push_str(&machine::describe());
+        s.push('\n');
         if self.max_points > 0 {
             s.push_str(&format!("measurement budget: at most {} points per scan\n", self.max_points));
         }
@@ -338,27 +288,5 @@ impl BenchReport {
             self.baseline.mode
         ));
         s
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn cpu_model_is_read_from_x86_and_arm_descriptions() {
-        let x86 = "processor\t: 0\nvendor_id\t: GenuineIntel\nmodel name\t: Intel(R) Xeon(R) Processor @ 2.50GHz\nflags\t\t: fpu\n";
-        assert_eq!(cpu_model_from(x86, None).as_deref(), Some("Intel(R) Xeon(R) Processor @ 2.50GHz"));
-        // An arm64 kernel lists no model name; the device tree names the board.
-        let arm = "processor\t: 0\nBogoMIPS\t: 62.50\nCPU implementer\t: 0x41\nCPU part\t: 0xd42\n";
-        assert_eq!(
-            cpu_model_from(arm, Some("NVIDIA Jetson AGX Orin Developer Kit\0")).as_deref(),
-            Some("NVIDIA Jetson AGX Orin Developer Kit")
-        );
-        assert_eq!(cpu_model_from("Hardware\t: BCM2835\n", None).as_deref(), Some("BCM2835"));
-        // Empty values and a blank device tree fall through; nothing known is None, not "".
-        assert_eq!(cpu_model_from("model name\t:   \nHardware\t: X\n", Some("\0")).as_deref(), Some("X"));
-        assert_eq!(cpu_model_from("", None), None);
-        assert!(!vector_features().is_empty());
     }
 }

@@ -26,6 +26,7 @@ pub mod imu_csv;
 pub mod knn_pca;
 pub mod lidar_stream;
 pub mod live;
+pub mod machine;
 pub mod normals;
 pub mod ouster_meta;
 pub mod output;
