@@ -30,25 +30,15 @@ fn cpu_model_from(cpuinfo: &str, device_tree_model: Option<&str>) -> Option<Stri
 /// The vector extensions this build was compiled for (`.cargo/config.toml` builds x86-64 for
 /// the building CPU): the same source runs 8 or 16 lanes per instruction depending on them.
 pub fn vector_features() -> String {
-    let mut f: Vec<&str> = Vec::new();
-    if cfg!(target_feature = "sse4.2") {
-        f.push("sse4.2");
-    }
-    if cfg!(target_feature = "avx2") {
-        f.push("avx2");
-    }
-    if cfg!(target_feature = "fma") {
-        f.push("fma");
-    }
-    if cfg!(target_feature = "avx512f") {
-        f.push("avx512f");
-    }
-    if cfg!(target_feature = "avx512bw") {
-        f.push("avx512bw");
-    }
-    if cfg!(target_feature = "neon") {
-        f.push("neon");
-    }
+    let built = [
+        ("sse4.2", cfg!(target_feature = "sse4.2")),
+        ("avx2", cfg!(target_feature = "avx2")),
+        ("fma", cfg!(target_feature = "fma")),
+        ("avx512f", cfg!(target_feature = "avx512f")),
+        ("avx512bw", cfg!(target_feature = "avx512bw")),
+        ("neon", cfg!(target_feature = "neon")),
+    ];
+    let f: Vec<&str> = built.iter().filter(|(_, on)| *on).map(|(name, _)| *name).collect();
     if f.is_empty() { "baseline".to_string() } else { f.join(" ") }
 }
 
