@@ -1,8 +1,8 @@
 //! What a benchmark ran on: the processor's name and the vector extensions of the build.
 //! Figures are only comparable on the same processor (the project's machine changed from an
-//! AMD EPYC to an Intel Xeon between two sessions, and every time doubled), so `loglio bench`
-//! and the criterion benches print both. No dependencies beyond std: the core's benches include
-//! this file by path.
+//! AMD EPYC to an Intel Xeon between two sessions, and the times grew 1.4-2.8x, unevenly), so
+//! `loglio bench` and the criterion benches print both. No dependencies beyond std: the core's
+//! benches include this file by path.
 
 /// The processor the figures were measured on, as the OS names it: x86's `model name` in
 /// `/proc/cpuinfo`; on ARM boards, which often have none, the device tree's model (a Jetson
