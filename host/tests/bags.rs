@@ -814,12 +814,16 @@ fn a_corrupt_record_time_far_ahead_is_dropped_and_a_real_gap_is_taken() {
     let dir = tmp("future");
     let (msgs, _) = sequence(Encoding::Ros1, build::VELODYNE);
     let rows = pairs_swapped(&msgs);
+    // The rows as a ROS 1 bag, read back.
+    let run_of = |name: &str, rows: &[Msg]| {
+        let path = dir.join(name);
+        write_ros1(&path, rows, 768 * 1024, ChunkCompression::None);
+        read_all(&path, opts(Preset::Vlp16)).unwrap()
+    };
     for at in [10, 30, rows.len() - 1] {
         let mut bad = rows.clone();
         bad[at].0 += 1_000_000_000_000_000;
-        let path = dir.join(format!("f{at}.bag"));
-        write_ros1(&path, &bad, 768 * 1024, ChunkCompression::None);
-        let run = read_all(&path, opts(Preset::Vlp16)).unwrap();
+        let run = run_of(&format!("f{at}.bag"), &bad);
         run.end.as_ref().unwrap();
         assert_eq!((run.stats.late, run.stats.out_of_sequence), (0, 1), "at {at}");
         assert_eq!(run.items.len(), 62, "at {at}");
@@ -833,9 +837,7 @@ fn a_corrupt_record_time_far_ahead_is_dropped_and_a_real_gap_is_taken() {
     // is delivered (last, in record-time order) and the sorting still works.
     let mut bad = rows.clone();
     bad[0].0 += 1_000_000_000_000_000;
-    let path = dir.join("first.bag");
-    write_ros1(&path, &bad, 768 * 1024, ChunkCompression::None);
-    let run = read_all(&path, opts(Preset::Vlp16)).unwrap();
+    let run = run_of("first.bag", &bad);
     assert_eq!((run.stats.late, run.stats.out_of_sequence, run.items.len()), (0, 0, 63));
     assert!(run.items.windows(2).all(|w| w[0].record_ns <= w[1].record_ns));
     assert_eq!(run.items[62].record_ns, bad[0].0);
@@ -843,9 +845,7 @@ fn a_corrupt_record_time_far_ahead_is_dropped_and_a_real_gap_is_taken() {
     // started) is kept.
     let mut early = rows.clone();
     early[0].0 -= 20_000_000_000;
-    let path = dir.join("early.bag");
-    write_ros1(&path, &early, 768 * 1024, ChunkCompression::None);
-    let run = read_all(&path, opts(Preset::Vlp16)).unwrap();
+    let run = run_of("early.bag", &early);
     assert_eq!((run.stats.late, run.stats.out_of_sequence, run.items.len()), (0, 0, 63));
     assert_eq!(run.items[0].record_ns, early[0].0);
     // A gap of 100 s in the recording (the second half later), which the messages follow.
@@ -853,9 +853,7 @@ fn a_corrupt_record_time_far_ahead_is_dropped_and_a_real_gap_is_taken() {
     for r in gap[30..].iter_mut() {
         r.0 += 100_000_000_000;
     }
-    let path = dir.join("gap.bag");
-    write_ros1(&path, &gap, 768 * 1024, ChunkCompression::None);
-    let run = read_all(&path, opts(Preset::Vlp16)).unwrap();
+    let run = run_of("gap.bag", &gap);
     run.end.as_ref().unwrap();
     assert!(run.warnings.is_empty(), "{:?}", run.warnings);
     assert_eq!((run.stats.late, run.stats.out_of_sequence, run.items.len()), (0, 0, 63));
