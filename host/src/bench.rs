@@ -13,7 +13,7 @@ use loglio_core::imu::ImuSample;
 use loglio_firmware_sim::scenario::{Event, ScenarioKind};
 use serde_json::json;
 
-use crate::config::{AssociationMode, Preset};
+use crate::config::{AssociationMode, KnnSearch, Preset};
 use crate::machine;
 use crate::output::Progress;
 use crate::pipeline::{self, OutputOptions, Outputs, OwnedScan, PipelineError, Runner, StorageClass};
@@ -46,6 +46,8 @@ pub struct BenchReport {
     pub scenario: String,
     /// The measurement budget both modes ran with (0: none).
     pub max_points: u64,
+    /// The k-NN both modes ran with.
+    pub knn_search: KnnSearch,
     /// Simulated seconds.
     pub seconds: f64,
     /// Points per scan (mean).
@@ -65,11 +67,12 @@ fn time_mode(
     sc: &loglio_firmware_sim::scenario::Scenario,
     preset: Preset,
     mode: AssociationMode,
-    max_points: u64,
+    (max_points, knn_search): (u64, KnnSearch),
     scan_period_s: f64,
 ) -> Result<ModeTimes, PipelineError> {
     let mut cfg = sim::scenario_config(sc, preset, Some(mode));
     cfg.mapping.max_points = max_points;
+    cfg.mapping.knn_search = knn_search;
     let layout = sc.layout().clone();
     let class = StorageClass::choose(layout.rows(), layout.cols(), cfg.mapping.map_capacity)?;
     let core = pipeline::odometry_config(&cfg, layout)?;
@@ -138,12 +141,13 @@ enum Event2 {
 
 /// Runs the bench for `preset` over `seconds` of a simulated scenario (`None`: the vehicle
 /// drive for Velodyne presets, the handheld walk for Ouster), both modes with the measurement
-/// budget `max_points` (0: every downsampled point).
+/// budget `max_points` (0: every downsampled point) and the k-NN `knn_search`.
 pub fn run(
     preset: Preset,
     scenario: Option<ScenarioKind>,
     seconds: f64,
     max_points: u64,
+    knn_search: KnnSearch,
     progress: bool,
 ) -> Result<BenchReport, PipelineError> {
     let sensor = sim::sensor_of(preset).ok_or_else(|| {
@@ -163,6 +167,7 @@ pub fn run(
         duration_s: Some(seconds),
         mode: None,
         max_points,
+        knn_search,
         out: None,
         progress: false,
     };
@@ -189,12 +194,14 @@ pub fn run(
     bar.finish();
     let generate_s = t0.elapsed().as_secs_f64();
     let scan_period_s = 1.0 / crate::config::Config::preset(preset).sensor.scan_rate_hz;
-    let main = time_mode(&data, &sc, preset, AssociationMode::Full, max_points, scan_period_s)?;
-    let baseline = time_mode(&data, &sc, preset, AssociationMode::Plain, max_points, scan_period_s)?;
+    let knn = (max_points, knn_search);
+    let main = time_mode(&data, &sc, preset, AssociationMode::Full, knn, scan_period_s)?;
+    let baseline = time_mode(&data, &sc, preset, AssociationMode::Plain, knn, scan_period_s)?;
     Ok(BenchReport {
         preset: preset.name().into(),
         scenario: kind.name().into(),
         max_points,
+        knn_search,
         seconds,
         points_per_scan: points as f64 / scans.max(1) as f64,
         scan_period_s,
@@ -224,6 +231,7 @@ impl BenchReport {
             "preset": self.preset,
             "scenario": self.scenario,
             "max_points": self.max_points,
+            "knn_search": self.knn_search,
             "simulated_seconds": self.seconds,
             "points_per_scan": self.points_per_scan,
             "scan_period_ms": self.scan_period_s * 1e3,
@@ -258,6 +266,9 @@ impl BenchReport {
         s.push('\n');
         if self.max_points > 0 {
             s.push_str(&format!("measurement budget: at most {} points per scan\n", self.max_points));
+        }
+        if self.knn_search == KnnSearch::Block {
+            s.push_str("k-NN: the octant block first (--knn-search block)\n");
         }
         s.push_str(&format!("{:<12} {:>10} {:>10}\n", "stage [ms]", self.main.mode, self.baseline.mode));
         for (i, name) in STAGES.iter().enumerate() {

@@ -66,6 +66,24 @@ enum ModeArg {
     Plain,
 }
 
+/// `mapping.knn_search`.
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum KnnArg {
+    /// The exact k nearest within the 27 voxels around each point.
+    Exact,
+    /// The point's 2x2x2 octant block first: faster, approximate.
+    Block,
+}
+
+impl KnnArg {
+    fn host(self) -> loglio_host::config::KnnSearch {
+        match self {
+            KnnArg::Exact => loglio_host::config::KnnSearch::Exact,
+            KnnArg::Block => loglio_host::config::KnnSearch::Block,
+        }
+    }
+}
+
 impl ModeArg {
     fn host(self) -> loglio_host::config::AssociationMode {
         use loglio_host::config::AssociationMode as M;
@@ -98,6 +116,9 @@ struct SimArgs {
     /// scan; 0 = all.
     #[arg(long, default_value_t = 0, value_name = "N")]
     max_points: u64,
+    /// The association's k-NN (`mapping.knn_search`).
+    #[arg(long, value_enum, default_value = "exact")]
+    knn_search: KnnArg,
     /// Output directory (trajectory, ground truth, map, per-scan CSV, plots); nothing is written
     /// without it.
     #[arg(long, value_name = "DIR")]
@@ -225,6 +246,9 @@ struct BenchArgs {
     /// scan, in both modes; 0 = all.
     #[arg(long, default_value_t = 0, value_name = "N")]
     max_points: u64,
+    /// The association's k-NN (`mapping.knn_search`), in both modes.
+    #[arg(long, value_enum, default_value = "exact")]
+    knn_search: KnnArg,
     /// Simulated scenario: vehicle, handheld, corridor, drone, rotation (default: vehicle for
     /// Velodyne presets, handheld for Ouster).
     #[arg(long, value_name = "NAME")]
@@ -501,7 +525,7 @@ fn bench_cmd(a: BenchArgs) -> anyhow::Result<()> {
         bail!("--seconds must be in [3, 120], not {}", a.seconds);
     }
     let scenario = a.scenario.as_deref().map(scenario_kind).transpose()?;
-    let r = loglio_host::bench::run(preset, scenario, a.seconds, a.max_points, !a.json)?;
+    let r = loglio_host::bench::run(preset, scenario, a.seconds, a.max_points, a.knn_search.host(), !a.json)?;
     print(&if a.json { r.to_json() } else { r.to_text() })
 }
 
@@ -557,6 +581,7 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
         duration_s: a.seconds,
         mode: a.mode.map(ModeArg::host),
         max_points: a.max_points,
+        knn_search: a.knn_search.host(),
         out: a.out,
         progress: true,
     })
@@ -579,6 +604,7 @@ fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
         duration_s: Some(a.seconds),
         mode: None,
         max_points: 0,
+        knn_search: loglio_host::config::KnnSearch::Exact,
         out: Some(a.out),
         progress: true,
     })

@@ -43,9 +43,10 @@ use loglio_core::output::{ScanResult, StageTimes, Status};
 use loglio_core::range_image::{MAX_COLS, MAX_ROWS, RangeImageLayout};
 use loglio_core::ring_fals::storage_pixels;
 use loglio_core::scan::{ScanPoint, ScanView};
+use loglio_core::voxel_map::KnnReach;
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
-use crate::config::{AssociationMode, Config, ConfigError, SensorFamily};
+use crate::config::{AssociationMode, Config, ConfigError, KnnSearch, SensorFamily};
 use crate::eval::{self, EvalOptions, EvalReport, Trajectory};
 use crate::output::{self, MapPoint, PcdEncoding, ScanCsvWriter, ScanRecord, ScanStatus, TumWriter};
 
@@ -167,6 +168,10 @@ pub fn odometry_config(cfg: &Config, layout: RangeImageLayout) -> Result<Odometr
         max_range: cfg.sensor.max_range as f32,
         association: AssociationConfig {
             max_points: u32::try_from(cfg.mapping.max_points).unwrap_or(u32::MAX),
+            knn_reach: match cfg.mapping.knn_search {
+                KnnSearch::Exact => KnnReach::Neighbourhood,
+                KnnSearch::Block => KnnReach::Block,
+            },
             ..base.association
         },
         ..base

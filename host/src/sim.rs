@@ -9,7 +9,7 @@ use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKind};
 use nalgebra::Isometry3;
 
-use crate::config::{AssociationMode, Config, Preset};
+use crate::config::{AssociationMode, Config, KnnSearch, Preset};
 use crate::eval::{self, Trajectory};
 use crate::output::Progress;
 use crate::pipeline::{
@@ -31,6 +31,8 @@ pub struct SimOptions {
     pub mode: Option<AssociationMode>,
     /// Measurement budget (`mapping.max_points`; 0: every downsampled point).
     pub max_points: u64,
+    /// The association's k-NN (`mapping.knn_search`).
+    pub knn_search: KnnSearch,
     /// Output directory (`None`: write nothing).
     pub out: Option<PathBuf>,
     /// Show a progress bar (on a terminal).
@@ -163,6 +165,7 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
     let sc = scenario(opt)?;
     let mut cfg = scenario_config(&sc, preset_of(opt.sensor), opt.mode);
     cfg.mapping.max_points = opt.max_points;
+    cfg.mapping.knn_search = opt.knn_search;
     let layout = sc.layout().clone();
     let class = StorageClass::choose(layout.rows(), layout.cols(), cfg.mapping.map_capacity)?;
     let core = pipeline::odometry_config(&cfg, layout)?;
@@ -284,5 +287,14 @@ mod tests {
         assert_eq!(core.association.max_points, 5000);
         let err = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nmax_points = -1\n").unwrap_err();
         assert!(err.0.contains("mapping.max_points"), "{}", err.0);
+        // The exact k-NN unless asked for; `mapping.knn_search` reaches the association.
+        use loglio_core::voxel_map::KnnReach;
+        assert_eq!(core.association.knn_reach, KnnReach::Neighbourhood);
+        let file = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nknn_search = \"block\"\n").unwrap();
+        assert_eq!(file.mapping.knn_search, KnnSearch::Block);
+        let core = crate::pipeline::odometry_config(&file, sc.layout().clone()).unwrap();
+        assert_eq!(core.association.knn_reach, KnnReach::Block);
+        let err = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nknn_search = \"kd\"\n").unwrap_err();
+        assert_eq!(err.0, "config: mapping.knn_search = \"kd\" is not one of: exact, block");
     }
 }
