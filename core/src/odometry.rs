@@ -344,6 +344,8 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     stamp: u32,
     restart_pending: bool,
     stats: OdometryStats,
+    /// Points of the last scan after undistortion and downsampling (the front of `scan.points`).
+    last_kept: usize,
 }
 
 impl<const PIX: usize, const PTS: usize, const DS: usize> core::fmt::Debug for Odometry<'_, PIX, PTS, DS> {
@@ -395,6 +397,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             stamp: 0,
             restart_pending: false,
             stats: OdometryStats::default(),
+            last_kept: 0,
         })
     }
 
@@ -421,6 +424,13 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
     /// The IMU queue's counters (accepted, reversed, duplicate, non-finite, overwritten).
     pub fn imu_stats(&self) -> crate::imu::ImuQueueStats {
         self.scan.imu.stats()
+    }
+
+    /// The last scan's points as the map received them: undistorted to the LiDAR frame at the
+    /// scan end and downsampled (empty when the scan did not reach the map). Live outputs
+    /// publish them; world frame = the result's [`PoseEstimate::lidar_pose`] applied to them.
+    pub fn scan_points(&self) -> &[ScanPoint] {
+        &self.scan.points[..self.last_kept]
     }
 
     /// Switches the association mode from the next scan on.
@@ -467,6 +477,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
     pub fn process_scan_timed(&mut self, scan: ScanView<'_>, clock: &mut impl Clock) -> ScanResult {
         let t0 = clock.now_ns();
         let mut times = StageTimes::default();
+        self.last_kept = 0;
         self.stats.scans = self.stats.scans.saturating_add(1);
         let mut reinit: Option<ReinitReason> = None;
         if self.restart_pending {
@@ -642,6 +653,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
 
         // 6. Map insertion at the updated pose.
         if kept > 0 && update.outcome != UpdateOutcome::NumericalFailure {
+            self.last_kept = kept;
             let x = f.state();
             let r = x.rot.to_rotation_matrix().into_inner();
             let r_wl: Matrix3<f64> = r * x.ext_rot.to_rotation_matrix().into_inner();

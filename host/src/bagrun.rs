@@ -124,6 +124,7 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
     let scan_offset_ns = (cfg.time.scan_stamp_offset * 1e9).round() as i64;
     let (stats, finished) = pipeline::with_engine(&core, class, |engine| -> Result<_, PipelineError> {
         let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
+        runner.sinks = opt.setup.sinks.build();
         let mut read_error = None;
         while let Some(item) = reader.next() {
             let item = match item {

@@ -170,6 +170,8 @@ pub fn run(
         knn_search,
         out: None,
         progress: false,
+        realtime: None,
+        sinks: crate::sink::SinkArgs::default(),
     };
     let sc = sim::scenario(&opt)?;
     let t0 = Instant::now();

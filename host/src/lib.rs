@@ -14,6 +14,7 @@
 //! | [`live`] | `loglio live`: UDP LiDAR and serial or Ouster IMU on their own threads, bounded queues, status line, Ctrl-C |
 //! | [`replay`] | `loglio replay`: pcap plus IMU CSV, serial capture or Ouster IMU packets |
 //! | [`sim`] | `loglio sim` / `demo`: a firmware-sim scenario end to end, ATE against its ground truth |
+//! | [`sink`] | live outputs: each scan's result and the high-rate pose to ROS 2, MAVLink, Foxglove or a callback, never blocking |
 //! | [`pipeline`] | the configuration onto the core odometry, its heap storage, input ordering and outputs |
 
 pub mod bag;
@@ -35,6 +36,7 @@ pub mod pipeline;
 pub mod replay;
 pub mod serial;
 pub mod sim;
+pub mod sink;
 pub mod time_align;
 pub mod udp;
 pub mod velodyne_calib;

@@ -719,6 +719,8 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
 
         let times = Rc::new(RefCell::new(ScanTimes::default()));
         let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
+        runner.sinks = opt.setup.sinks.build();
+        runner.set_origin(t0);
         {
             let times = Rc::clone(&times);
             runner.on_scan = Some(Box::new(move |res, _, arrival| {

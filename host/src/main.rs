@@ -123,6 +123,14 @@ struct SimArgs {
     /// without it.
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
+    /// Pace the run by the simulated time (real time), e.g. to watch it live in Foxglove.
+    #[arg(long)]
+    realtime: bool,
+    /// Speed-up over real time with --realtime.
+    #[arg(long, default_value_t = 1.0, requires = "realtime")]
+    rate: f64,
+    #[command(flatten)]
+    outputs: loglio_host::sink::SinkArgs,
 }
 
 /// What the commands that run the odometry share.
@@ -153,6 +161,8 @@ struct RunArgs {
     /// Do not write the map and the plots.
     #[arg(long)]
     no_map: bool,
+    #[command(flatten)]
+    outputs: loglio_host::sink::SinkArgs,
 }
 
 impl RunArgs {
@@ -166,6 +176,7 @@ impl RunArgs {
             out: Some(self.out.clone()),
             gt: self.gt.clone(),
             no_map: self.no_map,
+            sinks: self.outputs.clone(),
         }
     }
 }
@@ -280,6 +291,14 @@ struct DemoArgs {
     /// Length in seconds.
     #[arg(long, default_value_t = 25.0, value_name = "S")]
     seconds: f64,
+    /// Pace the run by the simulated time (real time), e.g. to watch it live in Foxglove.
+    #[arg(long)]
+    realtime: bool,
+    /// Speed-up over real time with --realtime.
+    #[arg(long, default_value_t = 1.0, requires = "realtime")]
+    rate: f64,
+    #[command(flatten)]
+    outputs: loglio_host::sink::SinkArgs,
 }
 
 #[derive(Debug, Args)]
@@ -583,7 +602,9 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
         max_points: a.max_points,
         knn_search: a.knn_search.host(),
         out: a.out,
-        progress: true,
+        progress: !a.realtime,
+        realtime: a.realtime.then_some(a.rate),
+        sinks: a.outputs,
     })
 }
 
@@ -606,7 +627,9 @@ fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
         max_points: 0,
         knn_search: loglio_host::config::KnnSearch::Exact,
         out: Some(a.out),
-        progress: true,
+        progress: !a.realtime,
+        realtime: a.realtime.then_some(a.rate),
+        sinks: a.outputs,
     })
 }
 

@@ -34,7 +34,7 @@ use std::time::Instant;
 
 use loglio_core::association::AssociationConfig;
 use loglio_core::downsample::DownsampleConfig;
-use loglio_core::eskf::EskfConfig;
+use loglio_core::eskf::{Eskf, EskfConfig, Predicted};
 use loglio_core::imu::{ImuInitConfig, ImuNoise, ImuPush, ImuSample};
 use loglio_core::odometry::{
     AssociationMode as CoreMode, Clock, Odometry, OdometryConfig, OdometryError, OdometryStorage,
@@ -49,6 +49,7 @@ use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use crate::config::{AssociationMode, Config, ConfigError, KnnSearch, SensorFamily};
 use crate::eval::{self, EvalOptions, EvalReport, Trajectory};
 use crate::output::{self, MapPoint, PcdEncoding, ScanCsvWriter, ScanRecord, ScanStatus, TumWriter};
+use crate::sink::{LiveStatus, PoseSample, ScanOutput, SinkEvent, SinkStats, Sinks};
 
 /// A pipeline error: one line.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -192,6 +193,13 @@ pub trait Engine {
     fn max_points(&self) -> usize;
     /// Bytes of the storage behind it.
     fn storage_bytes(&self) -> usize;
+    /// The filter after the last scan (None before the initialisation): the live outputs
+    /// propagate a copy of it with the IMU samples between scans.
+    fn filter(&self) -> Option<loglio_core::eskf::Eskf>;
+    /// Appends the last scan's points (undistorted, downsampled) in the world frame.
+    fn scan_cloud(&self, out: &mut Vec<[f32; 3]>);
+    /// Re-initialisations so far.
+    fn resets(&self) -> u32;
 }
 
 struct CoreEngine<'a, const PIX: usize, const PTS: usize, const DS: usize> {
@@ -217,6 +225,21 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> Engine for CoreEngine<
     }
     fn storage_bytes(&self) -> usize {
         self.bytes
+    }
+    fn filter(&self) -> Option<loglio_core::eskf::Eskf> {
+        self.odo.filter().cloned()
+    }
+    fn scan_cloud(&self, out: &mut Vec<[f32; 3]>) {
+        let Some(f) = self.odo.filter() else { return };
+        let (r, t) = f.state().lidar_pose();
+        let r = r.to_rotation_matrix().into_inner();
+        out.extend(self.odo.scan_points().iter().map(|p| {
+            let q = r * Vector3::new(f64::from(p.xyz[0]), f64::from(p.xyz[1]), f64::from(p.xyz[2])) + t;
+            [q.x as f32, q.y as f32, q.z as f32]
+        }));
+    }
+    fn resets(&self) -> u32 {
+        self.odo.stats().reinitialisations
     }
 }
 
@@ -473,7 +496,8 @@ impl Outputs {
                 map_voxels: map_voxels as u64,
             })?;
         }
-        Ok(())
+        // Whole lines on disk after every scan: a crash or a power cut loses nothing estimated.
+        self.flush()
     }
 
     /// Sets the ground truth to evaluate against at [`Self::finish`].
@@ -609,6 +633,8 @@ pub struct RunStats {
     pub stage_sum: StageTimes,
     /// Wall time per scan in the core, ns.
     pub scan_ns: Vec<u64>,
+    /// The live outputs' counts (filled at the end of the run).
+    pub sinks: Vec<SinkStats>,
 }
 
 impl RunStats {
@@ -674,6 +700,17 @@ pub struct Runner<'e> {
     pub stats: RunStats,
     /// Called after each processed scan with its result.
     pub on_scan: Option<ScanCallback<'e>>,
+    /// The live outputs (ROS 2, MAVLink, Foxglove, an embedding program's), each behind its
+    /// own bounded queue: offered every scan's result and, between scans, the IMU-propagated
+    /// pose; they never hold the odometry up.
+    pub sinks: Sinks,
+    /// The latest scan's pose (the status line's).
+    pub latest: Option<PoseSample>,
+    /// A copy of the filter after the latest scan, propagated with each later IMU sample for
+    /// the high-rate pose.
+    predictor: Option<Eskf>,
+    map_sent_ns: Option<u64>,
+    origin: Instant,
 }
 
 impl fmt::Debug for Runner<'_> {
@@ -697,6 +734,101 @@ impl<'e> Runner<'e> {
             outputs,
             stats: RunStats::default(),
             on_scan: None,
+            sinks: Sinks::default(),
+            latest: None,
+            predictor: None,
+            map_sent_ns: None,
+            origin: Instant::now(),
+        }
+    }
+
+    /// Sets the monotonic clock origin of the `arrival` times given to [`Self::scan`] (a live
+    /// source's start), so that the sinks' latency (`ready_ns - arrival_ns`) is on one clock.
+    pub fn set_origin(&mut self, origin: Instant) {
+        self.origin = origin;
+    }
+
+    fn now_ns(&self) -> u64 {
+        self.origin.elapsed().as_nanos().min(u128::from(u64::MAX)) as u64
+    }
+
+    /// Propagates the live predictor with one IMU sample and offers the pose to the sinks.
+    fn propagate_live(&mut self, s: &ImuSample) {
+        let Some(f) = &mut self.predictor else { return };
+        if s.t_ns <= f.time_ns() {
+            return;
+        }
+        if let Predicted::Jump { .. } = f.predict(s) {
+            // A jump re-seeds the filter on the next scan: no pose until then.
+            self.predictor = None;
+            return;
+        }
+        let Some(latest) = &self.latest else { return };
+        let bg = f.state().bg;
+        let omega = [f64::from(s.gyro[0]) - bg.x, f64::from(s.gyro[1]) - bg.y, f64::from(s.gyro[2]) - bg.z];
+        let pose = PoseSample::from_filter(f, latest.status, latest.resets, omega);
+        self.sinks.send(SinkEvent::ImuPose(pose));
+    }
+
+    /// Offers a processed scan to the sinks and restarts the high-rate predictor from it.
+    fn publish(&mut self, index: u64, res: &ScanResult, arrival: u64) {
+        let status = LiveStatus::of(&res.status);
+        let resets = self.engine.resets();
+        let filter = self.engine.filter();
+        let pose = match (&filter, status) {
+            (Some(f), s) if s != LiveStatus::Initialising => {
+                let omega = f.held_sample().map_or([0.0; 3], |h| {
+                    let bg = f.state().bg;
+                    [f64::from(h.gyro[0]) - bg.x, f64::from(h.gyro[1]) - bg.y, f64::from(h.gyro[2]) - bg.z]
+                });
+                PoseSample::from_filter(f, status, resets, omega)
+            }
+            _ => PoseSample::placeholder(res.pose.t_ns, status, resets),
+        };
+        self.latest = Some(pose);
+        if self.sinks.is_empty() {
+            return;
+        }
+        let wants = self.sinks.wants();
+        let cloud = (wants.cloud && status.is_tracking()).then(|| {
+            let mut v = Vec::new();
+            self.engine.scan_cloud(&mut v);
+            std::sync::Arc::new(v)
+        });
+        let every_ns = (self.sinks.opt.map_every_s.max(0.0) * 1e9) as u64;
+        let map_due = wants.map
+            && status.is_tracking()
+            && self.map_sent_ns.is_none_or(|t| res.pose.t_ns.saturating_sub(t) >= every_ns);
+        let map = map_due.then(|| {
+            self.map_sent_ns = Some(res.pose.t_ns);
+            let mut v = Vec::new();
+            self.engine.map_points(&mut v);
+            std::sync::Arc::new(v)
+        });
+        let out = ScanOutput {
+            index,
+            scan_start_ns: res.scan_start_ns,
+            pose,
+            process_ms: res.times.total_ns as f64 * 1e-6,
+            map_voxels: self.engine.map_voxels(),
+            points: res.points,
+            cloud,
+            map,
+            arrival_ns: arrival,
+            ready_ns: self.now_ns(),
+        };
+        self.sinks.send(SinkEvent::Scan(std::sync::Arc::new(out)));
+        self.predictor = if wants.imu_pose && status.is_tracking() { filter } else { None };
+        if let Some(f) = &mut self.predictor {
+            // The samples already received beyond the scan's end.
+            for s in self.imu.iter() {
+                if s.t_ns > f.time_ns() {
+                    if let Predicted::Jump { .. } = f.predict(s) {
+                        self.predictor = None;
+                        break;
+                    }
+                }
+            }
         }
     }
 
@@ -719,6 +851,9 @@ impl<'e> Runner<'e> {
         widen(&mut self.stats.imu_span, s.t_ns);
         self.last_imu_ns = Some(self.last_imu_ns.map_or(s.t_ns, |t| t.max(s.t_ns)));
         self.imu.push_back(s);
+        if self.predictor.is_some() {
+            self.propagate_live(&s);
+        }
         // With no scan waiting, keep about 5 s (1 kHz) of samples for the first one.
         if self.scans.is_empty() && self.imu.len() > 5000 {
             self.imu.pop_front();
@@ -802,6 +937,7 @@ impl<'e> Runner<'e> {
         let index = st.scans;
         st.scans += 1;
         self.outputs.record(index, &res, t.total_ns as f64 * 1e-6, self.engine.map_voxels())?;
+        self.publish(index, &res, arrival);
         if let Some(cb) = &mut self.on_scan {
             cb(&res, &self.stats, arrival);
         }
@@ -815,6 +951,7 @@ impl<'e> Runner<'e> {
     /// overlapped (no IMU, no scans, or disjoint times).
     pub fn finish(mut self) -> Result<(RunStats, Finished), PipelineError> {
         self.process_ready(true, None)?;
+        self.stats.sinks = self.sinks.finish();
         self.stats.check_overlap()?;
         let fin = self.outputs.finish(&*self.engine)?;
         Ok((self.stats, fin))

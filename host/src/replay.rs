@@ -39,6 +39,8 @@ pub struct RunSetup {
     pub gt: Option<PathBuf>,
     /// Skip the map and the plots.
     pub no_map: bool,
+    /// The live outputs.
+    pub sinks: crate::sink::SinkArgs,
 }
 
 impl RunSetup {
@@ -245,6 +247,7 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
     let offset_ns = (cfg.time.lidar_imu_offset * 1e9) as i64;
     let res = pipeline::with_engine(&core, class, |engine| -> Result<_, PipelineError> {
         let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
+        runner.sinks = opt.setup.sinks.build();
         let mut next_imu = feed.next()?;
         let mut bytes = 0u64;
         let mut pacer = opt.realtime.map(Pacer::new);
@@ -366,7 +369,7 @@ pub fn summary(stats: &RunStats, fin: &Finished, scan_period_s: f64, wall_s: f64
 /// (a pause in the capture, or a damaged record), starts the pacing afresh from that packet
 /// instead of waiting out the step: one record stamped days ahead stalled the replay for days.
 #[derive(Debug)]
-struct Pacer {
+pub struct Pacer {
     rate: f64,
     /// Capture time and wall time of the packet the pacing counts from.
     anchor: Option<(u64, Instant)>,
@@ -376,8 +379,22 @@ struct Pacer {
 impl Pacer {
     const MAX_STEP_NS: u64 = 1_000_000_000;
 
-    fn new(rate: f64) -> Self {
+    /// Pacing at `rate` times real time.
+    pub fn new(rate: f64) -> Self {
         Pacer { rate, anchor: None, prev_ns: 0 }
+    }
+
+    /// Sleeps until data stamped `ts_ns` is due. Stamps a little behind the latest (the
+    /// interleaved IMU samples and scans of one source) count as the latest, not as a step back.
+    pub fn wait_for(&mut self, ts_ns: u64) {
+        let ts = if ts_ns < self.prev_ns && self.prev_ns - ts_ns < Self::MAX_STEP_NS {
+            self.prev_ns
+        } else {
+            ts_ns
+        };
+        if let Some(d) = self.wait(ts, Instant::now()) {
+            std::thread::sleep(d);
+        }
     }
 
     /// How long to sleep (from `now`) before the packet captured at `ts_ns` is due.

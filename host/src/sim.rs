@@ -37,6 +37,10 @@ pub struct SimOptions {
     pub out: Option<PathBuf>,
     /// Show a progress bar (on a terminal).
     pub progress: bool,
+    /// Pace the run by the simulated time at this speed-up (`None`: as fast as possible).
+    pub realtime: Option<f64>,
+    /// The live outputs.
+    pub sinks: crate::sink::SinkArgs,
 }
 
 /// The outcome of a simulated run.
@@ -184,7 +188,16 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
     };
     let (stats, finished) = pipeline::with_engine(&core, class, |engine| {
         let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
+        runner.sinks = opt.sinks.build();
+        let mut pace = opt.realtime.map(crate::replay::Pacer::new);
         for ev in sc.events() {
+            if let Some(p) = &mut pace {
+                let t = match &ev {
+                    Event::Imu(s) => s.t_ns,
+                    Event::Scan(s) => s.end_ns,
+                };
+                p.wait_for(t);
+            }
             match ev {
                 Event::Imu(s) => runner.imu(s)?,
                 Event::Scan(s) => {

@@ -1,0 +1,42 @@
+//! The live outputs' command-line options, shared by `live`, `replay`, `bag`, `sim` and `demo`.
+
+use clap::Args;
+
+use super::{SinkOptions, Sinks};
+
+/// Live outputs: where each pose, scan and map goes while the odometry runs.
+#[derive(Clone, Debug, Default, Args)]
+#[command(next_help_heading = "Live outputs")]
+pub struct SinkArgs {
+    /// Events each live output may hold before it drops (and counts) what it cannot send in time.
+    #[arg(long, value_name = "N", default_value_t = 256, value_parser = clap::value_parser!(u64).range(1..=1_000_000))]
+    pub sink_queue: u64,
+    /// Seconds between two maps sent to the live outputs that carry one.
+    #[arg(long, value_name = "S", default_value_t = 5.0)]
+    pub map_every: f64,
+}
+
+impl SinkArgs {
+    /// The sinks these options name, each started on its own thread. One that cannot start (a
+    /// port in use, an unreachable address) is left out with one `warning:` line: the run and
+    /// the other outputs go on.
+    pub fn build(&self) -> Sinks {
+        let opt = SinkOptions {
+            queue: usize::try_from(self.sink_queue).unwrap_or(usize::MAX),
+            map_every_s: if self.map_every.is_finite() { self.map_every.max(0.0) } else { 5.0 },
+            ..SinkOptions::default()
+        };
+        let sinks = Sinks::new(opt);
+        #[allow(clippy::let_and_return)]
+        sinks
+    }
+}
+
+/// Adds `sink` (or says in one warning why it could not start).
+#[allow(dead_code)]
+fn add(sinks: &mut Sinks, what: &str, sink: Result<Box<dyn super::Sink>, super::SinkError>) {
+    match sink.and_then(|s| sinks.add(s)) {
+        Ok(()) => {}
+        Err(e) => crate::diag::warn(format!("{what}: {e}; this output is off for the run")),
+    }
+}
