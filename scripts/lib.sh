@@ -31,3 +31,23 @@ ensure_apt() {
   skip_loudly "apt packages ${missing[*]} could not be installed; everything that needs them is skipped"
   return 1
 }
+
+# The independent peers of the live-output tests (pymavlink, Cyclone DDS, a WebSocket client,
+# the mcap reader) in a venv under target/ from PyPI. Exports LOGLIO_PYTHON (the venv's python)
+# and LOGLIO_REQUIRE_PEERS=1, which turns the tests' SKIPPED into a failure; returns 1 after a
+# loud notice when the venv cannot be made.
+ensure_py_peers() {
+  local venv="target/pyenv"
+  local pkgs=(pymavlink==2.4.50 cyclonedds==11.0.1 websockets==15.0.1 mcap==1.6.0)
+  local stamp="$venv/.loglio-peers"
+  if [ ! -x "$venv/bin/python" ] || [ "$(cat "$stamp" 2>/dev/null)" != "${pkgs[*]}" ]; then
+    if ! { python3 -m venv "$venv" && "$venv/bin/pip" install -q --disable-pip-version-check "${pkgs[@]}"; } >/dev/null 2>&1; then
+      skip_loudly "the Python peers (${pkgs[*]}) could not be installed into $venv; the live-output tests against them are skipped"
+      return 1
+    fi
+    echo "${pkgs[*]}" >"$stamp"
+  fi
+  LOGLIO_PYTHON="$(cd "$venv/bin" && pwd)/python"
+  export LOGLIO_PYTHON
+  export LOGLIO_REQUIRE_PEERS=1
+}

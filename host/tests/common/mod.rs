@@ -53,3 +53,19 @@ pub fn extrinsic_config(preset: &str, e: &Isometry3<f64>) -> String {
         e.translation.x, e.translation.y, e.translation.z, q.w, q.i, q.j, q.k
     )
 }
+
+/// The Python with the live outputs' independent peers (pymavlink, cyclonedds, websockets,
+/// mcap), from `LOGLIO_PYTHON` (set by `scripts/test-all` after installing them into
+/// `target/pyenv`). Without it a test prints a loud SKIPPED and passes, unless
+/// `LOGLIO_REQUIRE_PEERS=1`, when it fails.
+pub fn peer_python(test: &str) -> Option<PathBuf> {
+    let p = std::env::var_os("LOGLIO_PYTHON").map(PathBuf::from).filter(|p| p.exists());
+    if p.is_none() {
+        let why = "LOGLIO_PYTHON is not set to a Python with the peers (scripts/test-all installs them)";
+        if std::env::var("LOGLIO_REQUIRE_PEERS").is_ok_and(|v| v == "1") {
+            panic!("LOGLIO_REQUIRE_PEERS=1 but {why}");
+        }
+        eprintln!("\n!!! SKIPPED {test}: {why}\n");
+    }
+    p
+}
