@@ -30,6 +30,8 @@ pub struct BagRunOptions {
     pub setup: RunSetup,
     /// Show the progress bar.
     pub progress: bool,
+    /// Pace by the bag's record times (`rate` x real time).
+    pub realtime: Option<f64>,
 }
 
 /// A finished bag run.
@@ -126,7 +128,13 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
         let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
         runner.sinks = opt.setup.sinks.build();
         let mut read_error = None;
+        let mut pacer = opt.realtime.map(crate::replay::Pacer::new);
+        let (stop, _signals) = crate::run::Signals::stop_flag();
         while let Some(item) = reader.next() {
+            if stop.load(std::sync::atomic::Ordering::Relaxed) {
+                warn("stopped by a signal; writing what was estimated");
+                break;
+            }
             let item = match item {
                 Ok(i) => i,
                 Err(e) => {
@@ -134,6 +142,9 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
                     break;
                 }
             };
+            if let Some(p) = &mut pacer {
+                p.wait_for(item.record_ns);
+            }
             match item.event {
                 BagEvent::Scan(sc) => runner.scan(
                     OwnedScan {

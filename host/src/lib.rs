@@ -14,6 +14,7 @@
 //! | [`live`] | `loglio live`: UDP LiDAR and serial or Ouster IMU on their own threads, bounded queues, status line, Ctrl-C |
 //! | [`replay`] | `loglio replay`: pcap plus IMU CSV, serial capture or Ouster IMU packets |
 //! | [`sim`] | `loglio sim` / `demo`: a firmware-sim scenario end to end, ATE against its ground truth |
+//! | [`run`] | the run loop as a library: a source of events, the odometry, the files and the sinks; signals |
 //! | [`sink`] | live outputs: each scan's result and the high-rate pose to ROS 2, MAVLink, Foxglove or a callback, never blocking |
 //! | [`pipeline`] | the configuration onto the core odometry, its heap storage, input ordering and outputs |
 
@@ -34,6 +35,7 @@ pub mod output;
 pub mod pcap;
 pub mod pipeline;
 pub mod replay;
+pub mod run;
 pub mod serial;
 pub mod sim;
 pub mod sink;

@@ -472,35 +472,6 @@ impl Drop for StopOnDrop {
     }
 }
 
-/// SIGINT and SIGTERM set a flag; a second one exits at once. Unregistered on drop.
-struct Signals {
-    ids: Vec<signal_hook::SigId>,
-}
-
-impl Signals {
-    fn register(flag: &Arc<AtomicBool>) -> Result<Signals, PipelineError> {
-        use signal_hook::consts::{SIGINT, SIGTERM};
-        let mut ids = Vec::new();
-        for sig in [SIGINT, SIGTERM] {
-            let err = |e: io::Error| PipelineError(format!("cannot handle signal {sig}: {e}"));
-            // Registered first, so it sees the flag as the previous signal left it.
-            ids.push(
-                signal_hook::flag::register_conditional_shutdown(sig, 1, Arc::clone(flag)).map_err(err)?,
-            );
-            ids.push(signal_hook::flag::register(sig, Arc::clone(flag)).map_err(err)?);
-        }
-        Ok(Signals { ids })
-    }
-}
-
-impl Drop for Signals {
-    fn drop(&mut self) {
-        for id in self.ids.drain(..) {
-            signal_hook::low_level::unregister(id);
-        }
-    }
-}
-
 /// The status line: redrawn in place on a terminal, one line a second otherwise.
 struct StatusLine {
     bar: Option<indicatif::ProgressBar>,
@@ -669,7 +640,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
 
     let outputs = pipeline::Outputs::new(opt.setup.outputs()?)?;
     let stop_signal = Arc::new(AtomicBool::new(false));
-    let _signals = if opt.handle_signals { Some(Signals::register(&stop_signal)?) } else { None };
+    let _signals = if opt.handle_signals { Some(crate::run::Signals::register(&stop_signal)?) } else { None };
     let scan_period_s = 1.0 / cfg.sensor.scan_rate_hz;
     let preset = cfg.preset;
     let decode_setup = DecodeSetup { cfg: cfg.clone(), dec, lidar_port, imu_port, hold_for_gps };
@@ -815,13 +786,17 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                 let line = {
                     let mut t = times.borrow_mut();
                     let n = t.window.len();
-                    let line = status_line(
+                    let mut line = status_line(
                         n as f64 / dt,
                         (datagrams - last_status.1) as f64 / dt,
                         &t.window,
                         scan_period_s,
                         &snapshot(c, &runner.stats, &t),
                     );
+                    line = format!("{}; {line}", pose_phrase(runner.latest.as_ref()));
+                    if !runner.sinks.is_empty() {
+                        line.push_str(&format!("; outputs: {}", runner.sinks.status_phrase()));
+                    }
                     t.window.clear();
                     line
                 };
@@ -915,6 +890,18 @@ fn status_line(
     format!("live: {scan_hz:.1} scans/s, {pkt_hz:.0} packets/s, {timing}, {}", drops(c))
 }
 
+/// The latest pose and the status for the status line: `ok, at (12.3, -4.0, 0.5) m, yaw 35 deg`.
+fn pose_phrase(p: Option<&crate::sink::PoseSample>) -> String {
+    let Some(p) = p else { return "no scan yet".into() };
+    if !p.status.is_tracking() {
+        return p.status.to_string();
+    }
+    let [w, x, y, z] = p.q_wxyz;
+    let yaw = (2.0 * (w * z + x * y)).atan2(1.0 - 2.0 * (y * y + z * z)).to_degrees();
+    let [px, py, pz] = p.position;
+    format!("{}, at ({px:.1}, {py:.1}, {pz:.1}) m, yaw {yaw:.0} deg", p.status)
+}
+
 /// The summary of a live run (stdout).
 pub fn summary(r: &LiveReport) -> String {
     let c = &r.counts;
@@ -958,6 +945,19 @@ mod tests {
             "live: 10.0 scans/s, 1508 packets/s, latency 50 ms, margin 4.0x, drops: socket queue 2, decoder 0, IMU 0, scans 1"
         );
         assert!(status_line(0.0, 0.0, &[], 0.1, &c).contains("latency -, margin -"));
+    }
+
+    #[test]
+    fn pose_phrase_names_status_position_and_yaw() {
+        use crate::sink::{LiveStatus, PoseSample};
+        assert_eq!(pose_phrase(None), "no scan yet");
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        let mut p = PoseSample::placeholder(0, LiveStatus::Degraded { axes: 1 }, 0);
+        p.position = [12.34, -4.0, 0.46];
+        p.q_wxyz = [h, 0.0, 0.0, h];
+        assert_eq!(pose_phrase(Some(&p)), "degraded (x), at (12.3, -4.0, 0.5) m, yaw 90 deg");
+        p.status = LiveStatus::Lost;
+        assert_eq!(pose_phrase(Some(&p)), "lost");
     }
 
     #[test]

@@ -279,6 +279,13 @@ struct BagArgs {
     /// The IMU topic (found by message type if not given).
     #[arg(long, value_name = "TOPIC")]
     imu_topic: Option<String>,
+    /// Pace the run by the bag's record times (real time), e.g. to feed a robot stack or
+    /// watch it in Foxglove.
+    #[arg(long)]
+    realtime: bool,
+    /// Speed-up over real time with --realtime.
+    #[arg(long, default_value_t = 1.0, requires = "realtime")]
+    rate: f64,
     #[command(flatten)]
     run: RunArgs,
 }
@@ -549,12 +556,16 @@ fn bench_cmd(a: BenchArgs) -> anyhow::Result<()> {
 }
 
 fn bag_cmd(a: BagArgs) -> anyhow::Result<()> {
+    if !(a.rate > 0.0 && a.rate.is_finite()) {
+        bail!("--rate must be a positive number, not {}", a.rate);
+    }
     let opt = loglio_host::bagrun::BagRunOptions {
         bag: a.bag,
         lidar_topic: a.lidar_topic,
         imu_topic: a.imu_topic,
         setup: a.run.setup(),
-        progress: true,
+        progress: !a.realtime,
+        realtime: a.realtime.then_some(a.rate),
     };
     let r = loglio_host::bagrun::run(&opt)?;
     print(&format!(
@@ -581,6 +592,9 @@ fn scenario_kind(name: &str) -> anyhow::Result<loglio_firmware_sim::scenario::Sc
 }
 
 fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
+    if !(a.rate > 0.0 && a.rate.is_finite()) {
+        bail!("--rate must be a positive number, not {}", a.rate);
+    }
     use loglio_firmware_sim::lidar::SensorModel;
     let kind = scenario_kind(&a.scenario)?;
     let sensor =
@@ -609,6 +623,9 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
 }
 
 fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
+    if !(a.rate > 0.0 && a.rate.is_finite()) {
+        bail!("--rate must be a positive number, not {}", a.rate);
+    }
     use loglio_firmware_sim::lidar::SensorModel;
     use loglio_firmware_sim::scenario::ScenarioKind;
     if !(a.seconds > 2.5 && a.seconds <= 600.0) {

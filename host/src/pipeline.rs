@@ -75,16 +75,25 @@ impl From<io::Error> for PipelineError {
     }
 }
 
-/// The host's clock for the core's per-stage times: monotonic nanoseconds since its creation.
+/// The host's clock for the core's per-stage times: monotonic nanoseconds since its creation,
+/// or the calling thread's CPU time (see [`StdClock::thread_cpu`]).
 #[derive(Clone, Copy, Debug)]
 pub struct StdClock {
     origin: Instant,
+    thread_cpu: bool,
 }
 
 impl StdClock {
-    /// A clock starting now.
+    /// A wall clock starting now.
     pub fn new() -> Self {
-        Self { origin: Instant::now() }
+        Self { origin: Instant::now(), thread_cpu: false }
+    }
+
+    /// The CPU time of the thread that reads it: the odometry's own time per scan even when
+    /// other busy threads (the simulator's) share the cores, where the wall clock would count
+    /// their turns too.
+    pub fn thread_cpu() -> Self {
+        Self { origin: Instant::now(), thread_cpu: true }
     }
 }
 
@@ -96,6 +105,10 @@ impl Default for StdClock {
 
 impl Clock for StdClock {
     fn now_ns(&mut self) -> u64 {
+        if self.thread_cpu {
+            let t = rustix::time::clock_gettime(rustix::time::ClockId::ThreadCPUTime);
+            return (t.tv_sec as u64).saturating_mul(1_000_000_000).saturating_add(t.tv_nsec as u64);
+        }
         self.origin.elapsed().as_nanos() as u64
     }
 }
@@ -742,6 +755,11 @@ impl<'e> Runner<'e> {
         }
     }
 
+    /// Times the odometry by this thread's CPU time ([`StdClock::thread_cpu`]).
+    pub fn use_thread_cpu_clock(&mut self) {
+        self.clock = StdClock::thread_cpu();
+    }
+
     /// Sets the monotonic clock origin of the `arrival` times given to [`Self::scan`] (a live
     /// source's start), so that the sinks' latency (`ready_ns - arrival_ns`) is on one clock.
     pub fn set_origin(&mut self, origin: Instant) {
@@ -822,11 +840,9 @@ impl<'e> Runner<'e> {
         if let Some(f) = &mut self.predictor {
             // The samples already received beyond the scan's end.
             for s in self.imu.iter() {
-                if s.t_ns > f.time_ns() {
-                    if let Predicted::Jump { .. } = f.predict(s) {
-                        self.predictor = None;
-                        break;
-                    }
+                if s.t_ns > f.time_ns() && matches!(f.predict(s), Predicted::Jump { .. }) {
+                    self.predictor = None;
+                    break;
                 }
             }
         }

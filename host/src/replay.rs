@@ -252,7 +252,12 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
         let mut bytes = 0u64;
         let mut pacer = opt.realtime.map(Pacer::new);
         let mut read_error = None;
+        let (stop, _signals) = crate::run::Signals::stop_flag();
         loop {
+            if stop.load(std::sync::atomic::Ordering::Relaxed) {
+                warn("stopped by a signal; writing what was estimated");
+                break;
+            }
             let udp = match reader.next_udp() {
                 Ok(Some(u)) => u,
                 Ok(None) => break,
@@ -353,6 +358,9 @@ pub fn summary(stats: &RunStats, fin: &Finished, scan_period_s: f64, wall_s: f64
         ));
     }
     s.push_str(&format!("wall time {wall_s:.1} s\n"));
+    for line in crate::sink::sinks_summary(&stats.sinks) {
+        s.push_str(&format!("live output {line}\n"));
+    }
     if !fin.files.is_empty() {
         s.push_str("wrote:");
         for f in &fin.files {

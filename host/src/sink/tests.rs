@@ -51,15 +51,15 @@ impl Sink for Gated {
             SinkEvent::ImuPose(p) => format!("pose {}", p.t_ns),
         });
         match self.fail_every {
-            Some(k) if self.n % k == 0 => Err(SinkError(format!("failure {}", self.n))),
+            Some(k) if self.n.is_multiple_of(k) => Err(SinkError(format!("failure {}", self.n))),
             _ => Ok(()),
         }
     }
 }
 
-fn gated(
-    fail_every: Option<u64>,
-) -> (Box<Gated>, Arc<(Mutex<bool>, std::sync::Condvar)>, Arc<Mutex<Vec<String>>>) {
+type Gate = Arc<(Mutex<bool>, std::sync::Condvar)>;
+
+fn gated(fail_every: Option<u64>) -> (Box<Gated>, Gate, Arc<Mutex<Vec<String>>>) {
     let gate = Arc::new((Mutex::new(false), std::sync::Condvar::new()));
     let seen = Arc::new(Mutex::new(Vec::new()));
     (Box::new(Gated { gate: Arc::clone(&gate), seen: Arc::clone(&seen), fail_every, n: 0 }), gate, seen)
