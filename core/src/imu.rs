@@ -108,6 +108,8 @@ pub enum ImuDrop {
     Duplicate,
     /// A gyro or accelerometer component is NaN or infinite.
     NonFinite,
+    /// A component beyond the sensor's full scale ([`crate::imu_guard`]).
+    BeyondFullScale,
 }
 
 /// What [`ImuQueue::push`] did with a sample.
@@ -120,6 +122,9 @@ pub enum ImuPush {
     AcceptedOverwritingOldest,
     /// Not queued (counted).
     Dropped(ImuDrop),
+    /// Held by the outlier guard until the next sample decides (then queued or dropped, and
+    /// counted in [`crate::imu_guard::ImuGuardStats`]).
+    Held,
 }
 
 /// Counters of an [`ImuQueue`].

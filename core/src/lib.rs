@@ -30,6 +30,7 @@ pub mod association;
 pub mod downsample;
 pub mod eskf;
 pub mod imu;
+pub mod imu_guard;
 pub mod math;
 pub mod odometry;
 pub mod output;

@@ -68,6 +68,7 @@ use crate::eskf::{Eskf, EskfConfig, Predicted, PropagationFlags, UpdateOutcome, 
 use crate::imu::{
     ImuDrop, ImuInitConfig, ImuInitializer, ImuPush, ImuQueue, ImuSample, InitStatus, WaitReason,
 };
+use crate::imu_guard::{ImuGuard, ImuGuardConfig};
 use crate::output::{
     AssociationCounts, ImuOnlyReason, PoseEstimate, ReinitReason, ScanResult, StageTimes, Status,
 };
@@ -124,6 +125,8 @@ pub struct OdometryConfig {
     pub eskf: EskfConfig,
     /// IMU initialisation.
     pub init: ImuInitConfig,
+    /// IMU outlier rejection (full scale, spikes, stamps far ahead).
+    pub imu_guard: ImuGuardConfig,
     /// IMU from LiDAR rotation.
     pub ext_rot: UnitQuaternion<f64>,
     /// LiDAR origin in the IMU frame, m.
@@ -147,6 +150,7 @@ impl OdometryConfig {
             association: AssociationConfig::DEFAULT,
             eskf: EskfConfig { min_measurements: 20, ..EskfConfig::default() },
             init: ImuInitConfig::default(),
+            imu_guard: ImuGuardConfig::DEFAULT,
             ext_rot: UnitQuaternion::identity(),
             ext_pos: Vector3::zeros(),
             blind: 0.5,
@@ -346,6 +350,7 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     stats: OdometryStats,
     /// Points of the last scan after undistortion and downsampling (the front of `scan.points`).
     last_kept: usize,
+    guard: ImuGuard,
 }
 
 impl<const PIX: usize, const PTS: usize, const DS: usize> core::fmt::Debug for Odometry<'_, PIX, PTS, DS> {
@@ -379,6 +384,9 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             return Err(OdometryError::InvalidConfig("storage: DS must be a power of two"));
         }
         cfg.association.validate().map_err(OdometryError::InvalidConfig)?;
+        if !cfg.imu_guard.is_valid() {
+            return Err(OdometryError::InvalidConfig("imu_guard"));
+        }
         let ext_ok =
             cfg.ext_rot.coords.iter().all(|v| v.is_finite()) && cfg.ext_pos.iter().all(|v| v.is_finite());
         if !ext_ok {
@@ -398,6 +406,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             restart_pending: false,
             stats: OdometryStats::default(),
             last_kept: 0,
+            guard: ImuGuard::new(cfg.imu_guard),
         })
     }
 
@@ -438,8 +447,30 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         self.cfg.mode = mode;
     }
 
-    /// Queues one IMU sample (time order; dropped ones are counted in the queue's stats).
+    /// Takes one IMU sample: the outlier guard first ([`crate::imu_guard`]; a suspect sample
+    /// is `Held` until the next one decides), then the queue (time order; dropped ones are
+    /// counted in the queue's stats).
     pub fn push_imu(&mut self, s: ImuSample) -> ImuPush {
+        let before = self.guard.stats().beyond_full_scale;
+        let mut result = ImuPush::Held;
+        for r in self.guard.push(s) {
+            let pushed = self.queue_imu(r);
+            if r == s {
+                result = pushed;
+            }
+        }
+        if self.guard.stats().beyond_full_scale != before {
+            return ImuPush::Dropped(ImuDrop::BeyondFullScale);
+        }
+        result
+    }
+
+    /// The outlier guard's counts.
+    pub fn imu_guard_stats(&self) -> crate::imu_guard::ImuGuardStats {
+        self.guard.stats()
+    }
+
+    fn queue_imu(&mut self, s: ImuSample) -> ImuPush {
         let r = self.scan.imu.push(s);
         let hold_ns = (self.cfg.eskf.max_hold_s.max(0.0) * 1e9) as u64;
         let far_back = matches!(r, ImuPush::Dropped(ImuDrop::Reversed))
@@ -449,6 +480,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             if self.stats.reversed_run >= CLOCK_RESET_SAMPLES {
                 // The IMU clock went back for good: start over on the new clock.
                 self.scan.imu.clear();
+                self.guard.reset();
                 self.restart_pending = true;
                 self.stats.reversed_run = 0;
                 return self.scan.imu.push(s);

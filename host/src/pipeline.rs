@@ -922,7 +922,7 @@ impl<'e> Runner<'e> {
                 self.stats.imu_stale += 1;
                 continue;
             }
-            if !matches!(self.engine.push_imu(s), ImuPush::Accepted) {
+            if !matches!(self.engine.push_imu(s), ImuPush::Accepted | ImuPush::Held) {
                 self.stats.imu_dropped += 1;
             }
         }
