@@ -221,7 +221,8 @@ fn every_scan_pose_and_the_imu_rate_reach_pymavlink() {
         "twist off: velocity {worst_v:.2}, rates {worst_w:.2} of the tolerance"
     );
 
-    // Between scans, IMU poses at about the requested 50 Hz of data time.
+    // Between scans, IMU poses: with the scans, about the requested 50 Hz of data time (none
+    // in the first gap, before two scans gave the interval).
     let scan_us: Vec<u64> = tum.iter().map(|(t, ..)| t / 1000).collect();
     let first = scan_us[0];
     let last = *scan_us.last().unwrap();
@@ -239,20 +240,22 @@ fn every_scan_pose_and_the_imu_rate_reach_pymavlink() {
         .collect();
     let backwards = odo
         .windows(2)
-        .filter(|w| w[1]["time_usec"].as_u64().unwrap() < w[0]["time_usec"].as_u64().unwrap())
+        .filter(|w| w[1]["time_usec"].as_u64().unwrap() <= w[0]["time_usec"].as_u64().unwrap())
         .count();
     eprintln!(
         "mavlink e2e: {} datagrams, {} HEARTBEAT, {} ODOMETRY ({} scan poses, IMU poses {rate:.1} Hz of data \
-         time, {:?} per scan gap), {backwards} time steps backwards; worst |dp| {worst_p:.2e} m, |dq| \
+         time, {:?} per scan gap), {backwards} time steps not forward; worst |dp| {worst_p:.2e} m, |dq| \
          {worst_q:.2e}; twist {worst_v:.2} / {worst_w:.2} of the tolerance; loglio wall {wall:.2} s",
         got["datagrams"],
         hb.len(),
         odo.len(),
         tum.len(),
-        per_gap.iter().min().zip(per_gap.iter().max()),
+        per_gap.iter().skip(1).min().zip(per_gap.iter().max()),
     );
-    assert!((45.0..=55.0).contains(&rate), "IMU-pose rate {rate:.1} Hz");
-    assert!(per_gap.iter().all(|&n| (3..=6).contains(&n)), "IMU poses per 100 ms scan gap: {per_gap:?}");
+    assert!((35.0..=45.0).contains(&rate), "IMU-pose rate {rate:.1} Hz (plus 10 Hz of scans)");
+    assert!(per_gap[1..].iter().all(|&n| (3..=4).contains(&n)), "IMU poses per 100 ms scan gap: {per_gap:?}");
+    // Time only moves forward: an autopilot drops a pose not newer than the last.
+    assert_eq!(backwards, 0);
 }
 
 /// Runs a short sim with `--mavlink url`; returns (exit code, stderr, TUM poses written).

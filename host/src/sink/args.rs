@@ -19,8 +19,8 @@ pub struct SinkArgs {
     /// udp:HOST:PORT (or udpout:HOST:PORT) or serial:/dev/PATH:BAUD.
     #[arg(long, value_name = "URL")]
     pub mavlink: Option<MavlinkUrl>,
-    /// ODOMETRY messages per second of the IMU-propagated pose between scans (every scan's pose
-    /// is sent as well); 0 sends the scans' poses only.
+    /// ODOMETRY messages per second: every scan's pose, and the IMU-propagated pose between
+    /// scans up to this rate; at or below the scan rate (or 0) the scans' poses only.
     #[arg(long, value_name = "HZ", default_value_t = 50.0, value_parser = parse_rate)]
     pub mavlink_rate: f64,
     /// MAVLink system id (the autopilot's, for a companion computer on the vehicle).

@@ -404,9 +404,16 @@ pub struct MavlinkSink {
     last_heartbeat: Option<Instant>,
     /// Time of the last ODOMETRY sent (keeps the IMU poses after the scan pose in time).
     last_sent_ns: Option<u64>,
-    /// Time of the last IMU pose sent (the decimation).
-    last_imu_ns: Option<u64>,
+    /// Time of the last tracking scan pose (the IMU poses extrapolate from it).
+    last_scan_ns: Option<u64>,
+    /// The latest interval between two scan poses, ns.
+    scan_dt_ns: Option<u64>,
 }
+
+/// How far past the last scan pose IMU-propagated poses are sent, ns. Without scans (a LiDAR
+/// unplugged) the IMU alone drifts within seconds, yet would still carry the last scan's
+/// status and quality: the autopilot had better see the odometry stop.
+pub const MAX_IMU_AHEAD_NS: u64 = 500_000_000;
 
 impl std::fmt::Debug for MavlinkSink {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -426,7 +433,8 @@ impl MavlinkSink {
             status: LiveStatus::Initialising,
             last_heartbeat: None,
             last_sent_ns: None,
-            last_imu_ns: None,
+            last_scan_ns: None,
+            scan_dt_ns: None,
         })
     }
 
@@ -448,17 +456,29 @@ impl MavlinkSink {
         self.send(HEARTBEAT_ID, HEARTBEAT_CRC_EXTRA, &heartbeat_payload(system_status(self.status)))
     }
 
-    /// Whether an IMU pose at `t_ns` is due: at most `rate_hz`, with a tenth of the period's
-    /// slack so IMU timing jitter does not halve the rate.
+    /// Whether an IMU pose at `t_ns` is due: at most [`MAX_IMU_AHEAD_NS`] past the last scan,
+    /// a period (less a tenth, for IMU jitter) after the last ODOMETRY of either kind, and not
+    /// within half a period of a time a scan is expected (the IMU that ends a scan arrives before
+    /// the scan's pose). The scan's pose is better and
+    /// follows at once: sent after an IMU pose of the same or a later time it would go back in
+    /// time, and an autopilot keeps only poses newer than the last by its minimum interval
+    /// (PX4's EKF2 drops the others), so the corrected pose would be the one lost.
     fn imu_due(&self, t_ns: u64) -> bool {
-        if self.opt.rate_hz.is_nan()
-            || self.opt.rate_hz <= 0.0
-            || self.last_sent_ns.is_some_and(|l| t_ns <= l)
-        {
+        if self.opt.rate_hz.is_nan() || self.opt.rate_hz <= 0.0 {
             return false;
         }
-        let period = (0.9e9 / self.opt.rate_hz) as u64;
-        self.last_imu_ns.is_none_or(|l| t_ns.saturating_sub(l) >= period)
+        let Some(scan) = self.last_scan_ns.filter(|&s| t_ns > s && t_ns - s <= MAX_IMU_AHEAD_NS) else {
+            return false;
+        };
+        let period = (1e9 / self.opt.rate_hz) as u64;
+        if self.last_sent_ns.is_some_and(|l| t_ns < l.saturating_add(period - period / 10)) {
+            return false;
+        }
+        // Until two scans gave the interval, scan poses only.
+        self.scan_dt_ns.is_some_and(|dt| {
+            let phase = (t_ns - scan) % dt;
+            phase >= period / 2 && phase + period / 2 <= dt
+        })
     }
 }
 
@@ -473,11 +493,17 @@ impl Sink for MavlinkSink {
 
     fn handle(&mut self, ev: &SinkEvent) -> Result<(), SinkError> {
         let pose = match ev {
-            SinkEvent::Scan(s) => Some(s.pose),
-            SinkEvent::ImuPose(p) if self.imu_due(p.t_ns) => {
-                self.last_imu_ns = Some(p.t_ns);
-                Some(*p)
+            SinkEvent::Scan(s) => {
+                let t = s.pose.t_ns;
+                if let Some(dt) =
+                    self.last_scan_ns.and_then(|l| t.checked_sub(l)).filter(|&d| d > 0 && d <= 1_000_000_000)
+                {
+                    self.scan_dt_ns = Some(dt);
+                }
+                self.last_scan_ns = s.pose.status.is_tracking().then_some(t);
+                Some(s.pose)
             }
+            SinkEvent::ImuPose(p) if self.imu_due(p.t_ns) => Some(*p),
             SinkEvent::ImuPose(_) => None,
         };
         if let Some(p) = &pose {
@@ -663,28 +689,107 @@ mod tests {
         }
     }
 
-    #[test]
-    fn decimation_and_order() {
-        let opt = MavlinkOptions {
-            url: MavlinkUrl::Udp { host: "127.0.0.1".into(), port: 9 },
-            rate_hz: 50.0,
-            sysid: 1,
-            compid: 197,
-        };
-        let mut s = MavlinkSink::new(opt).unwrap();
-        let mut sent = 0;
-        // 200 Hz IMU poses for 1 s: about 50 pass.
-        for k in 1..=200u64 {
-            let t = k * 5_000_000;
-            if s.imu_due(t) {
-                s.last_imu_ns = Some(t);
-                s.last_sent_ns = Some(t);
-                sent += 1;
+    fn scan(t_ns: u64, status: LiveStatus) -> SinkEvent {
+        let mut p = pose([1.0, 0.0, 0.0, 0.0]);
+        (p.t_ns, p.status) = (t_ns, status);
+        SinkEvent::Scan(std::sync::Arc::new(super::super::ScanOutput {
+            index: 0,
+            scan_start_ns: t_ns.saturating_sub(100_000_000),
+            pose: p,
+            process_ms: 1.0,
+            map_voxels: 0,
+            points: [0, 0],
+            cloud: None,
+            map: None,
+            arrival_ns: 0,
+            ready_ns: 0,
+        }))
+    }
+
+    /// Sends `events` through a sink at 50 Hz to a local socket; the time_usec of each
+    /// ODOMETRY received and the number of HEARTBEATs.
+    fn through_sink(events: &[SinkEvent]) -> (Vec<u64>, usize) {
+        let rx = UdpSocket::bind("127.0.0.1:0").unwrap();
+        rx.set_read_timeout(Some(Duration::from_millis(200))).unwrap();
+        let port = rx.local_addr().unwrap().port();
+        let url = MavlinkUrl::Udp { host: "127.0.0.1".into(), port };
+        let mut s = MavlinkSink::new(MavlinkOptions { url, rate_hz: 50.0, sysid: 1, compid: 197 }).unwrap();
+        for ev in events {
+            s.handle(ev).unwrap();
+        }
+        let (mut odo, mut hb) = (Vec::new(), 0);
+        let mut buf = [0u8; 512];
+        while let Ok(n) = rx.recv(&mut buf) {
+            match u32::from_le_bytes([buf[7], buf[8], buf[9], 0]) {
+                ODOMETRY_ID => {
+                    let mut t = [0u8; 8];
+                    t.copy_from_slice(&buf[10..18]);
+                    odo.push(u64::from_le_bytes(t));
+                }
+                HEARTBEAT_ID => hb += 1,
+                id => panic!("message {id} of {n} bytes"),
             }
         }
-        assert_eq!(sent, 50);
-        // Nothing older than what was sent.
-        assert!(!s.imu_due(500_000_000));
+        (odo, hb)
+    }
+
+    fn imu(t_ns: u64) -> SinkEvent {
+        let mut p = pose([1.0, 0.0, 0.0, 0.0]);
+        p.t_ns = t_ns;
+        SinkEvent::ImuPose(p)
+    }
+
+    #[test]
+    fn decimation_and_order() {
+        // IMU poses before any scan, two scans, then 1 s of 200 Hz IMU poses and a stale one.
+        let mut ev: Vec<SinkEvent> = (1..10).map(|k| imu(k * 5_000_000)).collect();
+        ev.push(scan(100_000_000, LiveStatus::Ok));
+        ev.push(scan(200_000_000, LiveStatus::Ok));
+        ev.extend((1..=200).map(|k| imu(200_000_000 + k * 5_000_000)));
+        ev.push(imu(250_000_000));
+        let (odo, hb) = through_sink(&ev);
+        assert_eq!(hb, 1);
+        assert_eq!(odo[..2], [100_000, 200_000]);
+        // Then 50 Hz at most, forward in time, away from the expected scan times, and only for
+        // the 0.5 s the IMU may run ahead of the last scan.
+        let imu_t = &odo[2..];
+        assert!(imu_t.windows(2).all(|w| w[1] >= w[0] + 18_000), "{odo:?}");
+        assert!(
+            imu_t
+                .iter()
+                .all(|t| *t > 200_000 && *t <= 700_000 && (t % 100_000).clamp(10_000, 90_000) == t % 100_000)
+        );
+        assert!((20..=25).contains(&imu_t.len()), "{odo:?}");
+
+        // Scans every 100 ms, the IMU at 200 Hz up to one sample past each scan's end before
+        // its pose (as the pipeline sends them): four IMU poses between scans, none at or
+        // after the next scan's time, so the scan poses keep time moving forward.
+        let mut ev = Vec::new();
+        for k in 1..=5u64 {
+            ev.push(scan(k * 100_000_000, LiveStatus::Ok));
+            ev.extend((1..=21).map(|j| imu(k * 100_000_000 + j * 5_000_000)));
+        }
+        let (odo, _) = through_sink(&ev);
+        let want: Vec<u64> = std::iter::once(100_000).chain((10..=29).map(|k| k * 20_000)).collect();
+        assert_eq!(odo, want);
+    }
+
+    #[test]
+    fn no_odometry_before_the_initialisation_nor_imu_poses_after_a_loss() {
+        let ev = [
+            scan(100_000_000, LiveStatus::Initialising),
+            imu(120_000_000),
+            scan(200_000_000, LiveStatus::Ok),
+            imu(220_000_000),
+            scan(300_000_000, LiveStatus::Ok),
+            imu(320_000_000),
+            scan(400_000_000, LiveStatus::Lost),
+            imu(420_000_000),
+            imu(440_000_000),
+        ];
+        let (odo, _) = through_sink(&ev);
+        // The lost scan's pose goes out (quality -1 says so), the IMU poses after it do not.
+        assert_eq!(odo, [200_000, 300_000, 320_000, 400_000]);
     }
 
     #[test]
@@ -702,9 +807,7 @@ mod tests {
         let mut s = MavlinkSink::new(opt).unwrap();
         let mut errors = 0;
         for k in 0..20u64 {
-            let mut p = pose([1.0, 0.0, 0.0, 0.0]);
-            p.t_ns = k * 20_000_000;
-            if s.handle(&SinkEvent::ImuPose(p)).is_err() {
+            if s.handle(&scan(k * 20_000_000, LiveStatus::Ok)).is_err() {
                 errors += 1;
             }
             std::thread::sleep(Duration::from_millis(1));
