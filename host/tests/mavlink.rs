@@ -12,17 +12,30 @@ use std::time::Instant;
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use serde_json::Value;
 
-/// Binds UDP port 0 on 127.0.0.1, prints the port, then decodes every datagram with pymavlink
-/// until the file `done` appears and 0.5 s pass without data (60 s at most), and writes every
-/// message (NaN as null) and the count of undecodable ones to `msgs.json`.
+/// With `udp`, binds UDP port 0 on 127.0.0.1 and prints the port; with `pty`, opens a
+/// pseudo-terminal and prints the path of its serial end. Then decodes every datagram or byte
+/// with pymavlink until the file `done` appears and 0.5 s pass without data (60 s at most), and
+/// writes every message (NaN as null) and what it could not decode to `msgs.json`.
 const LISTENER: &str = r#"
-import json, math, os, socket, sys, time
+import json, math, os, select, socket, sys, time
 from pymavlink.dialects.v20 import common as mavlink
-d = sys.argv[1]
-s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-s.bind(("127.0.0.1", 0))
-s.settimeout(0.1)
-print(s.getsockname()[1], flush=True)
+d, mode = sys.argv[1], sys.argv[2]
+if mode == "udp":
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    s.settimeout(0.1)
+    print(s.getsockname()[1], flush=True)
+    def recv():
+        try:
+            return s.recv(65536)
+        except socket.timeout:
+            return None
+else:
+    master, slave = os.openpty()
+    print(os.ttyname(slave), flush=True)
+    def recv():
+        r, _, _ = select.select([master], [], [], 0.1)
+        return os.read(master, 65536) if r else None
 mav = mavlink.MAVLink(None)
 mav.robust_parsing = True
 out, bad, datagrams = [], [], 0
@@ -32,9 +45,8 @@ def clean(v):
     if isinstance(v, list): return [clean(x) for x in v]
     return v
 while time.monotonic() - start < 60:
-    try:
-        data = s.recv(65536)
-    except socket.timeout:
+    data = recv()
+    if data is None:
         if os.path.exists(os.path.join(d, "done")) and time.monotonic() - last > 0.5:
             break
         continue
@@ -51,25 +63,27 @@ json.dump({"msgs": out, "bad": bad, "datagrams": datagrams}, open(os.path.join(d
 
 struct Listener {
     child: Child,
-    port: u16,
+    /// The UDP port, or the serial device's path.
+    addr: String,
     dir: std::path::PathBuf,
 }
 
 impl Listener {
-    fn start(python: &Path, dir: &Path) -> Listener {
+    fn start(python: &Path, dir: &Path, mode: &str) -> Listener {
         let script = dir.join("listen.py");
         std::fs::write(&script, LISTENER).unwrap();
         let mut child = Command::new(python)
             .arg(&script)
             .arg(dir)
+            .arg(mode)
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
             .spawn()
             .expect("start the pymavlink listener");
         let mut line = String::new();
         BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-        let port = line.trim().parse().unwrap_or_else(|_| panic!("listener said {line:?}"));
-        Listener { child, port, dir: dir.to_path_buf() }
+        assert!(!line.trim().is_empty(), "the listener did not start");
+        Listener { child, addr: line.trim().to_string(), dir: dir.to_path_buf() }
     }
 
     /// Tells the listener the sender is done and returns what it decoded.
@@ -110,8 +124,8 @@ fn every_scan_pose_and_the_imu_rate_reach_pymavlink() {
     let Some(python) = common::peer_python("mavlink end to end") else { return };
     let dir = common::scratch("mavlink", "e2e");
     let out = dir.join("out");
-    let lis = Listener::start(&python, &dir);
-    let url = format!("udp:127.0.0.1:{}", lis.port);
+    let lis = Listener::start(&python, &dir, "udp");
+    let url = format!("udp:127.0.0.1:{}", lis.addr);
     let t0 = Instant::now();
     let run = common::loglio_command(&[
         "sim",
@@ -314,10 +328,38 @@ fn unreachable_or_malformed_addresses_never_stop_the_odometry() {
         assert!(stderr.starts_with("error:") && stderr.contains("--mavlink"), "{bad}: {stderr}");
     }
     // A serial port that does not exist: a warning at the start, the run goes on.
-    let (code, stderr, poses3) = run_with("serial:/dev/loglio-no-such-tty:115200", "noserial");
+    let (code, stderr, poses3) = run_with("serial:/dev/loglio-no-such-tty:921600", "noserial");
     assert_eq!(code, Some(0), "{stderr}");
     assert_eq!(stderr.lines().filter(|l| l.starts_with("warning:")).count(), 1, "{stderr}");
-    assert!(stderr.contains("mavlink serial:/dev/loglio-no-such-tty:115200"), "{stderr}");
+    assert!(stderr.contains("mavlink serial:/dev/loglio-no-such-tty:921600"), "{stderr}");
     assert_eq!(poses3, poses, "{stderr}");
     eprintln!("mavlink faults: the refused run took {refused_s:.2} s; {poses} poses each");
+}
+
+#[test]
+fn serial_output_reaches_pymavlink_through_a_pty() {
+    let Some(python) = common::peer_python("mavlink serial") else { return };
+    let dir = common::scratch("mavlink", "pty");
+    let lis = Listener::start(&python, &dir, "pty");
+    let out = dir.join("out");
+    let url = format!("serial:{}:921600", lis.addr);
+    let args = ["sim", "--scenario", "handheld", "--sensor", "os1-16", "--seconds", "3", "--out"];
+    let run = common::loglio_command(&args).arg(&out).args(["--mavlink", &url]).output().unwrap();
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success() && !stderr.contains("warning:"), "{stderr}");
+    let got = lis.finish();
+    assert_eq!(got["bad"].as_array().unwrap().len(), 0, "bytes pymavlink rejected: {}", got["bad"]);
+    let msgs = got["msgs"].as_array().unwrap();
+    let times: std::collections::BTreeSet<u64> = msgs
+        .iter()
+        .filter(|m| m["mavpackettype"] == "ODOMETRY")
+        .map(|m| m["time_usec"].as_u64().unwrap())
+        .collect();
+    let tum = read_tum(&out.join("trajectory.tum"));
+    assert!(tum.len() >= 18);
+    assert!(tum.iter().all(|(t, ..)| times.contains(&(t / 1000))), "a scan pose is missing");
+    // The IMU poses too: four between scans after the first two.
+    assert_eq!(times.len(), tum.len() + 4 * (tum.len() - 2), "{times:?}");
+    assert!(msgs.iter().any(|m| m["mavpackettype"] == "HEARTBEAT"));
+    eprintln!("mavlink serial: {} messages over the pty for {} scan poses", msgs.len(), tum.len());
 }

@@ -2,7 +2,9 @@
 
 use clap::Args;
 
-use super::mavlink::{MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY, MavlinkOptions, MavlinkSink, MavlinkUrl};
+use super::mavlink::{
+    MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY, MavlinkOptions, MavlinkSink, MavlinkUrl, serial_too_slow,
+};
 use super::{SinkOptions, Sinks};
 
 /// Live outputs: where each pose, scan and map goes while the odometry runs.
@@ -58,6 +60,13 @@ impl SinkArgs {
                 compid: self.mavlink_compid,
             };
             let sink = MavlinkSink::new(opt).map(|s| Box::new(s) as Box<dyn super::Sink>);
+            let slow = match (&sink, url) {
+                (Ok(_), MavlinkUrl::Serial { baud, .. }) => serial_too_slow(*baud, self.mavlink_rate),
+                _ => None,
+            };
+            if let Some(w) = slow {
+                crate::diag::warn(format!("mavlink {url}: {w}"));
+            }
             add(&mut sinks, &format!("mavlink {url}"), sink);
         }
         sinks

@@ -342,6 +342,22 @@ impl std::fmt::Display for MavlinkUrl {
     }
 }
 
+/// Why a serial link at `baud` (8N1: 10 bits a byte) cannot carry ODOMETRY at `rate_hz` (scans
+/// at 10 Hz at least) plus the heartbeat; `None` when it can. A UART that cannot keep up
+/// blocks each write until its timeout: errors and dropped poses, not a slower odometry.
+pub fn serial_too_slow(baud: u32, rate_hz: f64) -> Option<String> {
+    let frame = (HEADER_LEN + ODOMETRY_LEN + 2) as f64;
+    let need = rate_hz.max(10.0) * frame + (HEADER_LEN + HEARTBEAT_LEN + 2) as f64;
+    let have = f64::from(baud) / 10.0;
+    (have < need).then(|| {
+        format!(
+            "{baud} baud carries about {:.0} ODOMETRY messages a second, not {rate_hz}; raise the baud rate \
+             (e.g. 921600) or lower --mavlink-rate",
+            (have / frame).floor()
+        )
+    })
+}
+
 /// The sink's options.
 #[derive(Clone, Debug, PartialEq)]
 pub struct MavlinkOptions {
@@ -661,6 +677,16 @@ mod tests {
         let mut p = pose([1.0, 0.0, 0.0, 0.0]);
         p.resets = 257;
         assert_eq!(Odometry::of(&p).reset_counter, 1);
+    }
+
+    #[test]
+    fn serial_capacity() {
+        assert!(serial_too_slow(921_600, 50.0).is_none());
+        assert!(serial_too_slow(230_400, 50.0).is_none());
+        let w = serial_too_slow(115_200, 50.0).unwrap();
+        assert!(w.contains("about 47 ODOMETRY"), "{w}");
+        assert!(serial_too_slow(57_600, 0.0).is_none());
+        assert!(serial_too_slow(9_600, 0.0).is_some());
     }
 
     #[test]
