@@ -344,7 +344,11 @@ fn serial_output_reaches_pymavlink_through_a_pty() {
     let out = dir.join("out");
     let url = format!("serial:{}:921600", lis.addr);
     let args = ["sim", "--scenario", "handheld", "--sensor", "os1-16", "--seconds", "3", "--out"];
-    let run = common::loglio_command(&args).arg(&out).args(["--mavlink", &url]).output().unwrap();
+    let run = common::loglio_command(&args)
+        .arg(&out)
+        .args(["--mavlink", &url, "--mavlink-sysid", "42"])
+        .output()
+        .unwrap();
     let stderr = String::from_utf8_lossy(&run.stderr);
     assert!(run.status.success() && !stderr.contains("warning:"), "{stderr}");
     let got = lis.finish();
@@ -361,5 +365,6 @@ fn serial_output_reaches_pymavlink_through_a_pty() {
     // The IMU poses too: four between scans after the first two.
     assert_eq!(times.len(), tum.len() + 4 * (tum.len() - 2), "{times:?}");
     assert!(msgs.iter().any(|m| m["mavpackettype"] == "HEARTBEAT"));
+    assert!(msgs.iter().all(|m| (f(m, "_sys"), f(m, "_comp")) == (42.0, 197.0)), "--mavlink-sysid 42");
     eprintln!("mavlink serial: {} messages over the pty for {} scan poses", msgs.len(), tum.len());
 }

@@ -10,6 +10,10 @@
 //! `LOCAL_NED`: the world's x is the start's heading, not north, which is what LOCAL_FRD means
 //! ("arbitrary heading reference"); PX4 maps LOCAL_FRD to its vision odometry, and ArduPilot's
 //! `handle_odometry` accepts only `LOCAL_FRD` with `BODY_FRD`.
+//!
+//! `time_usec` is the pose's time on the LiDAR's clock (the autopilots estimate the offset to
+//! their own). The heartbeat goes out with the events, once a wall-clock second: when the
+//! odometry stops, so does the component's heartbeat, which a ground station shows.
 
 use std::io::{self, Write};
 use std::net::{SocketAddr, ToSocketAddrs, UdpSocket};
