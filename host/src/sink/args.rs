@@ -2,6 +2,9 @@
 
 use clap::Args;
 
+use super::mavlink::{
+    MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY, MavlinkOptions, MavlinkSink, MavlinkUrl, serial_too_slow,
+};
 use super::{SinkOptions, Sinks};
 
 /// Live outputs: where each pose, scan and map goes while the odometry runs.
@@ -14,6 +17,28 @@ pub struct SinkArgs {
     /// Seconds between two maps sent to the live outputs that carry one.
     #[arg(long, value_name = "S", default_value_t = 5.0)]
     pub map_every: f64,
+    /// MAVLink 2 output (HEARTBEAT and ODOMETRY, for PX4/ArduPilot external vision):
+    /// udp:HOST:PORT (or udpout:HOST:PORT) or serial:/dev/PATH:BAUD.
+    #[arg(long, value_name = "URL")]
+    pub mavlink: Option<MavlinkUrl>,
+    /// ODOMETRY messages per second: every scan's pose, and the IMU-propagated pose between
+    /// scans up to this rate; at or below the scan rate (or 0) the scans' poses only.
+    #[arg(long, value_name = "HZ", default_value_t = 50.0, value_parser = parse_rate)]
+    pub mavlink_rate: f64,
+    /// MAVLink system id (the autopilot's, for a companion computer on the vehicle).
+    #[arg(long, value_name = "N", default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=255))]
+    pub mavlink_sysid: u8,
+    /// MAVLink component id (default MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY).
+    #[arg(long, value_name = "N", default_value_t = MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY, value_parser = clap::value_parser!(u8).range(1..=255))]
+    pub mavlink_compid: u8,
+}
+
+/// A rate in Hz: finite, 0 to 1000.
+fn parse_rate(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(r) if r.is_finite() && (0.0..=1000.0).contains(&r) => Ok(r),
+        _ => Err(format!("'{s}' is not a rate from 0 to 1000 Hz")),
+    }
 }
 
 impl SinkArgs {
@@ -26,14 +51,29 @@ impl SinkArgs {
             map_every_s: if self.map_every.is_finite() { self.map_every.max(0.0) } else { 5.0 },
             ..SinkOptions::default()
         };
-        let sinks = Sinks::new(opt);
-        #[allow(clippy::let_and_return)]
+        let mut sinks = Sinks::new(opt);
+        if let Some(url) = &self.mavlink {
+            let opt = MavlinkOptions {
+                url: url.clone(),
+                rate_hz: self.mavlink_rate,
+                sysid: self.mavlink_sysid,
+                compid: self.mavlink_compid,
+            };
+            let sink = MavlinkSink::new(opt).map(|s| Box::new(s) as Box<dyn super::Sink>);
+            let slow = match (&sink, url) {
+                (Ok(_), MavlinkUrl::Serial { baud, .. }) => serial_too_slow(*baud, self.mavlink_rate),
+                _ => None,
+            };
+            if let Some(w) = slow {
+                crate::diag::warn(format!("mavlink {url}: {w}"));
+            }
+            add(&mut sinks, &format!("mavlink {url}"), sink);
+        }
         sinks
     }
 }
 
 /// Adds `sink` (or says in one warning why it could not start).
-#[allow(dead_code)]
 fn add(sinks: &mut Sinks, what: &str, sink: Result<Box<dyn super::Sink>, super::SinkError>) {
     match sink.and_then(|s| sinks.add(s)) {
         Ok(()) => {}
