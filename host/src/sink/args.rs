@@ -14,6 +14,12 @@ pub struct SinkArgs {
     /// Seconds between two maps sent to the live outputs that carry one.
     #[arg(long, value_name = "S", default_value_t = 5.0)]
     pub map_every: f64,
+    /// Serve the live output to Foxglove on HOST:PORT (Foxglove WebSocket, e.g. 0.0.0.0:8765).
+    #[arg(long, value_name = "HOST:PORT")]
+    pub foxglove: Option<String>,
+    /// Record the Foxglove output's channels to an MCAP file.
+    #[arg(long, value_name = "FILE")]
+    pub mcap: Option<std::path::PathBuf>,
 }
 
 impl SinkArgs {
@@ -26,14 +32,20 @@ impl SinkArgs {
             map_every_s: if self.map_every.is_finite() { self.map_every.max(0.0) } else { 5.0 },
             ..SinkOptions::default()
         };
-        let sinks = Sinks::new(opt);
-        #[allow(clippy::let_and_return)]
+        let mut sinks = Sinks::new(opt);
+        if let Some(a) = &self.foxglove {
+            let s = super::foxglove::FoxgloveSink::start(a).map(|s| Box::new(s) as Box<dyn super::Sink>);
+            add(&mut sinks, "--foxglove", s);
+        }
+        if let Some(p) = &self.mcap {
+            let s = super::mcap::McapSink::create(p).map(|s| Box::new(s) as Box<dyn super::Sink>);
+            add(&mut sinks, "--mcap", s);
+        }
         sinks
     }
 }
 
 /// Adds `sink` (or says in one warning why it could not start).
-#[allow(dead_code)]
 fn add(sinks: &mut Sinks, what: &str, sink: Result<Box<dyn super::Sink>, super::SinkError>) {
     match sink.and_then(|s| sinks.add(s)) {
         Ok(()) => {}

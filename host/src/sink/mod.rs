@@ -20,6 +20,8 @@ use std::time::{Duration, Instant};
 
 pub mod args;
 pub mod callback;
+pub mod foxglove;
+pub mod mcap;
 
 pub use args::SinkArgs;
 pub use callback::{CallbackSink, ChannelSink};
