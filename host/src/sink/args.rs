@@ -31,6 +31,12 @@ pub struct SinkArgs {
     /// MAVLink component id (default MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY).
     #[arg(long, value_name = "N", default_value_t = MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY, value_parser = clap::value_parser!(u8).range(1..=255))]
     pub mavlink_compid: u8,
+    /// Serve the live output to Foxglove on HOST:PORT (Foxglove WebSocket, e.g. 0.0.0.0:8765).
+    #[arg(long, value_name = "HOST:PORT")]
+    pub foxglove: Option<String>,
+    /// Record the Foxglove output's channels to an MCAP file.
+    #[arg(long, value_name = "FILE")]
+    pub mcap: Option<std::path::PathBuf>,
 }
 
 /// A rate in Hz: finite, 0 to 1000.
@@ -68,6 +74,14 @@ impl SinkArgs {
                 crate::diag::warn(format!("mavlink {url}: {w}"));
             }
             add(&mut sinks, &format!("mavlink {url}"), sink);
+        }
+        if let Some(a) = &self.foxglove {
+            let s = super::foxglove::FoxgloveSink::start(a).map(|s| Box::new(s) as Box<dyn super::Sink>);
+            add(&mut sinks, "--foxglove", s);
+        }
+        if let Some(p) = &self.mcap {
+            let s = super::mcap::McapSink::create(p).map(|s| Box::new(s) as Box<dyn super::Sink>);
+            add(&mut sinks, "--mcap", s);
         }
         sinks
     }

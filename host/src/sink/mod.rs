@@ -20,7 +20,9 @@ use std::time::{Duration, Instant};
 
 pub mod args;
 pub mod callback;
+pub mod foxglove;
 pub mod mavlink;
+pub mod mcap;
 
 pub use args::SinkArgs;
 pub use callback::{CallbackSink, ChannelSink};
