@@ -848,7 +848,9 @@ impl Eskf {
         let dt = secs(s.t_ns - self.t_ns);
         let head = self.held.unwrap_or(*s);
         let span = dt.max(secs(s.t_ns.saturating_sub(head.t_ns)));
-        let out = if span > self.cfg.max_hold_s {
+        // A jump is a step of the filter's own time; an old held sample after an IMU gap that
+        // the scans bridged (`predict_to`) is a gap, integrated holding it.
+        let out = if dt > self.cfg.max_hold_s {
             self.jump(s.t_ns, span)
         } else if span > self.cfg.max_gap_s {
             self.integrate(&head.gyro_vec(), &(head.acc_vec() * self.acc_scale), dt, self.cfg.gap_inflation);
@@ -877,7 +879,10 @@ impl Eskf {
         };
         let dt = secs(t_ns - self.t_ns);
         let span = dt.max(secs(t_ns.saturating_sub(h.t_ns)));
-        if span > self.cfg.max_hold_s {
+        // Through an IMU gap the scans keep coming: each bridges its own interval holding the
+        // last sample, with inflated noise, and corrects it; only a step of the filter's own
+        // time beyond `max_hold_s` (a clock jump, a LiDAR pause without IMU) is a jump.
+        if dt > self.cfg.max_hold_s {
             return self.jump(t_ns, span);
         }
         let out = if span > self.cfg.max_gap_s {

@@ -10,7 +10,7 @@
 //! | `t` equal to the last accepted sample (duplicate) | queue, initialiser | dropped, counted |
 //! | queue full | queue | the oldest sample is overwritten, counted |
 //! | spacing above `max_gap_s` | `Eskf::predict` | the interval is integrated holding the previous sample (no midpoint with the far sample), the process noise is inflated by `gap_inflation`, flagged `GAP` |
-//! | spacing above `max_hold_s` (a forward jump) | `Eskf::predict` | not integrated: the state keeps its values, its time moves to the sample, flagged `JUMP`; the odometry re-initialises |
+//! | the filter's time stepping by more than `max_hold_s` (a forward jump) | `Eskf::predict`, `Eskf::predict_to` | not integrated: the state keeps its values, its time moves to the sample, flagged `JUMP`; the odometry re-initialises |
 //! | spacing above `max_gap_s` during initialisation | initialiser | the window restarts, counted |
 //!
 //! # Initialisation

@@ -43,8 +43,11 @@
 //!
 //! # Faults
 //! - **IMU gaps** (spacing above `eskf.max_gap_s`): bridged holding the last sample, with
-//!   inflated process noise (flagged `GAP` in [`ScanResult::propagation`]).
-//! - **Forward jumps** (above `eskf.max_hold_s`): the filter is re-seeded at the sample after the
+//!   inflated process noise (flagged `GAP` in [`ScanResult::propagation`]); while scans keep
+//!   coming each bridges its own interval and corrects the state, however long the gap.
+//! - **IMU outliers** (beyond the full scale, lone spikes, lone stamps far ahead): dropped by
+//!   [`crate::imu_guard`] before the queue.
+//! - **Forward jumps** (the filter's time stepping by more than `eskf.max_hold_s`): re-seeded at the sample after the
 //!   jump: the position moves on at the last velocity, the attitude at the last rate, and the
 //!   position, velocity and attitude uncertainties grow by the "rough start" sigmas of
 //!   `eskf.initial` (position by `rough_vel` times the gap), so the next scan can re-localise
@@ -351,6 +354,8 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     /// Points of the last scan after undistortion and downsampling (the front of `scan.points`).
     last_kept: usize,
     guard: ImuGuard,
+    /// A jump happened in [`Self::propagate_imu`]: the next scan reports it.
+    jumped: bool,
 }
 
 impl<const PIX: usize, const PTS: usize, const DS: usize> core::fmt::Debug for Odometry<'_, PIX, PTS, DS> {
@@ -407,6 +412,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             stats: OdometryStats::default(),
             last_kept: 0,
             guard: ImuGuard::new(cfg.imu_guard),
+            jumped: false,
         })
     }
 
@@ -465,6 +471,35 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         result
     }
 
+    /// Integrates the queued IMU samples up to `until_ns` into the filter (or the
+    /// initialisation) without a scan: through a LiDAR gap the IMU carries the state, with its
+    /// honest covariance growth, instead of the samples piling up and being lost. Call it only
+    /// for samples before the start of any scan still to come (their knots undistort it).
+    /// Returns the samples consumed.
+    pub fn propagate_imu(&mut self, until_ns: u64) -> u32 {
+        let mut n = 0u32;
+        while let Some(s) = self.scan.imu.pop_until(until_ns) {
+            n = n.saturating_add(1);
+            match &mut self.filter {
+                Some(f) => {
+                    let before = f.time_ns();
+                    if let Predicted::Jump { .. } = f.predict(&s) {
+                        reseed_after_jump(f, before);
+                        self.stats.reinitialisations = self.stats.reinitialisations.saturating_add(1);
+                        self.jumped = true;
+                    }
+                }
+                None => match self.initializer.push(&s) {
+                    InitStatus::Ready(init) => {
+                        self.filter = Some(Eskf::new(self.cfg.eskf, &init, self.cfg.ext_rot, self.cfg.ext_pos));
+                    }
+                    InitStatus::Waiting(w) => self.wait = w,
+                },
+            }
+        }
+        n
+    }
+
     /// The outlier guard's counts.
     pub fn imu_guard_stats(&self) -> crate::imu_guard::ImuGuardStats {
         self.guard.stats()
@@ -512,6 +547,9 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         self.last_kept = 0;
         self.stats.scans = self.stats.scans.saturating_add(1);
         let mut reinit: Option<ReinitReason> = None;
+        if core::mem::take(&mut self.jumped) {
+            reinit = Some(ReinitReason::ImuJump);
+        }
         if self.restart_pending {
             self.restart_pending = false;
             self.restart();
