@@ -589,46 +589,205 @@ fn small_bag(dir: &Path, name: &str, threshold: usize) -> (PathBuf, Vec<Msg>) {
     (path, msgs)
 }
 
+/// `scans` scans and 200 Hz IMU, in record order (20 IMU messages per scan).
+fn long_sequence(scans: usize) -> Vec<Msg> {
+    let mut out = Vec::new();
+    for k in 0..scans {
+        for j in 1..=20u64 {
+            let t = T0 + k as u64 * 100_000_000 + j * 5_000_000;
+            out.push((t + 100_000, "/imu/data", IMU, imu_at(t).encode("imu_link", Encoding::Ros1)));
+        }
+        let (c, _) = vlp16_scan(k, build::VELODYNE);
+        out.push((c.stamp_ns + 8_000_000, "/velodyne_points", POINTCLOUD2, c.encode(Encoding::Ros1)));
+    }
+    out
+}
+
+/// The chunk records of a bag file, found by walking its records independently of the
+/// reader: (start, end, messages), the messages counted from the index data records that
+/// follow each chunk.
+fn chunk_layout(bytes: &[u8]) -> Vec<(usize, usize, u64)> {
+    let u32_at = |p: usize| u32::from_le_bytes(bytes[p..p + 4].try_into().unwrap()) as usize;
+    let mut p = 13;
+    let mut chunks: Vec<(usize, usize, u64)> = Vec::new();
+    while p + 4 <= bytes.len() {
+        let hl = u32_at(p);
+        if p + 8 + hl > bytes.len() {
+            break;
+        }
+        let header = &bytes[p + 4..p + 4 + hl];
+        let dl = u32_at(p + 4 + hl);
+        let end = p + 8 + hl + dl;
+        if header.windows(4).any(|w| w == b"op=\x05") {
+            chunks.push((p, end, 0));
+        } else if header.windows(4).any(|w| w == b"op=\x04") {
+            let at = header.windows(6).position(|w| w == b"count=").unwrap() + 6;
+            chunks.last_mut().unwrap().2 += u32::from_le_bytes(header[at..at + 4].try_into().unwrap()) as u64;
+        }
+        p = end;
+    }
+    chunks
+}
+
+const INDEX_POS: std::ops::Range<usize> = 13 + 4 + 4 + 10..13 + 4 + 4 + 18;
+
 #[test]
-fn truncated_and_unclosed_ros1_bags_are_one_line_errors() {
-    let dir = tmp("truncated");
-    let (path, _) = small_bag(&dir, "full.bag", 768 * 1024);
-    let bytes = std::fs::read(&path).unwrap();
-    let cut = dir.join("cut.bag");
-    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
-    let index_pos = u64::from_le_bytes(bytes[13 + 4 + 4 + 10..13 + 4 + 4 + 18].try_into().unwrap());
-    assert_eq!(
-        open_err(&cut, opts(Preset::Vlp16)),
-        format!(
-            "{}: truncated or corrupt: its index starts at byte {index_pos} but the file has {} bytes; run `rosbag reindex` on it",
-            cut.display(),
-            bytes.len() / 2
-        )
+fn unindexed_and_cut_ros1_bags_give_the_messages_of_their_complete_chunks() {
+    let dir = tmp("cut");
+    let msgs = long_sequence(10);
+    for (cname, comp) in
+        [("none", ChunkCompression::None), ("bz2", ChunkCompression::Bz2), ("lz4", ChunkCompression::Lz4)]
+    {
+        let path = dir.join(format!("{cname}.bag"));
+        // 4 KiB chunks: IMU-only chunks of about 12 messages and one chunk per cloud.
+        write_ros1(&path, &msgs, 4096, comp);
+        let bytes = std::fs::read(&path).unwrap();
+        let full = read_all(&path, opts(Preset::Vlp16)).unwrap();
+        full.end.as_ref().unwrap();
+        assert!(full.warnings.is_empty(), "{:?}", full.warnings);
+        assert_eq!(full.items.len(), 210);
+        assert!(!full.stats.unindexed);
+        let chunks = chunk_layout(&bytes);
+        assert!(chunks.len() >= 20, "{cname}: {} chunks", chunks.len());
+        assert_eq!(chunks.iter().map(|c| c.2).sum::<u64>(), 210);
+        let index_pos = u64::from_le_bytes(bytes[INDEX_POS].try_into().unwrap());
+        for percent in [50, 90] {
+            let len = bytes.len() * percent / 100;
+            let complete: Vec<_> = chunks.iter().filter(|c| c.1 <= len).collect();
+            let want = complete.iter().map(|c| c.2).sum::<u64>() as usize;
+            assert!(want > 10 && want < 210, "{cname} {percent} %: {want}");
+            let cut = dir.join(format!("{cname}-{percent}.bag"));
+            std::fs::write(&cut, &bytes[..len]).unwrap();
+            let run = read_all(&cut, opts(Preset::Vlp16)).unwrap();
+            run.end.as_ref().unwrap();
+            assert_eq!(run.items.len(), want, "{cname} {percent} %");
+            // The first `want` messages as written, in the order the complete bag gives them.
+            let kept: std::collections::HashSet<u64> = msgs[..want].iter().map(|m| m.0).collect();
+            let expect: Vec<&BagItem> = full.items.iter().filter(|i| kept.contains(&i.record_ns)).collect();
+            assert_eq!(expect.len(), want);
+            assert!(
+                run.items.iter().zip(&expect).all(|(a, b)| a == *b),
+                "{cname} {percent} %: the same messages, order and stamps"
+            );
+            let last = *kept.iter().max().unwrap();
+            assert_eq!(run.warnings.len(), 1, "{:?}", run.warnings);
+            let w = &run.warnings[0];
+            assert!(
+                w.starts_with(&format!(
+                    "warning: {}: cut short or corrupt (its index starts at byte {index_pos} but the file has {len} bytes); read without the index, as `rosbag reindex` would: {want} messages recovered from {} chunks, record times 1700000000.005 to {}.{:03} s; the records end at byte {} of {len} (",
+                    cut.display(),
+                    complete.len(),
+                    last / 1_000_000_000,
+                    last % 1_000_000_000 / 1_000_000,
+                    chunks.iter().find(|c| c.1 > len).unwrap().0,
+                )),
+                "{w}"
+            );
+            assert!(w.ends_with("), the rest is lost"), "{w}");
+            assert!(run.stats.unindexed);
+            assert_eq!(run.stats.truncated_files, 1);
+            assert_eq!(run.stats.messages, want as u64);
+            assert!(
+                run.stats
+                    .to_string()
+                    .ends_with("; read without its index; 1 file(s) read only up to damage, the rest lost")
+            );
+        }
+        // Never closed: index_pos 0, everything there.
+        let open = dir.join(format!("{cname}-open.bag"));
+        let mut b = bytes.clone();
+        b[INDEX_POS].copy_from_slice(&0u64.to_le_bytes());
+        std::fs::write(&open, &b).unwrap();
+        let run = read_all(&open, opts(Preset::Vlp16)).unwrap();
+        run.end.as_ref().unwrap();
+        assert_eq!(run.items, full.items);
+        assert_eq!(
+            run.warnings,
+            vec![format!(
+                "warning: {}: the bag was not closed (no index: the recorder was stopped abruptly); read without the index, as `rosbag reindex` would: 210 messages recovered from {} chunks, record times 1700000000.005 to 1700000001.008 s",
+                open.display(),
+                chunks.len()
+            )]
+        );
+        assert!(run.stats.unindexed);
+        assert_eq!(run.stats.truncated_files, 0);
+    }
+}
+
+#[test]
+fn a_recorder_killed_mid_bag_and_damaged_indexes_are_read_by_walking_the_records() {
+    let dir = tmp("killed");
+    let msgs = long_sequence(4);
+    // The writer dropped without `finish`: the closed chunks are on disk, the open one and the
+    // index are not, and index_pos is 0, as a killed `rosbag record` leaves it.
+    let killed = dir.join("killed.bag");
+    let mut w = Ros1BagWriter::create(&killed).unwrap();
+    w.set_chunk_threshold(4096);
+    let imu = w.add_typed_connection("/imu/data", &IMU).unwrap();
+    let pc = w.add_typed_connection("/velodyne_points", &POINTCLOUD2).unwrap();
+    // All but the last cloud: the last IMU messages are in the open chunk, lost.
+    for (t, topic, _, bytes) in &msgs[..83] {
+        w.write(if *topic == "/imu/data" { imu } else { pc }, *t, bytes).unwrap();
+    }
+    drop(w);
+    let bytes = std::fs::read(&killed).unwrap();
+    let want = chunk_layout(&bytes).iter().map(|c| c.2).sum::<u64>() as usize;
+    assert!(want > 40 && want < 83, "{want}");
+    let run = read_all(&killed, opts(Preset::Vlp16)).unwrap();
+    run.end.as_ref().unwrap();
+    assert_eq!(run.items.len(), want);
+    let full_path = dir.join("full.bag");
+    write_ros1(&full_path, &msgs, 4096, ChunkCompression::None);
+    let full = read_all(&full_path, opts(Preset::Vlp16)).unwrap();
+    let kept: std::collections::HashSet<u64> = msgs[..want].iter().map(|m| m.0).collect();
+    let expect: Vec<&BagItem> = full.items.iter().filter(|i| kept.contains(&i.record_ns)).collect();
+    assert_eq!(expect.len(), want);
+    assert!(run.items.iter().zip(&expect).all(|(a, b)| a == *b), "the same messages, order and stamps");
+    assert_eq!(run.warnings.len(), 1);
+    assert!(
+        run.warnings[0].contains(&format!(
+            "the bag was not closed (no index: the recorder was stopped abruptly); read without the index, as `rosbag reindex` would: {want} messages recovered"
+        )),
+        "{}",
+        run.warnings[0]
     );
-    // A bag whose recorder died: index_pos 0.
-    let open = dir.join("open.bag");
-    let mut b = bytes.clone();
-    b[13 + 4 + 4 + 10..13 + 4 + 4 + 18].copy_from_slice(&0u64.to_le_bytes());
-    std::fs::write(&open, &b).unwrap();
-    assert_eq!(
-        open_err(&open, opts(Preset::Vlp16)),
-        format!(
-            "{}: the bag was not closed (no index; the recorder was stopped abruptly); run `rosbag reindex` on it",
-            open.display()
-        )
+    // Cut inside the index section: the index is corrupt, every chunk is whole.
+    let fb = std::fs::read(&full_path).unwrap();
+    let idx = dir.join("index.bag");
+    std::fs::write(&idx, &fb[..fb.len() - 10]).unwrap();
+    let run = read_all(&idx, opts(Preset::Vlp16)).unwrap();
+    run.end.as_ref().unwrap();
+    assert_eq!(run.items, full.items);
+    assert_eq!(run.warnings.len(), 1);
+    assert!(
+        run.warnings[0].starts_with(&format!("warning: {}: corrupt index (", idx.display())),
+        "{}",
+        run.warnings[0]
     );
-    // Cut inside the header.
+    assert!(
+        run.warnings[0].contains("read without the index, as `rosbag reindex` would: 84 messages recovered")
+    );
+    // Cut inside the header, or inside the first chunk: nothing to read, one line.
     let tiny = dir.join("tiny.bag");
-    std::fs::write(&tiny, &bytes[..40]).unwrap();
+    std::fs::write(&tiny, &fb[..40]).unwrap();
     assert_eq!(
         open_err(&tiny, opts(Preset::Vlp16)),
         format!("{}: truncated: the file ends inside the bag header", tiny.display())
     );
-    // Cut inside the index section: the index records are damaged.
-    let idx = dir.join("index.bag");
-    std::fs::write(&idx, &bytes[..bytes.len() - 10]).unwrap();
-    let e = open_err(&idx, opts(Preset::Vlp16));
-    assert!(e.starts_with(&format!("{}: corrupt index (", idx.display())), "{e}");
+    let first = chunk_layout(&fb)[0];
+    let short = dir.join("short.bag");
+    std::fs::write(&short, &fb[..first.1 - 1]).unwrap();
+    assert_eq!(
+        open_err(&short, opts(Preset::Vlp16)),
+        format!(
+            "{}: cut short or corrupt (its index starts at byte {} but the file has {} bytes), and no chunk could be read without it; the records end at byte {} of {} (a record's data runs past the end of the file), the rest is lost",
+            short.display(),
+            u64::from_le_bytes(fb[INDEX_POS].try_into().unwrap()),
+            first.1 - 1,
+            first.0,
+            first.1 - 1
+        )
+    );
 }
 
 #[test]
