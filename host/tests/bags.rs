@@ -333,6 +333,8 @@ fn write_db3_index(path: &Path, msgs: &[(u64, &str, MessageType, Vec<u8>)], id_b
     };
     assert_eq!(schema.contains("CREATE INDEX"), index);
     db.execute_batch(&schema).unwrap();
+    // One transaction: one sync for the file, not one per row.
+    db.execute_batch("BEGIN").unwrap();
     let mut ids = BTreeMap::new();
     for (t, topic, ty, bytes) in msgs {
         let id = match ids.get(topic) {
@@ -354,6 +356,7 @@ fn write_db3_index(path: &Path, msgs: &[(u64, &str, MessageType, Vec<u8>)], id_b
         )
         .unwrap();
     }
+    db.execute_batch("COMMIT").unwrap();
 }
 
 /// Checks the events of [`sequence`] against what was written.
@@ -1093,11 +1096,14 @@ fn not_bags_corrupt_databases_and_compressed_bags_are_one_line_errors() {
         open_err(&other, o()),
         format!("{}: not a rosbag2 database (no topics and messages tables)", other.display())
     );
-    // A real rosbag2 file with its pages damaged / cut short.
+    // A real rosbag2 file with its pages damaged / cut short: the rows before the damage,
+    // then one warning naming how many.
     let src = data("velodyne-nebula/vlp16_dual_rosbag2/1673400471837873222/1673400471837873222_0.db3");
     let bytes = std::fs::read(&src).unwrap();
     let mut o2 = o();
     o2.require_imu = false;
+    let whole = read_all(&src, o2.clone()).unwrap();
+    whole.end.as_ref().unwrap();
     for (name, damaged) in [
         ("cut.db3", bytes[..bytes.len() / 3].to_vec()),
         ("garbled.db3", {
@@ -1112,14 +1118,82 @@ fn not_bags_corrupt_databases_and_compressed_bags_are_one_line_errors() {
     ] {
         let p = dir.join(name);
         std::fs::write(&p, &damaged).unwrap();
-        let e = match read_all(&p, o2.clone()) {
-            Err(e) => e.0,
-            Ok(run) => run.end.expect_err(name).0,
-        };
-        assert!(e.starts_with(&format!("{}: ", p.display())), "{e}");
-        assert!(e.contains("rosbag2") || e.contains("sqlite3"), "{e}");
-        assert!(!e.contains('\n'));
+        let run = read_all(&p, o2.clone()).unwrap();
+        run.end.as_ref().unwrap();
+        assert!(run.items.len() < whole.items.len(), "{name}");
+        assert!(
+            run.items.iter().zip(&whole.items).all(|(a, b)| a == b),
+            "{name}: the rows before the damage"
+        );
+        assert_eq!(run.warnings.len(), 1, "{name}: {:?}", run.warnings);
+        let w = &run.warnings[0];
+        assert!(w.starts_with(&format!("warning: {}: corrupt rosbag2 database: ", p.display())), "{w}");
+        assert!(
+            w.ends_with(&format!(
+                "; the {} rows before the damage are read, the rest of the file is lost",
+                run.stats.messages
+            )),
+            "{w}"
+        );
+        assert_eq!(run.stats.truncated_files, 1);
     }
+}
+
+/// Where `data` lies in `bytes`.
+fn find(bytes: &[u8], data: &[u8]) -> Option<usize> {
+    bytes.windows(data.len()).position(|w| w == data)
+}
+
+#[test]
+fn a_damaged_rosbag2_database_gives_its_rows_before_the_damage() {
+    let dir = tmp("db3-damaged");
+    let (mut msgs, _) = sequence(Encoding::Cdr, build::VELODYNE);
+    for j in 0..540u64 {
+        let t = T0 + 300_000_000 + (j + 1) * 5_000_000;
+        msgs.push((t + 100_000, "/imu/data", IMU, imu_at(t).encode("imu_link", Encoding::Cdr)));
+    }
+    for index in [false, true] {
+        let path = dir.join(format!("index-{index}.db3"));
+        write_db3_index(&path, &msgs, 1, index);
+        let full = read_all(&path, opts(Preset::Vlp16)).unwrap();
+        full.end.as_ref().unwrap();
+        assert_eq!(full.items.len(), 603);
+        let mut bytes = std::fs::read(&path).unwrap();
+        // Overwrite the page holding message 400 (an IMU row; its table leaf page).
+        let page = find(&bytes, &msgs[400].3).unwrap() / 4096 * 4096;
+        // A leaf holds a run of rows; the reading stops at the first of them (rows are read
+        // in id order, or in time order, which is the same for these).
+        let on_page = |k: usize| find(&bytes[page..page + 4096], &msgs[k].3).is_some();
+        let want = (300..=400).find(|&k| on_page(k)).unwrap();
+        assert!(want > 300 && (want..=400).all(on_page), "{want}");
+        bytes[page..page + 4096].fill(0xa5);
+        let bad = dir.join(format!("bad-{index}.db3"));
+        std::fs::write(&bad, &bytes).unwrap();
+        let run = read_all(&bad, opts(Preset::Vlp16)).unwrap();
+        run.end.as_ref().unwrap();
+        assert_eq!(run.items.len(), want, "index {index}");
+        let kept: std::collections::HashSet<u64> = msgs[..want].iter().map(|m| m.0).collect();
+        let expect: Vec<&BagItem> = full.items.iter().filter(|i| kept.contains(&i.record_ns)).collect();
+        assert!(run.items.iter().zip(&expect).all(|(a, b)| a == *b), "the same rows, order and stamps");
+        assert_eq!(
+            run.warnings,
+            vec![format!(
+                "warning: {}: corrupt rosbag2 database: database disk image is malformed; the {want} rows before the damage are read, the rest of the file is lost",
+                bad.display()
+            )]
+        );
+        assert_eq!(run.stats.truncated_files, 1);
+        assert!(!run.stats.unindexed);
+        // The bag's message count needs the whole table: unknown.
+        assert_eq!(BagReader::open(&bad, opts(Preset::Vlp16)).unwrap().total_messages(), None);
+    }
+    // A file that is not sqlite at all, named .db3: one line.
+    let junk = dir.join("junk.db3");
+    std::fs::write(&junk, vec![0x5a; 8192]).unwrap();
+    assert_eq!(
+        open_err(&junk, opts(Preset::Vlp16)),
+        format!("{}: not a ROS bag (neither a ROS 1 bag, a rosbag2 sqlite3 file nor MCAP)", junk.display())
+    );
 }
 
 #[test]
