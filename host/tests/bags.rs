@@ -770,6 +770,33 @@ fn a_recorder_killed_mid_bag_and_damaged_indexes_are_read_by_walking_the_records
     assert!(
         run.warnings[0].contains("read without the index, as `rosbag reindex` would: 84 messages recovered")
     );
+    // Never closed and a chunk damaged inside: the chunk is reported and skipped, the walk
+    // goes on past it.
+    let layout = chunk_layout(&fb);
+    let mut b = fb.clone();
+    b[INDEX_POS].copy_from_slice(&0u64.to_le_bytes());
+    let (start, _, lost) = layout[1];
+    let hl = u32::from_le_bytes(b[start..start + 4].try_into().unwrap()) as usize;
+    let first_inner = start + 8 + hl;
+    b[first_inner..first_inner + 4].copy_from_slice(&0x7fff_ffffu32.to_le_bytes());
+    let both = dir.join("both.bag");
+    std::fs::write(&both, &b).unwrap();
+    let run = read_all(&both, opts(Preset::Vlp16)).unwrap();
+    run.end.as_ref().unwrap();
+    assert!(lost > 0);
+    assert_eq!(run.items.len(), 84 - lost as usize);
+    assert_eq!(run.stats.skipped_chunks, 1);
+    assert_eq!(run.warnings.len(), 2, "{:?}", run.warnings);
+    assert!(run.warnings[0].contains(&format!(
+        "{} messages recovered from {} chunks",
+        84 - lost,
+        layout.len()
+    )));
+    assert!(
+        run.warnings[1].starts_with(&format!("warning: {}: corrupt chunk at byte {start}: ", both.display())),
+        "{}",
+        run.warnings[1]
+    );
     // Cut inside the header, or inside the first chunk: nothing to read, one line.
     let tiny = dir.join("tiny.bag");
     std::fs::write(&tiny, &fb[..40]).unwrap();

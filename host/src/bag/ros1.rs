@@ -89,6 +89,8 @@ enum Reader {
 
 struct Chunk {
     pos: u64,
+    /// Found damaged by the walk: read (to report it) even if none of its messages is selected.
+    damaged: bool,
     /// Messages of the selected connections in this chunk.
     selected: u64,
 }
@@ -131,7 +133,10 @@ impl Ros1Source {
         Ros1Source {
             reader,
             recovered: None,
-            chunks: chunk_infos.iter().map(|(pos, _)| Chunk { pos: *pos, selected: 0 }).collect(),
+            chunks: chunk_infos
+                .iter()
+                .map(|(pos, _)| Chunk { pos: *pos, damaged: false, selected: 0 })
+                .collect(),
             chunk_entries: chunk_infos.into_iter().map(|(_, e)| e).collect(),
             next_chunk: 0,
             conn_topic,
@@ -203,6 +208,9 @@ impl Ros1Source {
             stop.clone().unwrap_or_default()
         );
         let mut src = Self::new(Reader::Scanned { file, len }, conn_topic, s.chunks);
+        for c in &mut src.chunks {
+            c.damaged = s.damaged.contains(&c.pos);
+        }
         src.recovered = Some((warning, stop.is_some()));
         Ok((src, topics))
     }
@@ -318,7 +326,7 @@ impl RawSource for Ros1Source {
                 return None;
             }
             self.next_chunk += 1;
-            if self.chunks[k].selected == 0 {
+            if self.chunks[k].selected == 0 && !self.chunks[k].damaged {
                 continue;
             }
             if let Err(e) = self.load_chunk(k) {

@@ -200,6 +200,9 @@ pub(super) struct Scan {
     pub conns: BTreeMap<u32, (String, String)>,
     /// Chunks: position and per connection message counts.
     pub chunks: Vec<(u64, Vec<(u32, u32)>)>,
+    /// Positions of chunks whose contents are damaged (their messages before the damage are
+    /// counted in `chunks`).
+    pub damaged: Vec<u64>,
     /// Messages in the chunks (all connections).
     pub messages: u64,
     /// Record times of the first and last messages (in file order, the earliest and latest).
@@ -213,7 +216,14 @@ pub(super) fn scan(file: &File, len: u64) -> Result<Scan, String> {
     let mut r = BufReader::with_capacity(1 << 20, file);
     r.seek(SeekFrom::Start(super::ros1::MAGIC.len() as u64)).map_err(|e| e.to_string())?;
     let mut pos = super::ros1::MAGIC.len() as u64;
-    let mut s = Scan { conns: BTreeMap::new(), chunks: Vec::new(), messages: 0, span: None, stopped: None };
+    let mut s = Scan {
+        conns: BTreeMap::new(),
+        chunks: Vec::new(),
+        messages: 0,
+        span: None,
+        stopped: None,
+        damaged: Vec::new(),
+    };
     while pos < len {
         let (rec, used) = match read_record(&mut r, len - pos) {
             Ok(x) => x,
@@ -235,6 +245,9 @@ pub(super) fn scan(file: &File, len: u64) -> Result<Scan, String> {
                 }
                 s.messages += c.messages.len() as u64;
                 s.chunks.push((pos, counts.into_iter().collect()));
+                if c.damage.is_some() {
+                    s.damaged.push(pos);
+                }
             }
             OP_CONNECTION => {
                 if let Some((id, topic, ty)) = connection(&rec) {
