@@ -102,7 +102,7 @@ pub(super) struct Ros1Source {
     /// whether the walk stopped at damage.
     recovered: Option<(String, bool)>,
     chunks: Vec<Chunk>,
-    /// Per chunk: (connection, messages) from its chunk info record.
+    /// Per chunk: (connection, messages), from its chunk info record or from the walk.
     chunk_entries: Vec<Vec<(u32, u32)>>,
     next_chunk: usize,
     /// Connection id -> topic index.
