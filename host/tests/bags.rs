@@ -333,6 +333,8 @@ fn write_db3_index(path: &Path, msgs: &[(u64, &str, MessageType, Vec<u8>)], id_b
     };
     assert_eq!(schema.contains("CREATE INDEX"), index);
     db.execute_batch(&schema).unwrap();
+    // One transaction: one sync for the file, not one per row.
+    db.execute_batch("BEGIN").unwrap();
     let mut ids = BTreeMap::new();
     for (t, topic, ty, bytes) in msgs {
         let id = match ids.get(topic) {
@@ -354,6 +356,7 @@ fn write_db3_index(path: &Path, msgs: &[(u64, &str, MessageType, Vec<u8>)], id_b
         )
         .unwrap();
     }
+    db.execute_batch("COMMIT").unwrap();
 }
 
 /// Checks the events of [`sequence`] against what was written.
@@ -589,46 +592,232 @@ fn small_bag(dir: &Path, name: &str, threshold: usize) -> (PathBuf, Vec<Msg>) {
     (path, msgs)
 }
 
+/// `scans` scans and 200 Hz IMU, in record order (20 IMU messages per scan).
+fn long_sequence(scans: usize) -> Vec<Msg> {
+    let mut out = Vec::new();
+    for k in 0..scans {
+        for j in 1..=20u64 {
+            let t = T0 + k as u64 * 100_000_000 + j * 5_000_000;
+            out.push((t + 100_000, "/imu/data", IMU, imu_at(t).encode("imu_link", Encoding::Ros1)));
+        }
+        let (c, _) = vlp16_scan(k, build::VELODYNE);
+        out.push((c.stamp_ns + 8_000_000, "/velodyne_points", POINTCLOUD2, c.encode(Encoding::Ros1)));
+    }
+    out
+}
+
+/// The chunk records of a bag file, found by walking its records independently of the
+/// reader: (start, end, messages), the messages counted from the index data records that
+/// follow each chunk.
+fn chunk_layout(bytes: &[u8]) -> Vec<(usize, usize, u64)> {
+    let u32_at = |p: usize| u32::from_le_bytes(bytes[p..p + 4].try_into().unwrap()) as usize;
+    let mut p = 13;
+    let mut chunks: Vec<(usize, usize, u64)> = Vec::new();
+    while p + 4 <= bytes.len() {
+        let hl = u32_at(p);
+        if p + 8 + hl > bytes.len() {
+            break;
+        }
+        let header = &bytes[p + 4..p + 4 + hl];
+        let dl = u32_at(p + 4 + hl);
+        let end = p + 8 + hl + dl;
+        if header.windows(4).any(|w| w == b"op=\x05") {
+            chunks.push((p, end, 0));
+        } else if header.windows(4).any(|w| w == b"op=\x04") {
+            let at = header.windows(6).position(|w| w == b"count=").unwrap() + 6;
+            chunks.last_mut().unwrap().2 += u32::from_le_bytes(header[at..at + 4].try_into().unwrap()) as u64;
+        }
+        p = end;
+    }
+    chunks
+}
+
+const INDEX_POS: std::ops::Range<usize> = 13 + 4 + 4 + 10..13 + 4 + 4 + 18;
+
 #[test]
-fn truncated_and_unclosed_ros1_bags_are_one_line_errors() {
-    let dir = tmp("truncated");
-    let (path, _) = small_bag(&dir, "full.bag", 768 * 1024);
-    let bytes = std::fs::read(&path).unwrap();
-    let cut = dir.join("cut.bag");
-    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
-    let index_pos = u64::from_le_bytes(bytes[13 + 4 + 4 + 10..13 + 4 + 4 + 18].try_into().unwrap());
-    assert_eq!(
-        open_err(&cut, opts(Preset::Vlp16)),
-        format!(
-            "{}: truncated or corrupt: its index starts at byte {index_pos} but the file has {} bytes; run `rosbag reindex` on it",
-            cut.display(),
-            bytes.len() / 2
-        )
+fn unindexed_and_cut_ros1_bags_give_the_messages_of_their_complete_chunks() {
+    let dir = tmp("cut");
+    let msgs = long_sequence(10);
+    for (cname, comp) in
+        [("none", ChunkCompression::None), ("bz2", ChunkCompression::Bz2), ("lz4", ChunkCompression::Lz4)]
+    {
+        let path = dir.join(format!("{cname}.bag"));
+        // 4 KiB chunks: IMU-only chunks of about 12 messages and one chunk per cloud.
+        write_ros1(&path, &msgs, 4096, comp);
+        let bytes = std::fs::read(&path).unwrap();
+        let full = read_all(&path, opts(Preset::Vlp16)).unwrap();
+        full.end.as_ref().unwrap();
+        assert!(full.warnings.is_empty(), "{:?}", full.warnings);
+        assert_eq!(full.items.len(), 210);
+        assert!(!full.stats.unindexed);
+        let chunks = chunk_layout(&bytes);
+        assert!(chunks.len() >= 20, "{cname}: {} chunks", chunks.len());
+        assert_eq!(chunks.iter().map(|c| c.2).sum::<u64>(), 210);
+        let index_pos = u64::from_le_bytes(bytes[INDEX_POS].try_into().unwrap());
+        for percent in [50, 90] {
+            let len = bytes.len() * percent / 100;
+            let complete: Vec<_> = chunks.iter().filter(|c| c.1 <= len).collect();
+            let want = complete.iter().map(|c| c.2).sum::<u64>() as usize;
+            assert!(want > 10 && want < 210, "{cname} {percent} %: {want}");
+            let cut = dir.join(format!("{cname}-{percent}.bag"));
+            std::fs::write(&cut, &bytes[..len]).unwrap();
+            let run = read_all(&cut, opts(Preset::Vlp16)).unwrap();
+            run.end.as_ref().unwrap();
+            assert_eq!(run.items.len(), want, "{cname} {percent} %");
+            // The first `want` messages as written, in the order the complete bag gives them.
+            let kept: std::collections::HashSet<u64> = msgs[..want].iter().map(|m| m.0).collect();
+            let expect: Vec<&BagItem> = full.items.iter().filter(|i| kept.contains(&i.record_ns)).collect();
+            assert_eq!(expect.len(), want);
+            assert!(
+                run.items.iter().zip(&expect).all(|(a, b)| a == *b),
+                "{cname} {percent} %: the same messages, order and stamps"
+            );
+            let last = *kept.iter().max().unwrap();
+            assert_eq!(run.warnings.len(), 1, "{:?}", run.warnings);
+            let w = &run.warnings[0];
+            assert!(
+                w.starts_with(&format!(
+                    "warning: {}: cut short or corrupt (its index starts at byte {index_pos} but the file has {len} bytes); read without the index, as `rosbag reindex` would: {want} messages recovered from {} chunks, record times 1700000000.005 to {}.{:03} s; the records end at byte {} of {len} (",
+                    cut.display(),
+                    complete.len(),
+                    last / 1_000_000_000,
+                    last % 1_000_000_000 / 1_000_000,
+                    chunks.iter().find(|c| c.1 > len).unwrap().0,
+                )),
+                "{w}"
+            );
+            assert!(w.ends_with("), the rest is lost"), "{w}");
+            assert!(run.stats.unindexed);
+            assert_eq!(run.stats.truncated_files, 1);
+            assert_eq!(run.stats.messages, want as u64);
+            assert!(
+                run.stats
+                    .to_string()
+                    .ends_with("; read without its index; 1 file(s) read only up to damage, the rest lost")
+            );
+        }
+        // Never closed: index_pos 0, everything there.
+        let open = dir.join(format!("{cname}-open.bag"));
+        let mut b = bytes.clone();
+        b[INDEX_POS].copy_from_slice(&0u64.to_le_bytes());
+        std::fs::write(&open, &b).unwrap();
+        let run = read_all(&open, opts(Preset::Vlp16)).unwrap();
+        run.end.as_ref().unwrap();
+        assert_eq!(run.items, full.items);
+        assert_eq!(
+            run.warnings,
+            vec![format!(
+                "warning: {}: the bag was not closed (no index: the recorder was stopped abruptly); read without the index, as `rosbag reindex` would: 210 messages recovered from {} chunks, record times 1700000000.005 to 1700000001.008 s",
+                open.display(),
+                chunks.len()
+            )]
+        );
+        assert!(run.stats.unindexed);
+        assert_eq!(run.stats.truncated_files, 0);
+    }
+}
+
+#[test]
+fn a_recorder_killed_mid_bag_and_damaged_indexes_are_read_by_walking_the_records() {
+    let dir = tmp("killed");
+    let msgs = long_sequence(4);
+    // The writer dropped without `finish`: the closed chunks are on disk, the open one and the
+    // index are not, and index_pos is 0, as a killed `rosbag record` leaves it.
+    let killed = dir.join("killed.bag");
+    let mut w = Ros1BagWriter::create(&killed).unwrap();
+    w.set_chunk_threshold(4096);
+    let imu = w.add_typed_connection("/imu/data", &IMU).unwrap();
+    let pc = w.add_typed_connection("/velodyne_points", &POINTCLOUD2).unwrap();
+    // All but the last cloud: the last IMU messages are in the open chunk, lost.
+    for (t, topic, _, bytes) in &msgs[..83] {
+        w.write(if *topic == "/imu/data" { imu } else { pc }, *t, bytes).unwrap();
+    }
+    drop(w);
+    let bytes = std::fs::read(&killed).unwrap();
+    let want = chunk_layout(&bytes).iter().map(|c| c.2).sum::<u64>() as usize;
+    assert!(want > 40 && want < 83, "{want}");
+    let run = read_all(&killed, opts(Preset::Vlp16)).unwrap();
+    run.end.as_ref().unwrap();
+    assert_eq!(run.items.len(), want);
+    let full_path = dir.join("full.bag");
+    write_ros1(&full_path, &msgs, 4096, ChunkCompression::None);
+    let full = read_all(&full_path, opts(Preset::Vlp16)).unwrap();
+    let kept: std::collections::HashSet<u64> = msgs[..want].iter().map(|m| m.0).collect();
+    let expect: Vec<&BagItem> = full.items.iter().filter(|i| kept.contains(&i.record_ns)).collect();
+    assert_eq!(expect.len(), want);
+    assert!(run.items.iter().zip(&expect).all(|(a, b)| a == *b), "the same messages, order and stamps");
+    assert_eq!(run.warnings.len(), 1);
+    assert!(
+        run.warnings[0].contains(&format!(
+            "the bag was not closed (no index: the recorder was stopped abruptly); read without the index, as `rosbag reindex` would: {want} messages recovered"
+        )),
+        "{}",
+        run.warnings[0]
     );
-    // A bag whose recorder died: index_pos 0.
-    let open = dir.join("open.bag");
-    let mut b = bytes.clone();
-    b[13 + 4 + 4 + 10..13 + 4 + 4 + 18].copy_from_slice(&0u64.to_le_bytes());
-    std::fs::write(&open, &b).unwrap();
-    assert_eq!(
-        open_err(&open, opts(Preset::Vlp16)),
-        format!(
-            "{}: the bag was not closed (no index; the recorder was stopped abruptly); run `rosbag reindex` on it",
-            open.display()
-        )
+    // Cut inside the index section: the index is corrupt, every chunk is whole.
+    let fb = std::fs::read(&full_path).unwrap();
+    let idx = dir.join("index.bag");
+    std::fs::write(&idx, &fb[..fb.len() - 10]).unwrap();
+    let run = read_all(&idx, opts(Preset::Vlp16)).unwrap();
+    run.end.as_ref().unwrap();
+    assert_eq!(run.items, full.items);
+    assert_eq!(run.warnings.len(), 1);
+    assert!(
+        run.warnings[0].starts_with(&format!("warning: {}: corrupt index (", idx.display())),
+        "{}",
+        run.warnings[0]
     );
-    // Cut inside the header.
+    assert!(
+        run.warnings[0].contains("read without the index, as `rosbag reindex` would: 84 messages recovered")
+    );
+    // Never closed and a chunk damaged inside: the chunk is reported and skipped, the walk
+    // goes on past it.
+    let layout = chunk_layout(&fb);
+    let mut b = fb.clone();
+    b[INDEX_POS].copy_from_slice(&0u64.to_le_bytes());
+    let (start, _, lost) = layout[1];
+    let hl = u32::from_le_bytes(b[start..start + 4].try_into().unwrap()) as usize;
+    let first_inner = start + 8 + hl;
+    b[first_inner..first_inner + 4].copy_from_slice(&0x7fff_ffffu32.to_le_bytes());
+    let both = dir.join("both.bag");
+    std::fs::write(&both, &b).unwrap();
+    let run = read_all(&both, opts(Preset::Vlp16)).unwrap();
+    run.end.as_ref().unwrap();
+    assert!(lost > 0);
+    assert_eq!(run.items.len(), 84 - lost as usize);
+    assert_eq!(run.stats.skipped_chunks, 1);
+    assert_eq!(run.warnings.len(), 2, "{:?}", run.warnings);
+    assert!(run.warnings[0].contains(&format!(
+        "{} messages recovered from {} chunks",
+        84 - lost,
+        layout.len()
+    )));
+    assert!(
+        run.warnings[1].starts_with(&format!("warning: {}: corrupt chunk at byte {start}: ", both.display())),
+        "{}",
+        run.warnings[1]
+    );
+    // Cut inside the header, or inside the first chunk: nothing to read, one line.
     let tiny = dir.join("tiny.bag");
-    std::fs::write(&tiny, &bytes[..40]).unwrap();
+    std::fs::write(&tiny, &fb[..40]).unwrap();
     assert_eq!(
         open_err(&tiny, opts(Preset::Vlp16)),
         format!("{}: truncated: the file ends inside the bag header", tiny.display())
     );
-    // Cut inside the index section: the index records are damaged.
-    let idx = dir.join("index.bag");
-    std::fs::write(&idx, &bytes[..bytes.len() - 10]).unwrap();
-    let e = open_err(&idx, opts(Preset::Vlp16));
-    assert!(e.starts_with(&format!("{}: corrupt index (", idx.display())), "{e}");
+    let first = chunk_layout(&fb)[0];
+    let short = dir.join("short.bag");
+    std::fs::write(&short, &fb[..first.1 - 1]).unwrap();
+    assert_eq!(
+        open_err(&short, opts(Preset::Vlp16)),
+        format!(
+            "{}: cut short or corrupt (its index starts at byte {} but the file has {} bytes), and no chunk could be read without it; the records end at byte {} of {} (a record's data runs past the end of the file), the rest is lost",
+            short.display(),
+            u64::from_le_bytes(fb[INDEX_POS].try_into().unwrap()),
+            first.1 - 1,
+            first.0,
+            first.1 - 1
+        )
+    );
 }
 
 #[test]
@@ -934,11 +1123,14 @@ fn not_bags_corrupt_databases_and_compressed_bags_are_one_line_errors() {
         open_err(&other, o()),
         format!("{}: not a rosbag2 database (no topics and messages tables)", other.display())
     );
-    // A real rosbag2 file with its pages damaged / cut short.
+    // A real rosbag2 file with its pages damaged / cut short: the rows before the damage,
+    // then one warning naming how many.
     let src = data("velodyne-nebula/vlp16_dual_rosbag2/1673400471837873222/1673400471837873222_0.db3");
     let bytes = std::fs::read(&src).unwrap();
     let mut o2 = o();
     o2.require_imu = false;
+    let whole = read_all(&src, o2.clone()).unwrap();
+    whole.end.as_ref().unwrap();
     for (name, damaged) in [
         ("cut.db3", bytes[..bytes.len() / 3].to_vec()),
         ("garbled.db3", {
@@ -953,14 +1145,82 @@ fn not_bags_corrupt_databases_and_compressed_bags_are_one_line_errors() {
     ] {
         let p = dir.join(name);
         std::fs::write(&p, &damaged).unwrap();
-        let e = match read_all(&p, o2.clone()) {
-            Err(e) => e.0,
-            Ok(run) => run.end.expect_err(name).0,
-        };
-        assert!(e.starts_with(&format!("{}: ", p.display())), "{e}");
-        assert!(e.contains("rosbag2") || e.contains("sqlite3"), "{e}");
-        assert!(!e.contains('\n'));
+        let run = read_all(&p, o2.clone()).unwrap();
+        run.end.as_ref().unwrap();
+        assert!(run.items.len() < whole.items.len(), "{name}");
+        assert!(
+            run.items.iter().zip(&whole.items).all(|(a, b)| a == b),
+            "{name}: the rows before the damage"
+        );
+        assert_eq!(run.warnings.len(), 1, "{name}: {:?}", run.warnings);
+        let w = &run.warnings[0];
+        assert!(w.starts_with(&format!("warning: {}: corrupt rosbag2 database: ", p.display())), "{w}");
+        assert!(
+            w.ends_with(&format!(
+                "; the {} rows before the damage are read, the rest of the file is lost",
+                run.stats.messages
+            )),
+            "{w}"
+        );
+        assert_eq!(run.stats.truncated_files, 1);
     }
+}
+
+/// Where `data` lies in `bytes`.
+fn find(bytes: &[u8], data: &[u8]) -> Option<usize> {
+    bytes.windows(data.len()).position(|w| w == data)
+}
+
+#[test]
+fn a_damaged_rosbag2_database_gives_its_rows_before_the_damage() {
+    let dir = tmp("db3-damaged");
+    let (mut msgs, _) = sequence(Encoding::Cdr, build::VELODYNE);
+    for j in 0..540u64 {
+        let t = T0 + 300_000_000 + (j + 1) * 5_000_000;
+        msgs.push((t + 100_000, "/imu/data", IMU, imu_at(t).encode("imu_link", Encoding::Cdr)));
+    }
+    for index in [false, true] {
+        let path = dir.join(format!("index-{index}.db3"));
+        write_db3_index(&path, &msgs, 1, index);
+        let full = read_all(&path, opts(Preset::Vlp16)).unwrap();
+        full.end.as_ref().unwrap();
+        assert_eq!(full.items.len(), 603);
+        let mut bytes = std::fs::read(&path).unwrap();
+        // Overwrite the page holding message 400 (an IMU row; its table leaf page).
+        let page = find(&bytes, &msgs[400].3).unwrap() / 4096 * 4096;
+        // A leaf holds a run of rows; the reading stops at the first of them (rows are read
+        // in id order, or in time order, which is the same for these).
+        let on_page = |k: usize| find(&bytes[page..page + 4096], &msgs[k].3).is_some();
+        let want = (300..=400).find(|&k| on_page(k)).unwrap();
+        assert!(want > 300 && (want..=400).all(on_page), "{want}");
+        bytes[page..page + 4096].fill(0xa5);
+        let bad = dir.join(format!("bad-{index}.db3"));
+        std::fs::write(&bad, &bytes).unwrap();
+        let run = read_all(&bad, opts(Preset::Vlp16)).unwrap();
+        run.end.as_ref().unwrap();
+        assert_eq!(run.items.len(), want, "index {index}");
+        let kept: std::collections::HashSet<u64> = msgs[..want].iter().map(|m| m.0).collect();
+        let expect: Vec<&BagItem> = full.items.iter().filter(|i| kept.contains(&i.record_ns)).collect();
+        assert!(run.items.iter().zip(&expect).all(|(a, b)| a == *b), "the same rows, order and stamps");
+        assert_eq!(
+            run.warnings,
+            vec![format!(
+                "warning: {}: corrupt rosbag2 database: database disk image is malformed; the {want} rows before the damage are read, the rest of the file is lost",
+                bad.display()
+            )]
+        );
+        assert_eq!(run.stats.truncated_files, 1);
+        assert!(!run.stats.unindexed);
+        // The bag's message count needs the whole table: unknown.
+        assert_eq!(BagReader::open(&bad, opts(Preset::Vlp16)).unwrap().total_messages(), None);
+    }
+    // A file that is not sqlite at all, named .db3: one line.
+    let junk = dir.join("junk.db3");
+    std::fs::write(&junk, vec![0x5a; 8192]).unwrap();
+    assert_eq!(
+        open_err(&junk, opts(Preset::Vlp16)),
+        format!("{}: not a ROS bag (neither a ROS 1 bag, a rosbag2 sqlite3 file nor MCAP)", junk.display())
+    );
 }
 
 #[test]

@@ -50,16 +50,20 @@
 //! time, i.e. the record time taken as the scan end). Time offsets are not applied here
 //! (`time_align.rs` does that).
 //!
-//! **Bad input**: a file that is no bag, a truncated or unindexed ROS 1 bag, a corrupt database
-//! or MCAP: one error line (the good messages before the damage come first where the format
-//! allows). A corrupt ROS 1 chunk is skipped and counted; a malformed message is dropped and
-//! counted; each with one warning. Clouds without ring or time fields fall back to geometry
+//! **Bad input**: a damaged file gives what it still holds. A ROS 1 bag that was never closed,
+//! was cut short or has a corrupt index is read by walking its records up to the damage (as
+//! `rosbag reindex` would); a rosbag2 database with damaged pages gives its rows before the
+//! damage; each with one warning saying how much was recovered ([`BagStats::unindexed`],
+//! [`BagStats::truncated_files`]). A file that is no bag, or a cut MCAP: one error line (the
+//! good messages before the damage come first where the format allows). A corrupt ROS 1 chunk
+//! is skipped and counted; a malformed message is dropped and counted; each with one warning. Clouds without ring or time fields fall back to geometry
 //! with one warning per topic.
 
 pub mod cloud;
 mod mcap_src;
 pub mod msg;
 mod ros1;
+mod ros1_scan;
 pub mod ros1_writer;
 mod ros2_sqlite;
 
@@ -179,6 +183,14 @@ pub(crate) enum RawEvent {
     Msg(RawMsg),
     /// A damaged stretch was skipped (reading goes on).
     Skipped(String),
+    /// A file is read without its index (`unindexed`) or only up to damage (`truncated`):
+    /// said once, as `why`, before the messages that remain (or after them, when the damage
+    /// is only found on the way).
+    Recovered {
+        why: String,
+        unindexed: bool,
+        truncated: bool,
+    },
 }
 
 /// A storage reader: raw messages of the selected topics in storage order.
@@ -302,6 +314,11 @@ pub struct BagStats {
     pub out_of_sequence: u64,
     /// Points skipped in clouds (non-finite or no return).
     pub skipped_points: u64,
+    /// Whether a ROS 1 bag was read without its index (never closed, cut short, or a corrupt
+    /// index), by walking its records.
+    pub unindexed: bool,
+    /// Files read only up to damage (cut short, or damaged pages); what follows is lost.
+    pub truncated_files: u64,
 }
 
 impl fmt::Display for BagStats {
@@ -318,7 +335,14 @@ impl fmt::Display for BagStats {
             self.out_of_sequence,
             self.skipped_chunks,
             self.skipped_points
-        )
+        )?;
+        if self.unindexed {
+            f.write_str("; read without its index")?;
+        }
+        if self.truncated_files > 0 {
+            write!(f, "; {} file(s) read only up to damage, the rest lost", self.truncated_files)?;
+        }
+        Ok(())
     }
 }
 
@@ -919,6 +943,11 @@ impl Iterator for BagReader {
                     self.warn_once("skipped", || {
                         format!("{name}: {why}; skipped it (later damage is counted)")
                     });
+                }
+                Some(Ok(RawEvent::Recovered { why, unindexed, truncated })) => {
+                    self.stats.unindexed |= unindexed;
+                    self.stats.truncated_files += u64::from(truncated);
+                    warn(why);
                 }
                 Some(Ok(RawEvent::Msg(raw))) => self.push(raw),
             }

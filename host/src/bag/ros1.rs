@@ -2,10 +2,12 @@
 //! chunks.
 //!
 //! The bag header is checked here first, because the crate slices the file at the header's
-//! `index_pos` without checking it: a bag that was never closed (index_pos 0) or that was cut
-//! short gets a clear error (and the advice to run `rosbag reindex`) instead of a panic. Chunks
-//! are then read one by one at the positions of the index's chunk info records, so a corrupt
-//! chunk is reported and skipped and the chunks around it are still read.
+//! `index_pos` without checking it. A bag that was never closed (index_pos 0), that was cut
+//! short (index_pos past the end) or whose index is corrupt is read without the index by
+//! walking its records ([`super::ros1_scan`], as `rosbag reindex` would), with one warning
+//! saying so and how much was recovered. Chunks are read one by one (at the positions of the
+//! index's chunk info records, or where the walk found them), so a corrupt chunk is reported
+//! and skipped and the chunks around it are still read.
 
 use std::collections::{HashMap, VecDeque};
 use std::io::Read;
@@ -14,13 +16,14 @@ use std::path::Path;
 use rosbag::record_types::Compression;
 use rosbag::{ChunkRecord, IndexRecord, MessageRecord, RosBag};
 
-use super::{BagError, RawEvent, RawMsg, RawSource, TopicInfo};
+use super::{BagError, RawEvent, RawMsg, RawSource, TopicInfo, ros1_scan};
 use crate::bag::msg::Encoding;
 
-const MAGIC: &[u8] = b"#ROSBAG V2.0\n";
+pub(super) const MAGIC: &[u8] = b"#ROSBAG V2.0\n";
 
-/// Checks the magic and the bag header record, and returns `index_pos`.
-fn check_header(path: &Path, name: &str) -> Result<u64, BagError> {
+/// Checks the magic and the bag header record, and returns the file's length and `index_pos`,
+/// or why the index cannot be used.
+fn check_header(path: &Path, name: &str) -> Result<(u64, Result<u64, String>), BagError> {
     let mut f = std::fs::File::open(path).map_err(|e| BagError(format!("cannot open {name}: {e}")))?;
     let len = f.metadata().map_err(|e| BagError(format!("cannot read {name}: {e}")))?.len();
     let mut head = vec![0u8; 8192.min(len as usize)];
@@ -58,29 +61,48 @@ fn check_header(path: &Path, name: &str) -> Result<u64, BagError> {
         return Err(BagError(format!("{name}: corrupt bag header (no index_pos)")));
     };
     if index_pos == 0 {
-        return Err(BagError(format!(
-            "{name}: the bag was not closed (no index; the recorder was stopped abruptly); run `rosbag reindex` on it"
-        )));
+        return Ok((len, Err("the bag was not closed (no index: the recorder was stopped abruptly)".into())));
     }
     if index_pos < data_end || index_pos > len {
-        return Err(BagError(format!(
-            "{name}: truncated or corrupt: its index starts at byte {index_pos} but the file has {len} bytes; run `rosbag reindex` on it"
-        )));
+        return Ok((
+            len,
+            Err(format!(
+                "cut short or corrupt (its index starts at byte {index_pos} but the file has {len} bytes)"
+            )),
+        ));
     }
-    Ok(index_pos)
+    Ok((len, Ok(index_pos)))
+}
+
+/// Seconds with milliseconds, for messages.
+fn secs(ns: u64) -> String {
+    format!("{}.{:03}", ns / 1_000_000_000, ns % 1_000_000_000 / 1_000_000)
+}
+
+/// Where the chunks are read from.
+enum Reader {
+    /// Through the index, by the `rosbag` crate.
+    Indexed(RosBag),
+    /// Found by walking the records.
+    Scanned { file: std::fs::File, len: u64 },
 }
 
 struct Chunk {
     pos: u64,
+    /// Found damaged by the walk: read (to report it) even if none of its messages is selected.
+    damaged: bool,
     /// Messages of the selected connections in this chunk.
     selected: u64,
 }
 
 /// A ROS 1 bag.
 pub(super) struct Ros1Source {
-    bag: RosBag,
+    reader: Reader,
+    /// For a bag read without its index: the warning, said before the first message, and
+    /// whether the walk stopped at damage.
+    recovered: Option<(String, bool)>,
     chunks: Vec<Chunk>,
-    /// Per chunk: (connection, messages) from its chunk info record.
+    /// Per chunk: (connection, messages), from its chunk info record or from the walk.
     chunk_entries: Vec<Vec<(u32, u32)>>,
     next_chunk: usize,
     /// Connection id -> topic index.
@@ -93,25 +115,46 @@ pub(super) struct Ros1Source {
 impl Ros1Source {
     pub(super) fn open(path: &Path) -> Result<(Self, Vec<TopicInfo>), BagError> {
         let name = path.display().to_string();
-        check_header(path, &name)?;
-        let bag = RosBag::new(path).map_err(|e| BagError(format!("{name}: {e}")))?;
+        let (len, index) = check_header(path, &name)?;
+        match index {
+            Ok(_) => match Self::open_indexed(path) {
+                Ok(x) => Ok(x),
+                Err(why) => Self::open_scanned(path, &name, len, &format!("corrupt index ({why})")),
+            },
+            Err(why) => Self::open_scanned(path, &name, len, &why),
+        }
+    }
+
+    fn new(
+        reader: Reader,
+        conn_topic: HashMap<u32, usize>,
+        chunk_infos: Vec<(u64, Vec<(u32, u32)>)>,
+    ) -> Self {
+        Ros1Source {
+            reader,
+            recovered: None,
+            chunks: chunk_infos
+                .iter()
+                .map(|(pos, _)| Chunk { pos: *pos, damaged: false, selected: 0 })
+                .collect(),
+            chunk_entries: chunk_infos.into_iter().map(|(_, e)| e).collect(),
+            next_chunk: 0,
+            conn_topic,
+            selected: HashMap::new(),
+            queue: VecDeque::new(),
+        }
+    }
+
+    /// Opens through the index; `Err` says why the index cannot be used.
+    fn open_indexed(path: &Path) -> Result<(Self, Vec<TopicInfo>), String> {
+        let bag = RosBag::new(path).map_err(|e| e.to_string())?;
         let mut topics: Vec<TopicInfo> = Vec::new();
         let mut conn_topic = HashMap::new();
         let mut chunk_infos: Vec<(u64, Vec<(u32, u32)>)> = Vec::new();
         for rec in bag.index_records() {
-            let rec = rec.map_err(|e| {
-                BagError(format!("{name}: corrupt index ({}); run `rosbag reindex` on it", rosbag_msg(&e)))
-            })?;
-            match rec {
+            match rec.map_err(|e| rosbag_msg(&e))? {
                 IndexRecord::Connection(c) => {
-                    let idx = match topics.iter().position(|t| t.name == c.topic) {
-                        Some(i) => i,
-                        None => {
-                            topics.push(TopicInfo::new(c.topic, c.tp, Encoding::Ros1, Some(0)));
-                            topics.len() - 1
-                        }
-                    };
-                    conn_topic.insert(c.id, idx);
+                    conn_topic.insert(c.id, topic_index(&mut topics, c.topic, c.tp));
                 }
                 IndexRecord::ChunkInfo(ci) => {
                     chunk_infos.push((ci.chunk_pos, ci.entries().map(|e| (e.conn_id, e.count)).collect()));
@@ -120,35 +163,77 @@ impl Ros1Source {
             }
         }
         if chunk_infos.len() != bag.get_chunk_count() as usize {
-            return Err(BagError(format!(
-                "{name}: corrupt index: {} chunk info records for {} chunks; run `rosbag reindex` on it",
+            return Err(format!(
+                "{} chunk info records for {} chunks",
                 chunk_infos.len(),
                 bag.get_chunk_count()
-            )));
+            ));
         }
         chunk_infos.sort_by_key(|c| c.0);
-        for (_, entries) in &chunk_infos {
-            for (conn, n) in entries {
-                if let Some(t) = conn_topic.get(conn).and_then(|&i| topics.get_mut(i)) {
-                    t.count = Some(t.count.unwrap_or(0) + *n as u64);
-                }
-            }
+        count_messages(&mut topics, &conn_topic, &chunk_infos);
+        Ok((Self::new(Reader::Indexed(bag), conn_topic, chunk_infos), topics))
+    }
+
+    /// Opens by walking the records; `why` says why the index is not used.
+    fn open_scanned(
+        path: &Path,
+        name: &str,
+        len: u64,
+        why: &str,
+    ) -> Result<(Self, Vec<TopicInfo>), BagError> {
+        let file = std::fs::File::open(path).map_err(|e| BagError(format!("cannot open {name}: {e}")))?;
+        let s = ros1_scan::scan(&file, len).map_err(|e| BagError(format!("cannot read {name}: {e}")))?;
+        let stop = s
+            .stopped
+            .as_ref()
+            .map(|(pos, e)| format!("; the records end at byte {pos} of {len} ({e}), the rest is lost"));
+        if s.chunks.is_empty() {
+            return Err(BagError(format!(
+                "{name}: {why}, and no chunk could be read without it{}",
+                stop.unwrap_or_default()
+            )));
         }
-        let src = Ros1Source {
-            bag,
-            chunks: chunk_infos.iter().map(|(pos, _)| Chunk { pos: *pos, selected: 0 }).collect(),
-            chunk_entries: chunk_infos.into_iter().map(|(_, e)| e).collect(),
-            next_chunk: 0,
-            conn_topic,
-            selected: HashMap::new(),
-            queue: VecDeque::new(),
-        };
+        let mut topics: Vec<TopicInfo> = Vec::new();
+        let mut conn_topic = HashMap::new();
+        for (id, (topic, ty)) in &s.conns {
+            conn_topic.insert(*id, topic_index(&mut topics, topic, ty));
+        }
+        count_messages(&mut topics, &conn_topic, &s.chunks);
+        let span =
+            s.span.map_or(String::new(), |(a, b)| format!(", record times {} to {} s", secs(a), secs(b)));
+        let warning = format!(
+            "{name}: {why}; read without the index, as `rosbag reindex` would: {} messages recovered from {} chunks{span}{}",
+            s.messages,
+            s.chunks.len(),
+            stop.clone().unwrap_or_default()
+        );
+        let mut src = Self::new(Reader::Scanned { file, len }, conn_topic, s.chunks);
+        for c in &mut src.chunks {
+            c.damaged = s.damaged.contains(&c.pos);
+        }
+        src.recovered = Some((warning, stop.is_some()));
         Ok((src, topics))
     }
 
     fn load_chunk(&mut self, k: usize) -> Result<(), BagError> {
         let pos = self.chunks[k].pos;
-        let mut it = self.bag.chunk_records();
+        let bag = match &mut self.reader {
+            Reader::Indexed(bag) => bag,
+            Reader::Scanned { file, len } => {
+                let c = ros1_scan::read_chunk(file, *len, pos)
+                    .map_err(|e| BagError(format!("chunk at byte {pos}: {e}")))?;
+                for (conn, time, data) in c.messages {
+                    if let Some(&topic) = self.selected.get(&conn) {
+                        self.queue.push_back(RawMsg { record_ns: time, topic, data });
+                    }
+                }
+                return match c.damage {
+                    Some(e) => Err(BagError(format!("chunk at byte {pos}: {e}"))),
+                    None => Ok(()),
+                };
+            }
+        };
+        let mut it = bag.chunk_records();
         it.seek(pos).map_err(|e| BagError(format!("chunk at byte {pos}: {}", rosbag_msg(&e))))?;
         let chunk = match it.next() {
             Some(Ok(ChunkRecord::Chunk(c))) => c,
@@ -185,6 +270,32 @@ impl Ros1Source {
     }
 }
 
+/// The index of `topic` in `topics`, added if new.
+fn topic_index(topics: &mut Vec<TopicInfo>, topic: &str, ty: &str) -> usize {
+    match topics.iter().position(|t| t.name == topic) {
+        Some(i) => i,
+        None => {
+            topics.push(TopicInfo::new(topic, ty, Encoding::Ros1, Some(0)));
+            topics.len() - 1
+        }
+    }
+}
+
+/// Adds the chunks' message counts to the topics.
+fn count_messages(
+    topics: &mut [TopicInfo],
+    conn_topic: &HashMap<u32, usize>,
+    chunks: &[(u64, Vec<(u32, u32)>)],
+) {
+    for (_, entries) in chunks {
+        for (conn, n) in entries {
+            if let Some(t) = conn_topic.get(conn).and_then(|&i| topics.get_mut(i)) {
+                t.count = Some(t.count.unwrap_or(0) + *n as u64);
+            }
+        }
+    }
+}
+
 fn rosbag_msg(e: &rosbag::Error) -> String {
     e.to_string().trim_start_matches("rosbag::Error: ").to_string()
 }
@@ -203,6 +314,9 @@ impl RawSource for Ros1Source {
     }
 
     fn next_raw(&mut self) -> Option<Result<RawEvent, BagError>> {
+        if let Some((why, truncated)) = self.recovered.take() {
+            return Some(Ok(RawEvent::Recovered { why, unindexed: true, truncated }));
+        }
         loop {
             if let Some(m) = self.queue.pop_front() {
                 return Some(Ok(RawEvent::Msg(m)));
@@ -212,7 +326,7 @@ impl RawSource for Ros1Source {
                 return None;
             }
             self.next_chunk += 1;
-            if self.chunks[k].selected == 0 {
+            if self.chunks[k].selected == 0 && !self.chunks[k].damaged {
                 continue;
             }
             if let Err(e) = self.load_chunk(k) {

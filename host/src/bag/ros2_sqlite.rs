@@ -7,6 +7,9 @@
 //! messages and about 20 minutes for a 10-minute bag with a 1 kHz IMU. For those the message
 //! ids are sorted once, in one query (8 bytes per message of the selected topics), and the pages
 //! are read by id, which is the table's primary key.
+//!
+//! A database with damaged pages (a disk error, a copy cut short) gives its rows up to the
+//! first error, then one warning naming how many rows were read; the next split is read on.
 
 use std::collections::{HashMap, VecDeque};
 use std::path::{Path, PathBuf};
@@ -23,12 +26,21 @@ fn open_db(path: &Path) -> Result<Connection, BagError> {
     let db =
         Connection::open_with_flags(path, OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX)
             .map_err(|e| BagError(format!("{name}: cannot open as a rosbag2 sqlite3 database: {e}")))?;
-    let has_tables: i64 = db
-        .query_row(
+    let tables = |db: &Connection| -> rusqlite::Result<i64> {
+        db.query_row(
             "SELECT COUNT(*) FROM sqlite_master WHERE type = 'table' AND name IN ('topics', 'messages')",
             [],
             |r| r.get(0),
         )
+    };
+    // SQLite refuses a file shorter than its header says (a copy cut short) unless the schema
+    // is marked writable; the connection is read-only, so this only lets the pages that are
+    // there be read (as the sqlite3 shell's `.recover` does).
+    let has_tables: i64 = tables(&db)
+        .or_else(|_| {
+            db.pragma_update(None, "writable_schema", true)?;
+            tables(&db)
+        })
         .map_err(|e| BagError(format!("{name}: not a readable sqlite3 database ({e})")))?;
     if has_tables != 2 {
         return Err(BagError(format!("{name}: not a rosbag2 database (no topics and messages tables)")));
@@ -56,7 +68,21 @@ pub(super) struct SqliteSource {
     /// For a file without a timestamp index: the ids of its selected messages in (timestamp,
     /// id) order, and how many of them have been read.
     order: Option<(Vec<i64>, usize)>,
+    /// Damage met while listing the ids of a file without a timestamp index: said once the
+    /// ids before it are read.
+    order_damage: Option<BagError>,
+    /// Rows of the selected topics read from the current file.
+    rows: u64,
+    /// A warning for the file just left at damage, said once its rows are delivered.
+    recovered: Option<String>,
     queue: VecDeque<RawMsg>,
+}
+
+/// Messages per topic id.
+fn message_counts(db: &Connection) -> Result<Vec<(i64, i64)>, rusqlite::Error> {
+    let mut st = db.prepare("SELECT topic_id, COUNT(*) FROM messages GROUP BY topic_id")?;
+    let rows = st.query_map([], |r| Ok((r.get::<_, i64>(0)?, r.get::<_, i64>(1)?)))?;
+    rows.collect()
 }
 
 /// Whether `messages` has an index that starts with its `timestamp` column.
@@ -104,16 +130,20 @@ impl SqliteSource {
                 };
                 map.insert(id, idx);
             }
-            let mut st = db
-                .prepare("SELECT topic_id, COUNT(*) FROM messages GROUP BY topic_id")
-                .map_err(|e| sql_err(f, e))?;
-            let rows = st
-                .query_map([], |r| Ok((r.get::<_, i64>(0)?, r.get::<_, i64>(1)?)))
-                .map_err(|e| sql_err(f, e))?;
-            for row in rows {
-                let (id, n) = row.map_err(|e| sql_err(f, e))?;
-                if let Some(t) = map.get(&id).and_then(|&i| topics.get_mut(i)) {
-                    t.count = Some(t.count.unwrap_or(0) + n.max(0) as u64);
+            // The counts walk the whole table: damaged pages leave them unknown (the rows
+            // before the damage are still read).
+            match message_counts(&db) {
+                Ok(counts) => {
+                    for (id, n) in counts {
+                        if let Some(t) = map.get(&id).and_then(|&i| topics.get_mut(i)) {
+                            t.count = t.count.map(|c| c + n.max(0) as u64);
+                        }
+                    }
+                }
+                Err(_) => {
+                    for &i in map.values() {
+                        topics[i].count = None;
+                    }
                 }
             }
             ids.push(map);
@@ -126,6 +156,9 @@ impl SqliteSource {
             db: None,
             last: (i64::MIN, i64::MIN),
             order: None,
+            order_damage: None,
+            rows: 0,
+            recovered: None,
             queue: VecDeque::new(),
         };
         Ok((src, topics))
@@ -145,30 +178,44 @@ impl SqliteSource {
         if self.db.is_none() {
             let db = open_db(path)?;
             self.last = (i64::MIN, i64::MIN);
-            // Once per file: without the timestamp index, the ids in (timestamp, id) order.
+            self.rows = 0;
+            // Once per file: without the timestamp index, the ids in (timestamp, id) order,
+            // listed in table order (up to any damage) and sorted here.
             self.order = if has_timestamp_index(&db).map_err(|e| sql_err(path, e))? {
                 None
             } else {
-                let sql = format!(
-                    "SELECT id FROM messages WHERE topic_id IN ({}) ORDER BY timestamp, id",
-                    ids.join(",")
-                );
+                let sql = format!("SELECT timestamp, id FROM messages WHERE topic_id IN ({})", ids.join(","));
                 let mut st = db.prepare(&sql).map_err(|e| sql_err(path, e))?;
-                let order = st
-                    .query_map([], |r| r.get::<_, i64>(0))
+                let mut order = Vec::new();
+                for r in st
+                    .query_map([], |r| Ok((r.get::<_, i64>(0)?, r.get::<_, i64>(1)?)))
                     .map_err(|e| sql_err(path, e))?
-                    .collect::<Result<_, _>>()
-                    .map_err(|e| sql_err(path, e))?;
-                Some((order, 0))
+                {
+                    match r {
+                        Ok(x) => order.push(x),
+                        Err(e) => {
+                            self.order_damage = Some(sql_err(path, e));
+                            break;
+                        }
+                    }
+                }
+                order.sort_unstable();
+                Some((order.into_iter().map(|(_, id)| id).collect(), 0))
             };
             self.db = Some(db);
         }
         let Some(db) = self.db.as_ref() else { return Ok(false) };
-        let rows = if let Some((order, done)) = &mut self.order {
+        // Rows are queued as they come, so that those before an error are kept.
+        let mut got = Vec::with_capacity(PAGE);
+        let mut damage = None;
+        if let Some((order, done)) = &mut self.order {
             // The next PAGE ids of the sorted list, by primary key.
             let next = &order[*done..order.len().min(*done + PAGE)];
             if next.is_empty() {
-                return Ok(false);
+                return match self.order_damage.take() {
+                    Some(e) => Err(e),
+                    None => Ok(false),
+                };
             }
             *done += next.len();
             let params: [i64; PAGE] = core::array::from_fn(|i| next.get(i).copied().unwrap_or(-1));
@@ -177,15 +224,18 @@ impl SqliteSource {
                 (1..=PAGE).map(|i| format!("?{i}")).collect::<Vec<_>>().join(",")
             );
             let mut st = db.prepare_cached(&sql).map_err(|e| sql_err(path, e))?;
-            let mut rows = st
-                .query_map(rusqlite::params_from_iter(params), row)
-                .map_err(|e| sql_err(path, e))?
-                .collect::<Result<Vec<_>, _>>()
-                .map_err(|e| sql_err(path, e))?;
+            for r in st.query_map(rusqlite::params_from_iter(params), row).map_err(|e| sql_err(path, e))? {
+                match r {
+                    Ok(r) => got.push(r),
+                    Err(e) => {
+                        damage = Some(sql_err(path, e));
+                        break;
+                    }
+                }
+            }
             // Only the listed ids (the padding's -1 may be a real one), in the list's order.
-            rows.retain(|r| next.contains(&r.0));
-            rows.sort_by_key(|r| next.iter().position(|&id| id == r.0));
-            rows
+            got.retain(|r| next.contains(&r.0));
+            got.sort_by_key(|r| next.iter().position(|&id| id == r.0));
         } else {
             let sql = format!(
                 "SELECT id, topic_id, timestamp, data FROM messages WHERE topic_id IN ({}) \
@@ -193,16 +243,20 @@ impl SqliteSource {
                 ids.join(",")
             );
             let mut st = db.prepare_cached(&sql).map_err(|e| sql_err(path, e))?;
-            let mut rows = Vec::with_capacity(PAGE);
             for r in st.query_map([self.last.0, self.last.1], row).map_err(|e| sql_err(path, e))? {
-                rows.push(r.map_err(|e| sql_err(path, e))?);
+                match r {
+                    Ok(r) => got.push(r),
+                    Err(e) => {
+                        damage = Some(sql_err(path, e));
+                        break;
+                    }
+                }
             }
-            if rows.is_empty() {
+            if got.is_empty() && damage.is_none() {
                 return Ok(false);
             }
-            rows
-        };
-        for (id, topic_id, ts, data) in rows {
+        }
+        for (id, topic_id, ts, data) in got {
             self.last = (ts, id);
             if ts < 0 {
                 return Err(BagError(format!(
@@ -211,10 +265,14 @@ impl SqliteSource {
                 )));
             }
             if let Some(&topic) = self.ids[self.file].get(&topic_id) {
+                self.rows += 1;
                 self.queue.push_back(RawMsg { record_ns: ts as u64, topic, data });
             }
         }
-        Ok(true)
+        match damage {
+            Some(e) => Err(e),
+            None => Ok(true),
+        }
     }
 }
 
@@ -233,6 +291,9 @@ impl RawSource for SqliteSource {
             if let Some(m) = self.queue.pop_front() {
                 return Some(Ok(RawEvent::Msg(m)));
             }
+            if let Some(why) = self.recovered.take() {
+                return Some(Ok(RawEvent::Recovered { why, unindexed: false, truncated: true }));
+            }
             if self.file >= self.files.len() {
                 return None;
             }
@@ -243,8 +304,15 @@ impl RawSource for SqliteSource {
                     self.db = None;
                 }
                 Err(e) => {
-                    self.file = self.files.len();
-                    return Some(Err(e));
+                    // The rows before the damage are queued; the rest of this file is lost,
+                    // the next split is read.
+                    self.recovered = Some(format!(
+                        "{}; the {} rows before the damage are read, the rest of the file is lost",
+                        e.0, self.rows
+                    ));
+                    self.file += 1;
+                    self.db = None;
+                    self.order_damage = None;
                 }
             }
         }
