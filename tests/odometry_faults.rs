@@ -41,7 +41,7 @@ enum Fault {
 fn run(sc: &Scenario, fault: Fault) -> (Trace, loglio_core::imu_guard::ImuGuardStats) {
     let mut store = STORE.lock().unwrap_or_else(|e| e.into_inner());
     let mut odo: Odometry<'_, _, _, _> = store.odometry(&config_for(sc, AssociationMode::Full)).unwrap();
-    let t0 = sc.config().start_ns;
+    let t0 = sc.start_ns();
     let at = t0 + (T_FAULT_S * 1e9) as u64;
     let mut done = false;
     let mut trace = Trace::default();
