@@ -263,6 +263,14 @@ pub struct EskfConfig {
     pub gap_inflation: f64,
     /// A sample spacing above this is a jump: not integrated, seconds.
     pub max_hold_s: f64,
+    /// Held longer than this (an IMU gap, the scans still coming), the last sample no longer
+    /// stands for the motion: the interval is bridged at constant velocity and attitude, with
+    /// the random walks below, and the scans correct it, seconds.
+    pub bridge_after_s: f64,
+    /// Acceleration the constant-velocity bridge allows for (white, per axis), m/s^2/√Hz.
+    pub bridge_acc_std: f64,
+    /// Angular rate the bridge allows for (white, per axis), rad/s/√Hz.
+    pub bridge_gyro_std: f64,
     /// Iterations of the update (clamped to 1..=[`MAX_ITERATIONS`]).
     pub max_iterations: usize,
     /// Converged when every position component of the step is at most this, m ...
@@ -288,6 +296,9 @@ impl Default for EskfConfig {
             max_gap_s: 0.05,
             gap_inflation: 10.0,
             max_hold_s: 0.5,
+            bridge_after_s: 0.2,
+            bridge_acc_std: 2.0,
+            bridge_gyro_std: 1.0,
             max_iterations: 5,
             converge_pos: 1e-4,
             converge_rot: 1e-5,
@@ -852,6 +863,9 @@ impl Eskf {
         // the scans bridged (`predict_to`) is a gap, integrated holding it.
         let out = if dt > self.cfg.max_hold_s {
             self.jump(s.t_ns, span)
+        } else if span > self.cfg.bridge_after_s {
+            self.bridge(dt);
+            Predicted::Gap { dt_s: dt }
         } else if span > self.cfg.max_gap_s {
             self.integrate(&head.gyro_vec(), &(head.acc_vec() * self.acc_scale), dt, self.cfg.gap_inflation);
             self.counters.gaps = self.counters.gaps.saturating_add(1);
@@ -885,7 +899,10 @@ impl Eskf {
         if dt > self.cfg.max_hold_s {
             return self.jump(t_ns, span);
         }
-        let out = if span > self.cfg.max_gap_s {
+        let out = if span > self.cfg.bridge_after_s {
+            self.bridge(dt);
+            Predicted::Gap { dt_s: dt }
+        } else if span > self.cfg.max_gap_s {
             self.integrate(&h.gyro_vec(), &(h.acc_vec() * self.acc_scale), dt, self.cfg.gap_inflation);
             self.counters.gaps = self.counters.gaps.saturating_add(1);
             self.flags.0 |= PropagationFlags::GAP;
@@ -896,6 +913,38 @@ impl Eskf {
         };
         self.t_ns = t_ns;
         out
+    }
+
+    /// One step of an IMU gap at constant velocity and attitude (the inputs that make the
+    /// world acceleration and the rate zero), with the bridge's random walks as process noise:
+    /// holding a sample of a walking or turning platform for seconds runs away, the mean
+    /// motion does not, and the scans correct what it misses.
+    fn bridge(&mut self, dt: f64) {
+        let r = self.x.rot.to_rotation_matrix().into_inner();
+        let acc = r.transpose() * (-self.x.grav.vec()) + self.x.ba;
+        let gyro = self.x.bg;
+        let mut blocks = step_state(&mut self.x, &gyro, &acc, dt);
+        // The bridge's motion depends on no measured input: neither the biases nor gravity nor
+        // the attitude move it, so the scans' corrections must not leak into the biases.
+        blocks.f_rbg = M3::zeros();
+        blocks.f_vr = M3::zeros();
+        blocks.f_vbg = M3::zeros();
+        blocks.f_vba = M3::zeros();
+        blocks.f_vg = SMatrix::zeros();
+        propagate_cov(&mut self.p, &blocks, dt);
+        add_process_noise(&mut self.p, &self.cfg, dt, 1.0);
+        let (sa, sg) = (self.cfg.bridge_acc_std, self.cfg.bridge_gyro_std);
+        let (qa, qg) = (sa * sa, sg * sg * dt);
+        for k in 0..3 {
+            self.p[(idx::ROT + k, idx::ROT + k)] += qg;
+            self.p[(idx::VEL + k, idx::VEL + k)] += qa * dt;
+            self.p[(idx::POS + k, idx::POS + k)] += qa * dt * dt * dt / 3.0;
+            self.p[(idx::POS + k, idx::VEL + k)] += qa * dt * dt / 2.0;
+            self.p[(idx::VEL + k, idx::POS + k)] += qa * dt * dt / 2.0;
+        }
+        self.counters.steps = self.counters.steps.saturating_add(1);
+        self.counters.gaps = self.counters.gaps.saturating_add(1);
+        self.flags.0 |= PropagationFlags::GAP;
     }
 
     /// One integration step with a constant input over `dt` (module docs), with the process

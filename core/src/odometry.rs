@@ -491,7 +491,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 }
                 None => match self.initializer.push(&s) {
                     InitStatus::Ready(init) => {
-                        self.filter = Some(Eskf::new(self.cfg.eskf, &init, self.cfg.ext_rot, self.cfg.ext_pos));
+                        self.filter =
+                            Some(Eskf::new(self.cfg.eskf, &init, self.cfg.ext_rot, self.cfg.ext_pos));
                     }
                     InitStatus::Waiting(w) => self.wait = w,
                 },
