@@ -14,6 +14,19 @@ pub struct SinkArgs {
     /// Seconds between two maps sent to the live outputs that carry one.
     #[arg(long, value_name = "S", default_value_t = 5.0)]
     pub map_every: f64,
+    /// Publish over ROS 2 (DDS; no ROS installation needed): odometry, IMU-rate odometry, /tf,
+    /// the scan and the map. The domain is ROS_DOMAIN_ID's (default 0).
+    #[arg(long)]
+    pub ros2: bool,
+    /// Namespace of the --ros2 topics (/tf is always global).
+    #[arg(long, value_name = "NS", default_value = "/loglio")]
+    pub ros2_namespace: String,
+    /// The --ros2 world frame (the odometry's header and the parent in /tf).
+    #[arg(long, value_name = "FRAME", default_value = "odom")]
+    pub ros2_frame_id: String,
+    /// The --ros2 body frame (the odometry's child frame, the IMU).
+    #[arg(long, value_name = "FRAME", default_value = "base_link")]
+    pub ros2_child_frame_id: String,
 }
 
 impl SinkArgs {
@@ -26,14 +39,26 @@ impl SinkArgs {
             map_every_s: if self.map_every.is_finite() { self.map_every.max(0.0) } else { 5.0 },
             ..SinkOptions::default()
         };
-        let sinks = Sinks::new(opt);
-        #[allow(clippy::let_and_return)]
+        let mut sinks = Sinks::new(opt);
+        if self.ros2 {
+            add(&mut sinks, "--ros2", self.ros2_sink());
+        }
         sinks
+    }
+
+    fn ros2_sink(&self) -> Result<Box<dyn super::Sink>, super::SinkError> {
+        let domain = super::ros2::domain_from_env(std::env::var("ROS_DOMAIN_ID").ok().as_deref())?;
+        let opt = super::ros2::Ros2Options {
+            domain,
+            namespace: self.ros2_namespace.clone(),
+            frame_id: self.ros2_frame_id.clone(),
+            child_frame_id: self.ros2_child_frame_id.clone(),
+        };
+        Ok(Box::new(super::ros2::Ros2Sink::start(opt)?))
     }
 }
 
 /// Adds `sink` (or says in one warning why it could not start).
-#[allow(dead_code)]
 fn add(sinks: &mut Sinks, what: &str, sink: Result<Box<dyn super::Sink>, super::SinkError>) {
     match sink.and_then(|s| sinks.add(s)) {
         Ok(()) => {}
