@@ -51,8 +51,11 @@ fn parse_fields(h: &[u8]) -> Option<Vec<(Vec<u8>, Vec<u8>)>> {
     Some(fields)
 }
 
+/// A record header's fields: (name, value) pairs.
+type Fields = Vec<(Vec<u8>, Vec<u8>)>;
+
 /// Splits a record header into fields; `None` if it does not parse or has no one-byte `op`.
-fn parse_header(h: &[u8]) -> Option<(u8, Vec<(Vec<u8>, Vec<u8>)>)> {
+fn parse_header(h: &[u8]) -> Option<(u8, Fields)> {
     let fields = parse_fields(h)?;
     let op = match fields.iter().find(|(n, _)| n == b"op") {
         Some((_, v)) if v.len() == 1 => v[0],

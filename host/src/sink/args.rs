@@ -37,6 +37,19 @@ pub struct SinkArgs {
     /// Record the Foxglove output's channels to an MCAP file.
     #[arg(long, value_name = "FILE")]
     pub mcap: Option<std::path::PathBuf>,
+    /// Publish over ROS 2 (DDS; no ROS installation needed): odometry, IMU-rate odometry, /tf,
+    /// the scan and the map. The domain is ROS_DOMAIN_ID's (default 0).
+    #[arg(long)]
+    pub ros2: bool,
+    /// Namespace of the --ros2 topics (/tf is always global).
+    #[arg(long, value_name = "NS", default_value = "/loglio")]
+    pub ros2_namespace: String,
+    /// The --ros2 world frame (the odometry's header and the parent in /tf).
+    #[arg(long, value_name = "FRAME", default_value = "odom")]
+    pub ros2_frame_id: String,
+    /// The --ros2 body frame (the odometry's child frame, the IMU).
+    #[arg(long, value_name = "FRAME", default_value = "base_link")]
+    pub ros2_child_frame_id: String,
 }
 
 /// A rate in Hz: finite, 0 to 1000.
@@ -83,7 +96,21 @@ impl SinkArgs {
             let s = super::mcap::McapSink::create(p).map(|s| Box::new(s) as Box<dyn super::Sink>);
             add(&mut sinks, "--mcap", s);
         }
+        if self.ros2 {
+            add(&mut sinks, "--ros2", self.ros2_sink());
+        }
         sinks
+    }
+
+    fn ros2_sink(&self) -> Result<Box<dyn super::Sink>, super::SinkError> {
+        let domain = super::ros2::domain_from_env(std::env::var("ROS_DOMAIN_ID").ok().as_deref())?;
+        let opt = super::ros2::Ros2Options {
+            domain,
+            namespace: self.ros2_namespace.clone(),
+            frame_id: self.ros2_frame_id.clone(),
+            child_frame_id: self.ros2_child_frame_id.clone(),
+        };
+        Ok(Box::new(super::ros2::Ros2Sink::start(opt)?))
     }
 }
 

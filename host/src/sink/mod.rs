@@ -23,6 +23,7 @@ pub mod callback;
 pub mod foxglove;
 pub mod mavlink;
 pub mod mcap;
+pub mod ros2;
 
 pub use args::SinkArgs;
 pub use callback::{CallbackSink, ChannelSink};
