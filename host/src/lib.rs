@@ -18,27 +18,14 @@
 //! | [`sink`] | live outputs: each scan's result and the high-rate pose to ROS 2, MAVLink, Foxglove or a callback, never blocking |
 //! | [`pipeline`] | the configuration onto the core odometry, its heap storage, input ordering and outputs |
 
-pub mod bag;
-pub mod bagrun;
-pub mod bench;
+pub mod cmd;
 pub mod config;
 pub mod diag;
 pub mod eval;
-pub mod imu_csv;
+pub mod input;
 pub mod knn_pca;
-pub mod lidar_stream;
-pub mod live;
 pub mod machine;
-pub mod normals;
-pub mod ouster_meta;
 pub mod output;
-pub mod pcap;
 pub mod pipeline;
-pub mod replay;
 pub mod run;
-pub mod serial;
-pub mod sim;
 pub mod sink;
-pub mod time_align;
-pub mod udp;
-pub mod velodyne_calib;

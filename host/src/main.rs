@@ -36,7 +36,7 @@ enum Command {
     BagInfo(BagInfoArgs),
     /// Ring FALS normals of a real capture (the bundled Ouster OS-1-32 frame by default): valid
     /// normals, time per scan, agreement with kNN-PCA on planar points.
-    Normals(loglio_host::normals::NormalsArgs),
+    Normals(loglio_host::cmd::normals::NormalsArgs),
     /// Run live: LiDAR packets over UDP, the IMU from a serial port or the Ouster's IMU packets;
     /// a status line each second; Ctrl-C stops and writes every output (as replay).
     Live(LiveArgs),
@@ -166,8 +166,8 @@ struct RunArgs {
 }
 
 impl RunArgs {
-    fn setup(&self) -> loglio_host::replay::RunSetup {
-        loglio_host::replay::RunSetup {
+    fn setup(&self) -> loglio_host::cmd::replay::RunSetup {
+        loglio_host::cmd::replay::RunSetup {
             config: self.config.clone(),
             preset: self.preset.clone(),
             mode: self.mode.map(ModeArg::host),
@@ -477,7 +477,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Config(a) => config_cmd(a),
         Command::Eval(a) => eval_cmd(a),
         Command::BagInfo(a) => bag_info_cmd(a),
-        Command::Normals(a) => loglio_host::normals::run(&a),
+        Command::Normals(a) => loglio_host::cmd::normals::run(&a),
         Command::Live(a) => live_cmd(a),
         Command::Replay(a) => replay_cmd(a),
         Command::Bag(a) => bag_cmd(a),
@@ -488,7 +488,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
 }
 
 fn replay_cmd(a: ReplayArgs) -> anyhow::Result<()> {
-    use loglio_host::replay::{ImuInput, ReplayOptions};
+    use loglio_host::cmd::replay::{ImuInput, ReplayOptions};
     if !(a.rate > 0.0 && a.rate.is_finite()) {
         bail!("--rate must be a positive number, not {}", a.rate);
     }
@@ -504,7 +504,7 @@ fn replay_cmd(a: ReplayArgs) -> anyhow::Result<()> {
         setup: a.run.setup(),
         progress: true,
     };
-    let r = loglio_host::replay::run(&opt)?;
+    let r = loglio_host::cmd::replay::run(&opt)?;
     print(&format!(
         "{}: {} LiDAR packets{}\n{}",
         opt.pcap.display(),
@@ -515,12 +515,12 @@ fn replay_cmd(a: ReplayArgs) -> anyhow::Result<()> {
         } else {
             String::new()
         },
-        loglio_host::replay::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
+        loglio_host::cmd::replay::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
     ))
 }
 
 fn live_cmd(a: LiveArgs) -> anyhow::Result<()> {
-    use loglio_host::live::{LiveImu, LiveOptions};
+    use loglio_host::cmd::live::{LiveImu, LiveOptions};
     if !(a.imu_timeout > 0.0 && a.imu_timeout.is_finite()) {
         bail!("--imu-timeout must be a positive number of seconds, not {}", a.imu_timeout);
     }
@@ -539,8 +539,8 @@ fn live_cmd(a: LiveArgs) -> anyhow::Result<()> {
     opt.lidar_timeout_s = a.lidar_timeout;
     opt.imu_timeout_s = a.imu_timeout;
     opt.status = !a.quiet;
-    let r = loglio_host::live::run(&opt)?;
-    print(&loglio_host::live::summary(&r))
+    let r = loglio_host::cmd::live::run(&opt)?;
+    print(&loglio_host::cmd::live::summary(&r))
 }
 
 fn bench_cmd(a: BenchArgs) -> anyhow::Result<()> {
@@ -551,7 +551,14 @@ fn bench_cmd(a: BenchArgs) -> anyhow::Result<()> {
         bail!("--seconds must be in [3, 120], not {}", a.seconds);
     }
     let scenario = a.scenario.as_deref().map(scenario_kind).transpose()?;
-    let r = loglio_host::bench::run(preset, scenario, a.seconds, a.max_points, a.knn_search.host(), !a.json)?;
+    let r = loglio_host::cmd::bench::run(
+        preset,
+        scenario,
+        a.seconds,
+        a.max_points,
+        a.knn_search.host(),
+        !a.json,
+    )?;
     print(&if a.json { r.to_json() } else { r.to_text() })
 }
 
@@ -559,7 +566,7 @@ fn bag_cmd(a: BagArgs) -> anyhow::Result<()> {
     if !(a.rate > 0.0 && a.rate.is_finite()) {
         bail!("--rate must be a positive number, not {}", a.rate);
     }
-    let opt = loglio_host::bagrun::BagRunOptions {
+    let opt = loglio_host::cmd::bag::BagRunOptions {
         bag: a.bag,
         lidar_topic: a.lidar_topic,
         imu_topic: a.imu_topic,
@@ -567,19 +574,19 @@ fn bag_cmd(a: BagArgs) -> anyhow::Result<()> {
         progress: !a.realtime,
         realtime: a.realtime.then_some(a.rate),
     };
-    let r = loglio_host::bagrun::run(&opt)?;
+    let r = loglio_host::cmd::bag::run(&opt)?;
     print(&format!(
         "{}: {}\n{}\n{}",
         opt.bag.display(),
         r.topics,
         r.bag_stats,
-        loglio_host::replay::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
+        loglio_host::cmd::replay::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
     ))
 }
 
-fn sim_run(opt: loglio_host::sim::SimOptions) -> anyhow::Result<()> {
-    let report = loglio_host::sim::run(&opt)?;
-    print(&loglio_host::sim::summary(&opt, &report))
+fn sim_run(opt: loglio_host::cmd::sim::SimOptions) -> anyhow::Result<()> {
+    let report = loglio_host::cmd::sim::run(&opt)?;
+    print(&loglio_host::cmd::sim::summary(&opt, &report))
 }
 
 /// A simulator scenario by name, or an error that lists the known ones.
@@ -607,7 +614,7 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
     {
         bail!("--seconds must be in (0, 600], not {s}");
     }
-    sim_run(loglio_host::sim::SimOptions {
+    sim_run(loglio_host::cmd::sim::SimOptions {
         kind,
         sensor,
         seed: a.seed,
@@ -635,7 +642,7 @@ fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
         "loglio demo: {} s of a simulated Velodyne VLP-32C on a car driving through a town (firmware-sim, seed 1)",
         a.seconds
     ))?;
-    sim_run(loglio_host::sim::SimOptions {
+    sim_run(loglio_host::cmd::sim::SimOptions {
         kind: ScenarioKind::Vehicle,
         sensor: SensorModel::Vlp32c,
         seed: 1,
@@ -717,7 +724,7 @@ fn eval_cmd(a: EvalArgs) -> anyhow::Result<()> {
 }
 
 fn bag_info_cmd(a: BagInfoArgs) -> anyhow::Result<()> {
-    use loglio_host::bag::{BagEvent, BagOptions, BagReader, TopicKind};
+    use loglio_host::input::bag::{BagEvent, BagOptions, BagReader, TopicKind};
     let cfg = match &a.config {
         Some(path) => Config::load(path)?,
         None => {

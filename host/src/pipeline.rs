@@ -127,13 +127,13 @@ pub fn core_mode(m: AssociationMode) -> CoreMode {
 pub fn config_layout(cfg: &Config) -> Result<RangeImageLayout, PipelineError> {
     let cols = cfg.sensor.columns as usize;
     if let Some(path) = &cfg.sensor.calibration {
-        let calib = crate::velodyne_calib::load(path).map_err(|e| PipelineError(e.to_string()))?;
+        let calib = crate::input::velodyne_calib::load(path).map_err(|e| PipelineError(e.to_string()))?;
         return calib
             .layout(cols)
             .map_err(|e| PipelineError(format!("velodyne calibration {}: layout: {e:?}", path.display())));
     }
     if let Some(path) = &cfg.sensor.ouster_metadata {
-        let meta = crate::ouster_meta::load(path).map_err(|e| PipelineError(e.to_string()))?;
+        let meta = crate::input::ouster_meta::load(path).map_err(|e| PipelineError(e.to_string()))?;
         return ouster_layout(&meta.intrinsics);
     }
     Ok(cfg.nominal_layout()?)
@@ -675,7 +675,7 @@ impl RunStats {
             (None, _) => Err(PipelineError("no LiDAR scans in the input".into())),
             (Some(_), None) => Err(PipelineError("no IMU samples in the input".into())),
             (Some(l), Some(i)) => {
-                crate::time_align::check_overlap(l, i).map_err(|e| PipelineError(e.to_string()))?;
+                crate::input::time_align::check_overlap(l, i).map_err(|e| PipelineError(e.to_string()))?;
                 Ok(())
             }
         }

@@ -180,7 +180,7 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
     } else {
         Progress::hidden()
     };
-    let mut pace = opt.realtime.map(crate::replay::Pacer::new);
+    let mut pace = opt.realtime.map(crate::cmd::replay::Pacer::new);
     let events = sc.events().map(|ev| match ev {
         Event::Imu(s) => {
             if let Some(p) = &mut pace {

@@ -10,8 +10,8 @@ use loglio_core::sensor::velodyne::{self, Model};
 use loglio_core::sensor::velodyne_position::{PositionPacket, PositionRepr};
 
 use crate::config::{Config, LidarTimeSource, Preset, SensorFamily};
+use crate::input::time_align::{self, TimeAlignConfig, VelodyneClock};
 use crate::pipeline::{OwnedScan, PipelineError};
-use crate::time_align::{self, TimeAlignConfig, VelodyneClock};
 
 /// Velodyne position packets' UDP port.
 pub const VELODYNE_POSITION_PORT: u16 = 8308;
@@ -46,8 +46,8 @@ impl SensorDecoder {
                 vc.max_range = vc.max_range.max(cfg.sensor.max_range as f32);
                 let dec = match &cfg.sensor.calibration {
                     Some(p) => {
-                        let calib =
-                            crate::velodyne_calib::load(p).map_err(|e| PipelineError(e.to_string()))?;
+                        let calib = crate::input::velodyne_calib::load(p)
+                            .map_err(|e| PipelineError(e.to_string()))?;
                         velodyne::Decoder::with_calibration(vc, calib)
                     }
                     None => velodyne::Decoder::new(vc),

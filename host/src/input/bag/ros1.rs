@@ -15,7 +15,7 @@ use rosbag::record_types::Compression;
 use rosbag::{ChunkRecord, IndexRecord, MessageRecord, RosBag};
 
 use super::{BagError, RawEvent, RawMsg, RawSource, TopicInfo};
-use crate::bag::msg::Encoding;
+use crate::input::bag::msg::Encoding;
 
 const MAGIC: &[u8] = b"#ROSBAG V2.0\n";
 

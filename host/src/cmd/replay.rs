@@ -13,12 +13,12 @@ use loglio_core::odometry::OdometryConfig;
 use crate::config::{AssociationMode, Config, ImuSource, Preset, SensorFamily};
 use crate::diag::warn;
 use crate::eval::{self, Format};
-use crate::lidar_stream::{self, Decoded, LidarStream, SensorDecoder};
+use crate::input::lidar_stream::{self, Decoded, LidarStream, SensorDecoder};
+use crate::input::serial::ImuFrameReader;
 use crate::output::Progress;
 use crate::pipeline::{
     self, Finished, OutputOptions, Outputs, PipelineError, RunStats, Runner, StorageClass,
 };
-use crate::serial::ImuFrameReader;
 
 /// What the run commands share: the configuration, the outputs and the evaluation.
 #[derive(Clone, Debug, Default)]
@@ -106,7 +106,7 @@ impl PacketSetup {
     /// The decoder, ports and odometry configuration of `cfg`.
     pub fn new(cfg: &Config) -> Result<PacketSetup, PipelineError> {
         let meta = match &cfg.sensor.ouster_metadata {
-            Some(p) => Some(crate::ouster_meta::load(p).map_err(|e| PipelineError(e.to_string()))?),
+            Some(p) => Some(crate::input::ouster_meta::load(p).map_err(|e| PipelineError(e.to_string()))?),
             None => None,
         };
         let dec = SensorDecoder::new(cfg, meta.as_ref().map(|m| &m.intrinsics))?;
@@ -226,16 +226,16 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
     }
     let PacketSetup { dec, lidar_port, imu_port, class, core } = PacketSetup::new(&cfg)?;
     let mut feed = match &imu {
-        ImuInput::Csv(p) => {
-            ImuFeed::Samples(crate::imu_csv::load(p).map_err(|e| PipelineError(e.to_string()))?.into_iter())
-        }
+        ImuInput::Csv(p) => ImuFeed::Samples(
+            crate::input::imu_csv::load(p).map_err(|e| PipelineError(e.to_string()))?.into_iter(),
+        ),
         ImuInput::Serial(p) => {
             let f = File::open(p).map_err(|e| PipelineError(format!("{}: {e}", p.display())))?;
             ImuFeed::Serial(Box::new(ImuFrameReader::new(BufReader::new(f))))
         }
         ImuInput::OusterPackets => ImuFeed::None,
     };
-    let mut reader = crate::pcap::PcapReader::open(&opt.pcap)
+    let mut reader = crate::input::pcap::PcapReader::open(&opt.pcap)
         .map_err(|e| PipelineError(format!("{}: {e}", opt.pcap.display())))?;
     let total = std::fs::metadata(&opt.pcap).map(|m| m.len()).unwrap_or(0);
     let progress = if opt.progress { Progress::new(total, "", true) } else { Progress::hidden() };

@@ -13,11 +13,11 @@ use loglio_core::imu::ImuSample;
 use loglio_firmware_sim::scenario::{Event, ScenarioKind};
 use serde_json::json;
 
+use crate::cmd::sim::{self, SimOptions};
 use crate::config::{AssociationMode, KnnSearch, Preset};
 use crate::machine;
 use crate::output::Progress;
 use crate::pipeline::{self, OutputOptions, Outputs, OwnedScan, PipelineError, Runner, StorageClass};
-use crate::sim::{self, SimOptions};
 
 /// Times of one configuration.
 #[derive(Clone, Debug, Default, PartialEq)]

@@ -1,5 +1,5 @@
 //! `loglio bag`: the odometry over a ROS bag (ROS 1, rosbag2 sqlite3, MCAP) through
-//! [`crate::bag::BagReader`]: `sensor_msgs/PointCloud2` from the Velodyne or Ouster drivers (or
+//! [`crate::input::bag::BagReader`]: `sensor_msgs/PointCloud2` from the Velodyne or Ouster drivers (or
 //! any cloud: clouds without ring or time fields get them from geometry, with one warning),
 //! raw `velodyne_msgs/VelodyneScan` or Ouster packets (decoded by the core), and
 //! `sensor_msgs/Imu` or the Ouster IMU packets. Topics are found by type unless named.
@@ -9,13 +9,13 @@ use std::time::Instant;
 
 use loglio_core::scan::ScanPoint;
 
-use crate::bag::{BagEvent, BagOptions, BagReader, PacketKind, TopicKind};
+use crate::cmd::replay::RunSetup;
 use crate::config::SensorFamily;
 use crate::diag::warn;
-use crate::lidar_stream::{Decoded, LidarStream, SensorDecoder};
+use crate::input::bag::{BagEvent, BagOptions, BagReader, PacketKind, TopicKind};
+use crate::input::lidar_stream::{Decoded, LidarStream, SensorDecoder};
 use crate::output::Progress;
 use crate::pipeline::{self, Finished, Outputs, OwnedScan, PipelineError, RunStats, Runner, StorageClass};
-use crate::replay::RunSetup;
 
 /// A bag run's settings.
 #[derive(Clone, Debug)]
@@ -71,7 +71,7 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
     // configuration's, or the bag's metadata topic, read in a first pass).
     let packets = matches!(sel.lidar.1, TopicKind::VelodyneScan | TopicKind::OusterPacket);
     let mut meta = match &cfg.sensor.ouster_metadata {
-        Some(p) => Some(crate::ouster_meta::load(p).map_err(|e| PipelineError(e.to_string()))?),
+        Some(p) => Some(crate::input::ouster_meta::load(p).map_err(|e| PipelineError(e.to_string()))?),
         None => None,
     };
     if sel.lidar.1 == TopicKind::OusterPacket {
@@ -85,8 +85,10 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
             let mut first =
                 BagReader::open(&opt.bag, bag_opts()?).map_err(|e| PipelineError(e.to_string()))?;
             for item in first.by_ref().take(100_000) {
-                if let Ok(crate::bag::BagItem { event: BagEvent::OusterMetadata(json), .. }) = item {
-                    meta = Some(crate::ouster_meta::parse(&json).map_err(|e| PipelineError(e.to_string()))?);
+                if let Ok(crate::input::bag::BagItem { event: BagEvent::OusterMetadata(json), .. }) = item {
+                    meta = Some(
+                        crate::input::ouster_meta::parse(&json).map_err(|e| PipelineError(e.to_string()))?,
+                    );
                     break;
                 }
             }
@@ -128,7 +130,7 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
         let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
         runner.sinks = opt.setup.sinks.build();
         let mut read_error = None;
-        let mut pacer = opt.realtime.map(crate::replay::Pacer::new);
+        let mut pacer = opt.realtime.map(crate::cmd::replay::Pacer::new);
         let (stop, _signals) = crate::run::Signals::stop_flag();
         while let Some(item) = reader.next() {
             if stop.load(std::sync::atomic::Ordering::Relaxed) {

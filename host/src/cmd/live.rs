@@ -14,7 +14,7 @@
 //!
 //! - A receive thread never waits on the rest: it hands each datagram on with `try_send`, and a
 //!   datagram that finds the queue full is dropped and counted (*socket queue* drops). The
-//!   kernel's receive buffer in front of it ([`crate::udp`], `SO_RCVBUF`) absorbs bursts while
+//!   kernel's receive buffer in front of it ([`crate::input::udp`], `SO_RCVBUF`) absorbs bursts while
 //!   the thread is descheduled.
 //! - The decode thread turns datagrams into scans ([`LidarStream`], as the replay does) and
 //!   Ouster IMU packets into samples. Undecodable and out-of-order packets are *decoder* drops.
@@ -51,13 +51,13 @@ use std::time::{Duration, Instant};
 
 use loglio_core::imu::ImuSample;
 
+use crate::cmd::replay::{PacketSetup, RunSetup};
 use crate::config::{Config, ImuSource, LidarTimeSource, SensorFamily};
 use crate::diag::warn;
-use crate::lidar_stream::{self, Decoded, LidarStream, SensorDecoder, VELODYNE_POSITION_PORT};
+use crate::input::lidar_stream::{self, Decoded, LidarStream, SensorDecoder, VELODYNE_POSITION_PORT};
+use crate::input::serial::ImuFrameReader;
+use crate::input::udp::{self, UdpSource};
 use crate::pipeline::{self, Finished, OwnedScan, PipelineError, RunStats, Runner};
-use crate::replay::{PacketSetup, RunSetup};
-use crate::serial::ImuFrameReader;
-use crate::udp::{self, UdpSource};
 
 /// Datagrams waiting for the decode thread (about 1.4 s of a VLP-32C, 3 s of an OS1-128).
 pub const DATAGRAM_QUEUE: usize = 2048;
@@ -246,7 +246,7 @@ enum ImuPort {
 fn open_imu(path: &Path, baud: u32) -> Result<ImuPort, PipelineError> {
     let shown = path.display();
     let meta = std::fs::metadata(path).map_err(|e| {
-        let ports = crate::serial::ports();
+        let ports = crate::input::serial::ports();
         let listed = if ports.is_empty() {
             "no serial ports found on this computer".to_string()
         } else {
@@ -268,7 +268,7 @@ fn open_imu(path: &Path, baud: u32) -> Result<ImuPort, PipelineError> {
         )));
     }
     let path_str = path.to_string_lossy();
-    crate::serial::open(&path_str, baud, POLL).map(ImuPort::Serial).map_err(|e| {
+    crate::input::serial::open(&path_str, baud, POLL).map(ImuPort::Serial).map_err(|e| {
         PipelineError(format!("IMU serial device {shown}: {}", crate::diag::one_line(&e.to_string())))
     })
 }
@@ -928,7 +928,7 @@ pub fn summary(r: &LiveReport) -> String {
         c.latency_mean_s * 1e3,
         c.latency_max_s * 1e3
     ));
-    s.push_str(&crate::replay::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s));
+    s.push_str(&crate::cmd::replay::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s));
     s
 }
 
