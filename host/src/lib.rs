@@ -21,11 +21,12 @@
 pub mod cmd;
 pub mod config;
 pub mod diag;
+pub mod error;
 pub mod eval;
 pub mod input;
 pub mod knn_pca;
 pub mod machine;
 pub mod output;
-pub mod pipeline;
+
 pub mod run;
 pub mod sink;

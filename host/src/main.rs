@@ -166,8 +166,8 @@ struct RunArgs {
 }
 
 impl RunArgs {
-    fn setup(&self) -> loglio_host::cmd::replay::RunSetup {
-        loglio_host::cmd::replay::RunSetup {
+    fn setup(&self) -> loglio_host::run::setup::RunSetup {
+        loglio_host::run::setup::RunSetup {
             config: self.config.clone(),
             preset: self.preset.clone(),
             mode: self.mode.map(ModeArg::host),
@@ -515,7 +515,7 @@ fn replay_cmd(a: ReplayArgs) -> anyhow::Result<()> {
         } else {
             String::new()
         },
-        loglio_host::cmd::replay::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
+        loglio_host::run::runner::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
     ))
 }
 
@@ -580,7 +580,7 @@ fn bag_cmd(a: BagArgs) -> anyhow::Result<()> {
         opt.bag.display(),
         r.topics,
         r.bag_stats,
-        loglio_host::cmd::replay::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
+        loglio_host::run::runner::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
     ))
 }
 

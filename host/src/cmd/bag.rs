@@ -9,13 +9,16 @@ use std::time::Instant;
 
 use loglio_core::scan::ScanPoint;
 
-use crate::cmd::replay::RunSetup;
 use crate::config::SensorFamily;
 use crate::diag::warn;
+use crate::error::PipelineError;
 use crate::input::bag::{BagEvent, BagOptions, BagReader, PacketKind, TopicKind};
 use crate::input::lidar_stream::{Decoded, LidarStream, SensorDecoder};
 use crate::output::Progress;
-use crate::pipeline::{self, Finished, Outputs, OwnedScan, PipelineError, RunStats, Runner, StorageClass};
+use crate::run::engine::{self, StorageClass};
+use crate::run::runner::{OwnedScan, RunStats, Runner};
+use crate::run::setup::RunSetup;
+use crate::sink::files::{Finished, Outputs};
 
 /// A bag run's settings.
 #[derive(Clone, Debug)]
@@ -109,13 +112,13 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
         if packets { Some(SensorDecoder::new(&cfg, meta.as_ref().map(|m| &m.intrinsics))?) } else { None };
     let layout = match &dec {
         Some(d) => d.layout(),
-        None => pipeline::config_layout(&cfg)?,
+        None => engine::config_layout(&cfg)?,
     };
     if let Some(m) = &meta {
         cfg.sensor.columns = m.intrinsics.columns_per_frame as u32;
     }
     let class = StorageClass::choose(layout.rows(), layout.cols(), cfg.mapping.map_capacity)?;
-    let core = pipeline::odometry_config(&cfg, layout)?;
+    let core = engine::odometry_config(&cfg, layout)?;
     let n = dec.as_ref().map_or(0, |d| d.max_points());
     let (mut a, mut b) = (vec![ScanPoint::default(); n], vec![ScanPoint::default(); n]);
     let mut stream = dec.map(|d| LidarStream::new(&cfg, d, &mut a, &mut b, PORT_LIDAR, PORT_IMU));
@@ -126,11 +129,11 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
         Progress::hidden()
     };
     let scan_offset_ns = (cfg.time.scan_stamp_offset * 1e9).round() as i64;
-    let (stats, finished) = pipeline::with_engine(&core, class, |engine| -> Result<_, PipelineError> {
+    let (stats, finished) = engine::with_engine(&core, class, |engine| -> Result<_, PipelineError> {
         let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
         runner.sinks = opt.setup.sinks.build();
         let mut read_error = None;
-        let mut pacer = opt.realtime.map(crate::cmd::replay::Pacer::new);
+        let mut pacer = opt.realtime.map(crate::input::pace::Pacer::new);
         let (stop, _signals) = crate::run::Signals::stop_flag();
         while let Some(item) = reader.next() {
             if stop.load(std::sync::atomic::Ordering::Relaxed) {

@@ -51,13 +51,16 @@ use std::time::{Duration, Instant};
 
 use loglio_core::imu::ImuSample;
 
-use crate::cmd::replay::{PacketSetup, RunSetup};
 use crate::config::{Config, ImuSource, LidarTimeSource, SensorFamily};
 use crate::diag::warn;
+use crate::error::PipelineError;
 use crate::input::lidar_stream::{self, Decoded, LidarStream, SensorDecoder, VELODYNE_POSITION_PORT};
 use crate::input::serial::ImuFrameReader;
 use crate::input::udp::{self, UdpSource};
-use crate::pipeline::{self, Finished, OwnedScan, PipelineError, RunStats, Runner};
+use crate::run::engine;
+use crate::run::runner::{OwnedScan, RunStats, Runner};
+use crate::run::setup::{PacketSetup, RunSetup};
+use crate::sink::files::{self, Finished};
 
 /// Datagrams waiting for the decode thread (about 1.4 s of a VLP-32C, 3 s of an OS1-128).
 pub const DATAGRAM_QUEUE: usize = 2048;
@@ -638,14 +641,14 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
         None => format!("the Ouster IMU packets (UDP {bind}:{imu_port})"),
     };
 
-    let outputs = pipeline::Outputs::new(opt.setup.outputs()?)?;
+    let outputs = files::Outputs::new(opt.setup.outputs()?)?;
     let stop_signal = Arc::new(AtomicBool::new(false));
     let _signals = if opt.handle_signals { Some(crate::run::Signals::register(&stop_signal)?) } else { None };
     let scan_period_s = 1.0 / cfg.sensor.scan_rate_hz;
     let preset = cfg.preset;
     let decode_setup = DecodeSetup { cfg: cfg.clone(), dec, lidar_port, imu_port, hold_for_gps };
 
-    let res = pipeline::with_engine(&core, class, move |engine| -> Result<_, PipelineError> {
+    let res = engine::with_engine(&core, class, move |engine| -> Result<_, PipelineError> {
         let t0 = Instant::now();
         let counters = Arc::new(Counters::default());
         let stop_rx = Arc::new(AtomicBool::new(false));
@@ -928,7 +931,7 @@ pub fn summary(r: &LiveReport) -> String {
         c.latency_mean_s * 1e3,
         c.latency_max_s * 1e3
     ));
-    s.push_str(&crate::cmd::replay::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s));
+    s.push_str(&crate::run::runner::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s));
     s
 }
 

@@ -5,121 +5,21 @@
 use std::fs::File;
 use std::io::BufReader;
 use std::path::{Path, PathBuf};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use loglio_core::imu::ImuSample;
-use loglio_core::odometry::OdometryConfig;
 
-use crate::config::{AssociationMode, Config, ImuSource, Preset, SensorFamily};
+use crate::config::{ImuSource, SensorFamily};
 use crate::diag::warn;
-use crate::eval::{self, Format};
-use crate::input::lidar_stream::{self, Decoded, LidarStream, SensorDecoder};
+use crate::error::PipelineError;
+use crate::input::lidar_stream::{self, Decoded, LidarStream};
+use crate::input::pace::Pacer;
 use crate::input::serial::ImuFrameReader;
 use crate::output::Progress;
-use crate::pipeline::{
-    self, Finished, OutputOptions, Outputs, PipelineError, RunStats, Runner, StorageClass,
-};
-
-/// What the run commands share: the configuration, the outputs and the evaluation.
-#[derive(Clone, Debug, Default)]
-pub struct RunSetup {
-    /// Configuration file.
-    pub config: Option<PathBuf>,
-    /// Preset (when no file).
-    pub preset: Option<String>,
-    /// Association mode override.
-    pub mode: Option<AssociationMode>,
-    /// Ouster metadata (overrides the configuration's).
-    pub metadata: Option<PathBuf>,
-    /// Velodyne calibration (overrides the configuration's).
-    pub calibration: Option<PathBuf>,
-    /// Output directory.
-    pub out: Option<PathBuf>,
-    /// Ground truth (TUM).
-    pub gt: Option<PathBuf>,
-    /// Skip the map and the plots.
-    pub no_map: bool,
-    /// The live outputs.
-    pub sinks: crate::sink::SinkArgs,
-}
-
-impl RunSetup {
-    /// The configuration: the file, else the preset (default vlp16), with the overrides.
-    pub fn load_config(&self) -> Result<Config, PipelineError> {
-        let mut cfg = match (&self.config, &self.preset) {
-            (Some(p), _) => Config::load(p)?,
-            (None, Some(name)) => Config::preset(
-                name.parse::<Preset>()
-                    .map_err(|e| PipelineError(e.0.trim_start_matches("config: ").to_string()))?,
-            ),
-            (None, None) => Config::preset(Preset::Vlp16),
-        };
-        if let Some(m) = self.mode {
-            cfg.mapping.association = m;
-        }
-        if let Some(m) = &self.metadata {
-            cfg.sensor.ouster_metadata = Some(m.clone());
-        }
-        if let Some(c) = &self.calibration {
-            cfg.sensor.calibration = Some(c.clone());
-        }
-        cfg.validate()?;
-        Ok(cfg)
-    }
-
-    /// Output options (the ground truth read here).
-    pub fn outputs(&self) -> Result<OutputOptions, PipelineError> {
-        let gt = match &self.gt {
-            Some(p) => {
-                Some(eval::read_trajectory(p, Format::Tum, None).map_err(|e| PipelineError(e.to_string()))?)
-            }
-            None => None,
-        };
-        let write = self.out.is_some();
-        Ok(OutputOptions {
-            dir: self.out.clone(),
-            gt,
-            map: write && !self.no_map,
-            plots: write && !self.no_map,
-        })
-    }
-}
-
-/// What a run over raw sensor packets (a pcap, live UDP) needs besides the configuration: the
-/// decoder, the ports and the odometry's configuration and storage class.
-#[derive(Debug)]
-pub struct PacketSetup {
-    /// The sensor's decoder (with the Ouster metadata or Velodyne calibration of the
-    /// configuration).
-    pub dec: SensorDecoder,
-    /// The LiDAR data port: the Ouster metadata's, else `network.lidar_port`.
-    pub lidar_port: u16,
-    /// The Ouster IMU port: the Ouster metadata's, else `network.imu_port`.
-    pub imu_port: u16,
-    /// The storage class for the decoder's range image and `mapping.map_capacity`.
-    pub class: StorageClass,
-    /// The core odometry's configuration.
-    pub core: OdometryConfig,
-}
-
-impl PacketSetup {
-    /// The decoder, ports and odometry configuration of `cfg`.
-    pub fn new(cfg: &Config) -> Result<PacketSetup, PipelineError> {
-        let meta = match &cfg.sensor.ouster_metadata {
-            Some(p) => Some(crate::input::ouster_meta::load(p).map_err(|e| PipelineError(e.to_string()))?),
-            None => None,
-        };
-        let dec = SensorDecoder::new(cfg, meta.as_ref().map(|m| &m.intrinsics))?;
-        let (lidar_port, imu_port) = match &meta {
-            Some(m) => (m.udp_port_lidar, m.udp_port_imu),
-            None => (cfg.network.lidar_port, cfg.network.imu_port),
-        };
-        let layout = dec.layout();
-        let class = StorageClass::choose(layout.rows(), layout.cols(), cfg.mapping.map_capacity)?;
-        let core = pipeline::odometry_config(cfg, layout)?;
-        Ok(PacketSetup { dec, lidar_port, imu_port, class, core })
-    }
-}
+use crate::run::engine::{self};
+use crate::run::runner::{RunStats, Runner};
+use crate::run::setup::{PacketSetup, RunSetup};
+use crate::sink::files::{Finished, Outputs};
 
 /// Where the replay's IMU comes from.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -245,7 +145,7 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
     let mut b = vec![loglio_core::scan::ScanPoint::default(); a_len];
     let mut stream = LidarStream::new(&cfg, dec, &mut a, &mut b, lidar_port, imu_port);
     let offset_ns = (cfg.time.lidar_imu_offset * 1e9) as i64;
-    let res = pipeline::with_engine(&core, class, |engine| -> Result<_, PipelineError> {
+    let res = engine::with_engine(&core, class, |engine| -> Result<_, PipelineError> {
         let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
         runner.sinks = opt.setup.sinks.build();
         let mut next_imu = feed.next()?;
@@ -330,127 +230,4 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
         scan_period_s: 1.0 / cfg.sensor.scan_rate_hz,
         wall_s: wall.elapsed().as_secs_f64(),
     })
-}
-
-/// The summary of a run: scans, timing, margin, ATE and files.
-pub fn summary(stats: &RunStats, fin: &Finished, scan_period_s: f64, wall_s: f64) -> String {
-    let mean = stats.mean_scan_s();
-    let mut s =
-        format!("{} scans ({}), {} IMU samples", stats.scans, pipeline::status_summary(stats), stats.imu_in);
-    if stats.imu_dropped + stats.imu_stale > 0 {
-        s.push_str(&format!(" ({} dropped, {} older than their scan)", stats.imu_dropped, stats.imu_stale));
-    }
-    if stats.scans_without_imu > 0 {
-        s.push_str(&format!("; {} scans without IMU up to their end", stats.scans_without_imu));
-    }
-    s.push('\n');
-    s.push_str(&format!(
-        "odometry: {:.1} ms per scan (mean), {:.1} ms (median); real-time margin {:.1}x (scan period {:.0} ms / mean)\n",
-        mean * 1e3,
-        stats.median_scan_s() * 1e3,
-        if mean > 0.0 { scan_period_s / mean } else { f64::INFINITY },
-        scan_period_s * 1e3
-    ));
-    if let Some(e) = &fin.eval {
-        s.push_str(&format!(
-            "ATE against ground truth (SE(3)-aligned, {} poses): rmse {:.3} m, max {:.3} m; rotation rmse {:.2} deg\n",
-            e.matched, e.ape_trans.rmse, e.ape_trans.max, e.ape_rot_deg.rmse
-        ));
-    }
-    s.push_str(&format!("wall time {wall_s:.1} s\n"));
-    for line in crate::sink::sinks_summary(&stats.sinks) {
-        s.push_str(&format!("live output {line}\n"));
-    }
-    if !fin.files.is_empty() {
-        s.push_str("wrote:");
-        for f in &fin.files {
-            s.push_str(&format!(" {}", f.display()));
-        }
-        s.push('\n');
-    }
-    s
-}
-
-/// Paces a replay at `rate` times real time by the packets' capture times.
-///
-/// A capture time that steps back, or more than [`Pacer::MAX_STEP_NS`] past the previous one
-/// (a pause in the capture, or a damaged record), starts the pacing afresh from that packet
-/// instead of waiting out the step: one record stamped days ahead stalled the replay for days.
-#[derive(Debug)]
-pub struct Pacer {
-    rate: f64,
-    /// Capture time and wall time of the packet the pacing counts from.
-    anchor: Option<(u64, Instant)>,
-    prev_ns: u64,
-}
-
-impl Pacer {
-    const MAX_STEP_NS: u64 = 1_000_000_000;
-
-    /// Pacing at `rate` times real time.
-    pub fn new(rate: f64) -> Self {
-        Pacer { rate, anchor: None, prev_ns: 0 }
-    }
-
-    /// Sleeps until data stamped `ts_ns` is due. Stamps a little behind the latest (the
-    /// interleaved IMU samples and scans of one source) count as the latest, not as a step back.
-    pub fn wait_for(&mut self, ts_ns: u64) {
-        let ts = if ts_ns < self.prev_ns && self.prev_ns - ts_ns < Self::MAX_STEP_NS {
-            self.prev_ns
-        } else {
-            ts_ns
-        };
-        if let Some(d) = self.wait(ts, Instant::now()) {
-            std::thread::sleep(d);
-        }
-    }
-
-    /// How long to sleep (from `now`) before the packet captured at `ts_ns` is due.
-    fn wait(&mut self, ts_ns: u64, now: Instant) -> Option<Duration> {
-        let step_ok = ts_ns >= self.prev_ns && ts_ns - self.prev_ns <= Self::MAX_STEP_NS;
-        self.prev_ns = ts_ns;
-        let (t0, w0) = match self.anchor {
-            Some(a) if step_ok => a,
-            _ => {
-                self.anchor = Some((ts_ns, now));
-                return None;
-            }
-        };
-        // A tiny rate asks for a very long wait, not a panic on overflow.
-        let due =
-            Duration::try_from_secs_f64((ts_ns - t0) as f64 * 1e-9 / self.rate).unwrap_or(Duration::MAX);
-        due.checked_sub(now.saturating_duration_since(w0)).filter(|d| !d.is_zero())
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// Wall times are given, not read: the pacing's arithmetic, not the machine's clock.
-    #[test]
-    fn pacing_follows_capture_times_and_restarts_at_steps() {
-        let w = Instant::now();
-        let ms = Duration::from_millis;
-        let mut p = Pacer::new(2.0);
-        let t0 = 1_700_000_000_000_000_000u64;
-        assert_eq!(p.wait(t0, w), None);
-        // 100 ms of capture at twice real time: due 50 ms after the first packet.
-        assert_eq!(p.wait(t0 + 100_000_000, w + ms(10)), Some(ms(40)));
-        // Late already: no wait.
-        assert_eq!(p.wait(t0 + 200_000_000, w + ms(120)), None);
-        // A record stamped ten days ahead: no ten-day sleep, the pacing restarts from it...
-        let far = t0 + 864_000_000_000_000;
-        assert_eq!(p.wait(far, w + ms(130)), None);
-        // ...and again from the next good packet, which steps back.
-        assert_eq!(p.wait(t0 + 300_000_000, w + ms(131)), None);
-        assert_eq!(p.wait(t0 + 400_000_000, w + ms(141)), Some(ms(40)));
-        // A pause of 5 s in the capture is not replayed either.
-        assert_eq!(p.wait(t0 + 5_400_000_000, w + ms(200)), None);
-        assert_eq!(p.wait(t0 + 5_420_000_000, w + ms(200)), Some(ms(10)));
-        // The smallest rate the command accepts: a very long wait, no overflow.
-        let mut slow = Pacer::new(f64::MIN_POSITIVE);
-        assert_eq!(slow.wait(t0, w), None);
-        assert_eq!(slow.wait(t0 + 1, w), Some(Duration::MAX));
-    }
 }

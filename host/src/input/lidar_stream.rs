@@ -10,8 +10,9 @@ use loglio_core::sensor::velodyne::{self, Model};
 use loglio_core::sensor::velodyne_position::{PositionPacket, PositionRepr};
 
 use crate::config::{Config, LidarTimeSource, Preset, SensorFamily};
+use crate::error::PipelineError;
 use crate::input::time_align::{self, TimeAlignConfig, VelodyneClock};
-use crate::pipeline::{OwnedScan, PipelineError};
+use crate::run::runner::OwnedScan;
 
 /// Velodyne position packets' UDP port.
 pub const VELODYNE_POSITION_PORT: u16 = 8308;

@@ -5,6 +5,7 @@ pub mod bag;
 pub mod imu_csv;
 pub mod lidar_stream;
 pub mod ouster_meta;
+pub mod pace;
 pub mod pcap;
 pub mod serial;
 pub mod time_align;

@@ -20,6 +20,7 @@ use std::time::{Duration, Instant};
 
 pub mod args;
 pub mod callback;
+pub mod files;
 
 pub use args::SinkArgs;
 pub use callback::{CallbackSink, ChannelSink};
