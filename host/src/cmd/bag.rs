@@ -13,7 +13,7 @@ use crate::config::SensorFamily;
 use crate::diag::warn;
 use crate::error::PipelineError;
 use crate::input::bag::{BagEvent, BagOptions, BagReader, PacketKind, TopicKind};
-use crate::input::lidar_stream::{Decoded, LidarStream, SensorDecoder};
+use crate::input::lidar_stream::{self, Decoded, LidarStream, SensorDecoder};
 use crate::output::Progress;
 use crate::run::engine::{self, StorageClass};
 use crate::run::runner::{OwnedScan, RunStats, Runner};
@@ -53,9 +53,6 @@ pub struct BagRunReport {
     /// Wall time, s.
     pub wall_s: f64,
 }
-
-const PORT_LIDAR: u16 = 1;
-const PORT_IMU: u16 = 2;
 
 /// Runs the odometry over a bag.
 pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
@@ -121,7 +118,7 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
     let core = engine::odometry_config(&cfg, layout)?;
     let n = dec.as_ref().map_or(0, |d| d.max_points());
     let (mut a, mut b) = (vec![ScanPoint::default(); n], vec![ScanPoint::default(); n]);
-    let mut stream = dec.map(|d| LidarStream::new(&cfg, d, &mut a, &mut b, PORT_LIDAR, PORT_IMU));
+    let mut stream = dec.map(|d| LidarStream::of_kinds(&cfg, d, &mut a, &mut b));
     let outputs = Outputs::new(opt.setup.outputs()?)?;
     let progress = if opt.progress {
         Progress::new(reader.total_messages().unwrap_or(0), "messages", false)
@@ -161,8 +158,11 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
                 BagEvent::Imu(s) => runner.imu(s)?,
                 BagEvent::LidarPacket(p) => {
                     let Some(st) = stream.as_mut() else { continue };
-                    let port = if p.kind == PacketKind::OusterImu { PORT_IMU } else { PORT_LIDAR };
-                    match st.packet(port, &p.bytes, p.stamp_ns) {
+                    let kind = match p.kind {
+                        PacketKind::Velodyne | PacketKind::OusterLidar => lidar_stream::PacketKind::Lidar,
+                        PacketKind::OusterImu => lidar_stream::PacketKind::OusterImu,
+                    };
+                    match st.packet_of_kind(kind, &p.bytes, p.stamp_ns) {
                         Some(Decoded::Scan(s)) => runner.scan(s, 0)?,
                         Some(Decoded::Imu(s)) => runner.imu(s)?,
                         None => {}
