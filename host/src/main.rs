@@ -25,7 +25,8 @@ struct Cli {
 }
 
 /// The subcommands. `live`, `replay`, `bag`, `sim`, `demo` and `bench` (they run the odometry)
-/// and `normals` (Ring FALS) are added by their modules.
+/// and `normals` (Ring FALS) are added by their modules; `sim`, `demo` and `bench` only with the
+/// default feature `sim` (the simulator).
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Print a sensor preset's commented configuration template, or check a configuration file.
@@ -43,14 +44,17 @@ enum Command {
     /// Replay a pcap (Velodyne or Ouster) with the IMU from a CSV file, a serial capture or the
     /// Ouster's IMU packets; writes the trajectory, map, per-scan CSV and plots.
     Replay(ReplayArgs),
+    #[cfg(feature = "sim")]
     /// Will this computer keep up? Per-stage times and the real-time margin of a sensor preset on
     /// a simulated drive, with the plain (FAST-LIO2-like) association as the baseline.
     Bench(BenchArgs),
     /// Run the odometry over a ROS bag: ROS 1 (.bag), rosbag2 (directory, .db3) or MCAP, with
     /// PointCloud2 (Velodyne or Ouster driver) or raw Velodyne/Ouster packets, and sensor_msgs/Imu.
     Bag(BagArgs),
+    #[cfg(feature = "sim")]
     /// Run a simulated scenario (firmware-sim) end to end and report the ATE against its ground truth.
     Sim(SimArgs),
+    #[cfg(feature = "sim")]
     /// The built-in demo: 25 s of a simulated VLP-32C on a car in a town, no files needed; prints
     /// the ATE against ground truth and writes the outputs into ./loglio-demo/.
     Demo(DemoArgs),
@@ -66,6 +70,7 @@ enum ModeArg {
     Plain,
 }
 
+#[cfg(feature = "sim")]
 /// `mapping.knn_search`.
 #[derive(Debug, Clone, Copy, ValueEnum)]
 enum KnnArg {
@@ -75,6 +80,7 @@ enum KnnArg {
     Block,
 }
 
+#[cfg(feature = "sim")]
 impl KnnArg {
     fn host(self) -> loglio_host::config::KnnSearch {
         match self {
@@ -95,6 +101,7 @@ impl ModeArg {
     }
 }
 
+#[cfg(feature = "sim")]
 #[derive(Debug, Args)]
 struct SimArgs {
     /// Scenario: vehicle, handheld, corridor, drone, rotation.
@@ -245,6 +252,7 @@ struct LiveArgs {
     run: RunArgs,
 }
 
+#[cfg(feature = "sim")]
 #[derive(Debug, Args)]
 struct BenchArgs {
     /// Sensor preset: vlp16, vlp32c, hdl32e, os1-16, os1-64.
@@ -290,6 +298,7 @@ struct BagArgs {
     run: RunArgs,
 }
 
+#[cfg(feature = "sim")]
 #[derive(Debug, Args)]
 struct DemoArgs {
     /// Output directory.
@@ -481,8 +490,11 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Live(a) => live_cmd(a),
         Command::Replay(a) => replay_cmd(a),
         Command::Bag(a) => bag_cmd(a),
+        #[cfg(feature = "sim")]
         Command::Sim(a) => sim_cmd(a),
+        #[cfg(feature = "sim")]
         Command::Bench(a) => bench_cmd(a),
+        #[cfg(feature = "sim")]
         Command::Demo(a) => demo_cmd(a),
     }
 }
@@ -543,6 +555,7 @@ fn live_cmd(a: LiveArgs) -> anyhow::Result<()> {
     print(&loglio_host::cmd::live::summary(&r))
 }
 
+#[cfg(feature = "sim")]
 fn bench_cmd(a: BenchArgs) -> anyhow::Result<()> {
     let preset: Preset = a.preset.parse().map_err(|e: loglio_host::config::ConfigError| {
         anyhow::anyhow!("{}", e.0.trim_start_matches("config: "))
@@ -584,11 +597,13 @@ fn bag_cmd(a: BagArgs) -> anyhow::Result<()> {
     ))
 }
 
+#[cfg(feature = "sim")]
 fn sim_run(opt: loglio_host::cmd::sim::SimOptions) -> anyhow::Result<()> {
     let report = loglio_host::cmd::sim::run(&opt)?;
     print(&loglio_host::cmd::sim::summary(&opt, &report))
 }
 
+#[cfg(feature = "sim")]
 /// A simulator scenario by name, or an error that lists the known ones.
 fn scenario_kind(name: &str) -> anyhow::Result<loglio_firmware_sim::scenario::ScenarioKind> {
     use loglio_firmware_sim::scenario::ScenarioKind;
@@ -598,6 +613,7 @@ fn scenario_kind(name: &str) -> anyhow::Result<loglio_firmware_sim::scenario::Sc
     })
 }
 
+#[cfg(feature = "sim")]
 fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
     if !(a.rate > 0.0 && a.rate.is_finite()) {
         bail!("--rate must be a positive number, not {}", a.rate);
@@ -629,6 +645,7 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
     })
 }
 
+#[cfg(feature = "sim")]
 fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
     if !(a.rate > 0.0 && a.rate.is_finite()) {
         bail!("--rate must be a positive number, not {}", a.rate);
