@@ -3,7 +3,7 @@
 //! normals are compared with kNN-PCA normals (kiddo k-d tree) on the points PCA finds planar.
 //!
 //! What is asserted:
-//! - the loader (`loglio_host::normals`) reads the metadata as this test reads it with
+//! - the loader (`loglio_host::cmd::normals`) reads the metadata as this test reads it with
 //!   serde_json: row 0 is the highest beam, columns destaggered by `pixel_shift_by_row`, and its
 //!   LiDAR-frame points reproduce the SDK's ranges and the layout's pixel directions;
 //! - Ring FALS gives a valid normal to most returns, never a malformed one;
@@ -22,8 +22,8 @@ use std::sync::Mutex;
 use loglio_core::range_image::RangeImageLayout;
 use loglio_core::ring_fals::{PointNormal, RingFals, RingFals32x1800, RingFalsConfig, RingTable};
 use loglio_core::scan::ScanPoint;
+use loglio_host::cmd::normals::{OusterFrame, load_ouster_reference};
 use loglio_host::knn_pca::{PcaNormal, knn_pca_normals};
-use loglio_host::normals::{OusterFrame, load_ouster_reference};
 use serde_json::Value;
 
 const DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/data/ouster-sdk");

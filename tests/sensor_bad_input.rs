@@ -12,8 +12,8 @@ use loglio_core::scan_assembly::{AssemblerConfig, PacketRejected, RawPoint, Scan
 use loglio_core::sensor::ouster;
 use loglio_core::sensor::velodyne::{self, Config, Decoder, Model};
 use loglio_core::sensor::velodyne_position::{PositionPacket, PositionRepr, PpsStatus};
-use loglio_host::pcap::{PcapError, PcapReader};
-use loglio_host::time_align::VelodyneClock;
+use loglio_host::input::pcap::{PcapError, PcapReader};
+use loglio_host::input::time_align::VelodyneClock;
 
 fn velodyne_points(dec: &mut Decoder, payload: &[u8]) -> Result<Vec<RawPoint>, velodyne::Error> {
     let (p, _) = dec.parse(payload)?;
@@ -74,7 +74,8 @@ fn velodyne_bad_packets_are_rejected_and_neighbours_unchanged() {
 
 #[test]
 fn ouster_bad_packets_are_rejected_and_neighbours_unchanged() {
-    let meta = loglio_host::ouster_meta::load(data("ouster-sdk/OS-2-128-U1_v2.3.0_1024x10.json")).unwrap();
+    let meta =
+        loglio_host::input::ouster_meta::load(data("ouster-sdk/OS-2-128-U1_v2.3.0_1024x10.json")).unwrap();
     let caps = capture("ouster-sdk/OS-2-128-U1_v2.3.0_1024x10.pcap.xz");
     let lidar: Vec<&[u8]> = caps.iter().filter(|d| d.dst_port == 7502).map(|d| &d.payload[..]).collect();
     let mut clean = ouster::Decoder::new(&meta.intrinsics).unwrap();
@@ -115,7 +116,7 @@ fn ouster_bad_packets_are_rejected_and_neighbours_unchanged() {
 }
 
 /// The capture's UDP payloads, read with stats.
-fn read(bytes: &[u8]) -> Result<(Vec<Vec<u8>>, loglio_host::pcap::PcapStats), PcapError> {
+fn read(bytes: &[u8]) -> Result<(Vec<Vec<u8>>, loglio_host::input::pcap::PcapStats), PcapError> {
     let mut r = PcapReader::from_bytes(bytes)?;
     let mut v = Vec::new();
     while let Some(p) = r.next_udp()? {

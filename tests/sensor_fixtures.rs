@@ -1,7 +1,7 @@
 //! Fixture helpers shared by the sensor tests (included with `#[path]` by each test target).
 #![allow(dead_code)]
 
-use loglio_host::pcap::PcapReader;
+use loglio_host::input::pcap::PcapReader;
 use std::path::PathBuf;
 
 /// `tests/data/<rel>`.

@@ -11,7 +11,7 @@ use loglio_core::scan::ScanPoint;
 use loglio_core::scan_assembly::{AssemblerConfig, RawPoint, ScanAssembler};
 use loglio_core::sensor::ouster::{self, ImuRepr};
 use loglio_core::sensor::velodyne::{self, Config, Decoder, Model, Packet};
-use loglio_host::time_align::VelodyneClock;
+use loglio_host::input::time_align::VelodyneClock;
 
 /// XYZ tolerance against the references, metres.
 const TOL: f64 = 1e-3;
@@ -195,9 +195,11 @@ const OUSTER: [OusterCase; 9] = [
 ];
 
 fn ouster_decoder(folder: &str, refj: &serde_json::Value) -> ouster::Decoder {
-    let meta =
-        loglio_host::ouster_meta::load(data(&format!("{folder}/{}", refj["metadata"].as_str().unwrap())))
-            .unwrap();
+    let meta = loglio_host::input::ouster_meta::load(data(&format!(
+        "{folder}/{}",
+        refj["metadata"].as_str().unwrap()
+    )))
+    .unwrap();
     let intr = meta.intrinsics;
     assert_eq!(intr.pixels_per_column as u64, refj["pixels_per_column"].as_u64().unwrap());
     assert_eq!(intr.columns_per_frame as u64, refj["columns_per_frame"].as_u64().unwrap());

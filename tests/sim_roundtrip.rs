@@ -4,8 +4,8 @@
 //!
 //! The decoders are built exactly as the host builds them: Velodyne with the model's built-in
 //! calibration (`Decoder::new(Config::new(model))`, no calibration file), the packet clock
-//! resolved by `loglio_host::time_align::VelodyneClock`; Ouster from the metadata JSON the
-//! simulator writes, parsed by `loglio_host::ouster_meta`. Whole scans go through the core's
+//! resolved by `loglio_host::input::time_align::VelodyneClock`; Ouster from the metadata JSON the
+//! simulator writes, parsed by `loglio_host::input::ouster_meta`. Whole scans go through the core's
 //! `ScanAssembler`.
 //!
 //! Resolutions the bounds are computed from:
@@ -39,8 +39,8 @@ use loglio_firmware_sim::lidar::velodyne::{TruthPoint, Velodyne, wrap360};
 use loglio_firmware_sim::lidar::{ReturnMode, SensorModel};
 use loglio_firmware_sim::scenario::{ImuStream, LidarConfig, Scenario, ScenarioConfig, ScenarioKind};
 use loglio_firmware_sim::stream::{Wire, WireStream};
-use loglio_host::ouster_meta;
-use loglio_host::time_align::VelodyneClock;
+use loglio_host::input::ouster_meta;
+use loglio_host::input::time_align::VelodyneClock;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 
 /// f32 rounding of a decoded coordinate chain (a handful of f32 operations on values up to

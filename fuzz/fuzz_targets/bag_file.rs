@@ -14,10 +14,10 @@ use std::path::PathBuf;
 
 use libfuzzer_sys::fuzz_target;
 use loglio_fuzz::Input;
-use loglio_host::bag::cloud::build::{OUSTER, VELODYNE, cloud};
-use loglio_host::bag::msg::{self, Encoding, Imu, MessageType, VelodyneScan};
-use loglio_host::bag::ros1_writer::{ChunkCompression, Ros1BagWriter};
-use loglio_host::bag::{BagEvent, BagOptions, BagReader};
+use loglio_host::input::bag::cloud::build::{OUSTER, VELODYNE, cloud};
+use loglio_host::input::bag::msg::{self, Encoding, Imu, MessageType, VelodyneScan};
+use loglio_host::input::bag::ros1_writer::{ChunkCompression, Ros1BagWriter};
+use loglio_host::input::bag::{BagEvent, BagOptions, BagReader};
 use loglio_host::config::{Config, Preset};
 
 /// The message types loglio reads and a topic for each, for both kinds of bag.

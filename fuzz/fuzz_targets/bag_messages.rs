@@ -6,8 +6,8 @@
 #![no_main]
 use libfuzzer_sys::fuzz_target;
 use loglio_core::scan::NO_PIXEL;
-use loglio_host::bag::cloud::{CloudOptions, CloudScan, cloud_to_scan};
-use loglio_host::bag::msg::{
+use loglio_host::input::bag::cloud::{CloudOptions, CloudScan, cloud_to_scan};
+use loglio_host::input::bag::msg::{
     Encoding, Imu, PointCloud2, PointField, VelodyneScan, decode_packet_msg, decode_string,
 };
 use loglio_host::config::{Config, Preset};

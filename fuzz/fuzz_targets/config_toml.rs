@@ -5,7 +5,7 @@
 #![no_main]
 use libfuzzer_sys::fuzz_target;
 use loglio_host::config::Config;
-use loglio_host::pipeline::{StorageClass, odometry_config};
+use loglio_host::run::engine::{StorageClass, odometry_config};
 
 fuzz_target!(|data: &[u8]| {
     let Ok(text) = std::str::from_utf8(data) else { return };

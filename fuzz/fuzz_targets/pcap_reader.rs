@@ -1,7 +1,7 @@
 //! The pcap reader (global and record headers, link layers, IPv4 reassembly, UDP).
 #![no_main]
 use libfuzzer_sys::fuzz_target;
-use loglio_host::pcap::PcapReader;
+use loglio_host::input::pcap::PcapReader;
 
 fuzz_target!(|data: &[u8]| {
     let Ok(mut r) = PcapReader::from_bytes(data) else { return };

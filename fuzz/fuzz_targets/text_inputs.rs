@@ -7,7 +7,7 @@ use libfuzzer_sys::fuzz_target;
 use loglio_core::range_image::RangeImageLayout;
 use loglio_core::ring_fals::{RingFalsConfig, RingTable};
 use loglio_core::sensor::{ouster, velodyne};
-use loglio_host::{imu_csv, ouster_meta, velodyne_calib};
+use loglio_host::input::{imu_csv, ouster_meta, velodyne_calib};
 
 fn table(layout: &RangeImageLayout) {
     let mut t = RingTable::new();

@@ -1,44 +1,28 @@
-//! loglio-host: the std shell around `loglio-core`. It feeds the core from live sensors, pcap
-//! files and ROS bags, and writes trajectories, maps and plots.
+//! loglio-host: the std shell around `loglio-core`. Data goes one way: sources ([`input`]) →
+//! one run loop ([`run`]) → sinks ([`sink`]); each subcommand ([`cmd`]) wires them.
 //!
-//! | module | what |
+//! | module | why |
 //! |---|---|
-//! | [`bag`] | ROS 1 bags, rosbag2 sqlite3 and MCAP in, a time-ordered event stream out; a ROS 1 bag writer |
-//! | [`bagrun`] | `loglio bag`: the odometry over a ROS 1 / rosbag2 / MCAP bag (clouds or packets) |
-//! | [`bench`] | `loglio bench`: per-stage times and real-time margin of a preset, with a baseline |
+//! | [`input`] | sources: pcap, UDP, serial and CSV IMU, ROS bags; packets decoded and assembled into scans |
+//! | [`run`] | the one loop, also the library API ([`run::drive`]): storage, core odometry, input ordering |
+//! | [`sink`] | outputs of a run: the files, and live ROS 2 / MAVLink / Foxglove / callback, never blocking |
+//! | [`cmd`] | one module per subcommand: arguments in, a source and sinks out, then the run loop |
+//! | [`error`] | the host's one-line error |
 //! | [`config`] | the TOML configuration: presets, overrides, validation, the commented template |
-//! | [`diag`] | one-line `warning: ...` diagnostics |
+//! | [`output`] | format writers: TUM, PLY/PCD, per-scan CSV, PNG/SVG plots, progress bar |
 //! | [`eval`] | ATE/RPE against a ground truth, evo-compatible |
-//! | [`output`] | TUM trajectory, PLY/PCD map, per-scan CSV, PNG/SVG plots, progress bar |
-//! | [`lidar_stream`] | raw Velodyne/Ouster packets to scans and IMU samples (decoders, time alignment, scan assembly) |
-//! | [`live`] | `loglio live`: UDP LiDAR and serial or Ouster IMU on their own threads, bounded queues, status line, Ctrl-C |
-//! | [`replay`] | `loglio replay`: pcap plus IMU CSV, serial capture or Ouster IMU packets |
-//! | [`sim`] | `loglio sim` / `demo`: a firmware-sim scenario end to end, ATE against its ground truth |
-//! | [`run`] | the run loop as a library: a source of events, the odometry, the files and the sinks; signals |
-//! | [`sink`] | live outputs: each scan's result and the high-rate pose to ROS 2, MAVLink, Foxglove or a callback, never blocking |
-//! | [`pipeline`] | the configuration onto the core odometry, its heap storage, input ordering and outputs |
+//! | [`diag`] | one-line `warning: ...` diagnostics |
+//! | [`machine`] | which CPU this is (for `bench`) |
+//! | [`knn_pca`] | kNN-PCA normals, the reference `normals` compares Ring FALS with |
 
-pub mod bag;
-pub mod bagrun;
-pub mod bench;
+pub mod cmd;
 pub mod config;
 pub mod diag;
+pub mod error;
 pub mod eval;
-pub mod imu_csv;
+pub mod input;
 pub mod knn_pca;
-pub mod lidar_stream;
-pub mod live;
 pub mod machine;
-pub mod normals;
-pub mod ouster_meta;
 pub mod output;
-pub mod pcap;
-pub mod pipeline;
-pub mod replay;
 pub mod run;
-pub mod serial;
-pub mod sim;
 pub mod sink;
-pub mod time_align;
-pub mod udp;
-pub mod velodyne_calib;

@@ -25,7 +25,8 @@ struct Cli {
 }
 
 /// The subcommands. `live`, `replay`, `bag`, `sim`, `demo` and `bench` (they run the odometry)
-/// and `normals` (Ring FALS) are added by their modules.
+/// and `normals` (Ring FALS) are added by their modules; `sim`, `demo` and `bench` only with the
+/// default feature `sim` (the simulator).
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Print a sensor preset's commented configuration template, or check a configuration file.
@@ -36,21 +37,24 @@ enum Command {
     BagInfo(BagInfoArgs),
     /// Ring FALS normals of a real capture (the bundled Ouster OS-1-32 frame by default): valid
     /// normals, time per scan, agreement with kNN-PCA on planar points.
-    Normals(loglio_host::normals::NormalsArgs),
+    Normals(loglio_host::cmd::normals::NormalsArgs),
     /// Run live: LiDAR packets over UDP, the IMU from a serial port or the Ouster's IMU packets;
     /// a status line each second; Ctrl-C stops and writes every output (as replay).
     Live(LiveArgs),
     /// Replay a pcap (Velodyne or Ouster) with the IMU from a CSV file, a serial capture or the
     /// Ouster's IMU packets; writes the trajectory, map, per-scan CSV and plots.
     Replay(ReplayArgs),
+    #[cfg(feature = "sim")]
     /// Will this computer keep up? Per-stage times and the real-time margin of a sensor preset on
     /// a simulated drive, with the plain (FAST-LIO2-like) association as the baseline.
     Bench(BenchArgs),
     /// Run the odometry over a ROS bag: ROS 1 (.bag), rosbag2 (directory, .db3) or MCAP, with
     /// PointCloud2 (Velodyne or Ouster driver) or raw Velodyne/Ouster packets, and sensor_msgs/Imu.
     Bag(BagArgs),
+    #[cfg(feature = "sim")]
     /// Run a simulated scenario (firmware-sim) end to end and report the ATE against its ground truth.
     Sim(SimArgs),
+    #[cfg(feature = "sim")]
     /// The built-in demo: 25 s of a simulated VLP-32C on a car in a town, no files needed; prints
     /// the ATE against ground truth and writes the outputs into ./loglio-demo/.
     Demo(DemoArgs),
@@ -66,6 +70,7 @@ enum ModeArg {
     Plain,
 }
 
+#[cfg(feature = "sim")]
 /// `mapping.knn_search`.
 #[derive(Debug, Clone, Copy, ValueEnum)]
 enum KnnArg {
@@ -75,6 +80,7 @@ enum KnnArg {
     Block,
 }
 
+#[cfg(feature = "sim")]
 impl KnnArg {
     fn host(self) -> loglio_host::config::KnnSearch {
         match self {
@@ -95,6 +101,7 @@ impl ModeArg {
     }
 }
 
+#[cfg(feature = "sim")]
 #[derive(Debug, Args)]
 struct SimArgs {
     /// Scenario: vehicle, handheld, corridor, drone, rotation.
@@ -166,8 +173,8 @@ struct RunArgs {
 }
 
 impl RunArgs {
-    fn setup(&self) -> loglio_host::replay::RunSetup {
-        loglio_host::replay::RunSetup {
+    fn setup(&self) -> loglio_host::run::setup::RunSetup {
+        loglio_host::run::setup::RunSetup {
             config: self.config.clone(),
             preset: self.preset.clone(),
             mode: self.mode.map(ModeArg::host),
@@ -245,6 +252,7 @@ struct LiveArgs {
     run: RunArgs,
 }
 
+#[cfg(feature = "sim")]
 #[derive(Debug, Args)]
 struct BenchArgs {
     /// Sensor preset: vlp16, vlp32c, hdl32e, os1-16, os1-64.
@@ -290,6 +298,7 @@ struct BagArgs {
     run: RunArgs,
 }
 
+#[cfg(feature = "sim")]
 #[derive(Debug, Args)]
 struct DemoArgs {
     /// Output directory.
@@ -477,18 +486,21 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Config(a) => config_cmd(a),
         Command::Eval(a) => eval_cmd(a),
         Command::BagInfo(a) => bag_info_cmd(a),
-        Command::Normals(a) => loglio_host::normals::run(&a),
+        Command::Normals(a) => loglio_host::cmd::normals::run(&a),
         Command::Live(a) => live_cmd(a),
         Command::Replay(a) => replay_cmd(a),
         Command::Bag(a) => bag_cmd(a),
+        #[cfg(feature = "sim")]
         Command::Sim(a) => sim_cmd(a),
+        #[cfg(feature = "sim")]
         Command::Bench(a) => bench_cmd(a),
+        #[cfg(feature = "sim")]
         Command::Demo(a) => demo_cmd(a),
     }
 }
 
 fn replay_cmd(a: ReplayArgs) -> anyhow::Result<()> {
-    use loglio_host::replay::{ImuInput, ReplayOptions};
+    use loglio_host::cmd::replay::{ImuInput, ReplayOptions};
     if !(a.rate > 0.0 && a.rate.is_finite()) {
         bail!("--rate must be a positive number, not {}", a.rate);
     }
@@ -504,7 +516,7 @@ fn replay_cmd(a: ReplayArgs) -> anyhow::Result<()> {
         setup: a.run.setup(),
         progress: true,
     };
-    let r = loglio_host::replay::run(&opt)?;
+    let r = loglio_host::cmd::replay::run(&opt)?;
     print(&format!(
         "{}: {} LiDAR packets{}\n{}",
         opt.pcap.display(),
@@ -515,12 +527,12 @@ fn replay_cmd(a: ReplayArgs) -> anyhow::Result<()> {
         } else {
             String::new()
         },
-        loglio_host::replay::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
+        loglio_host::run::runner::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
     ))
 }
 
 fn live_cmd(a: LiveArgs) -> anyhow::Result<()> {
-    use loglio_host::live::{LiveImu, LiveOptions};
+    use loglio_host::cmd::live::{LiveImu, LiveOptions};
     if !(a.imu_timeout > 0.0 && a.imu_timeout.is_finite()) {
         bail!("--imu-timeout must be a positive number of seconds, not {}", a.imu_timeout);
     }
@@ -539,10 +551,11 @@ fn live_cmd(a: LiveArgs) -> anyhow::Result<()> {
     opt.lidar_timeout_s = a.lidar_timeout;
     opt.imu_timeout_s = a.imu_timeout;
     opt.status = !a.quiet;
-    let r = loglio_host::live::run(&opt)?;
-    print(&loglio_host::live::summary(&r))
+    let r = loglio_host::cmd::live::run(&opt)?;
+    print(&loglio_host::cmd::live::summary(&r))
 }
 
+#[cfg(feature = "sim")]
 fn bench_cmd(a: BenchArgs) -> anyhow::Result<()> {
     let preset: Preset = a.preset.parse().map_err(|e: loglio_host::config::ConfigError| {
         anyhow::anyhow!("{}", e.0.trim_start_matches("config: "))
@@ -551,7 +564,14 @@ fn bench_cmd(a: BenchArgs) -> anyhow::Result<()> {
         bail!("--seconds must be in [3, 120], not {}", a.seconds);
     }
     let scenario = a.scenario.as_deref().map(scenario_kind).transpose()?;
-    let r = loglio_host::bench::run(preset, scenario, a.seconds, a.max_points, a.knn_search.host(), !a.json)?;
+    let r = loglio_host::cmd::bench::run(
+        preset,
+        scenario,
+        a.seconds,
+        a.max_points,
+        a.knn_search.host(),
+        !a.json,
+    )?;
     print(&if a.json { r.to_json() } else { r.to_text() })
 }
 
@@ -559,7 +579,7 @@ fn bag_cmd(a: BagArgs) -> anyhow::Result<()> {
     if !(a.rate > 0.0 && a.rate.is_finite()) {
         bail!("--rate must be a positive number, not {}", a.rate);
     }
-    let opt = loglio_host::bagrun::BagRunOptions {
+    let opt = loglio_host::cmd::bag::BagRunOptions {
         bag: a.bag,
         lidar_topic: a.lidar_topic,
         imu_topic: a.imu_topic,
@@ -567,21 +587,23 @@ fn bag_cmd(a: BagArgs) -> anyhow::Result<()> {
         progress: !a.realtime,
         realtime: a.realtime.then_some(a.rate),
     };
-    let r = loglio_host::bagrun::run(&opt)?;
+    let r = loglio_host::cmd::bag::run(&opt)?;
     print(&format!(
         "{}: {}\n{}\n{}",
         opt.bag.display(),
         r.topics,
         r.bag_stats,
-        loglio_host::replay::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
+        loglio_host::run::runner::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
     ))
 }
 
-fn sim_run(opt: loglio_host::sim::SimOptions) -> anyhow::Result<()> {
-    let report = loglio_host::sim::run(&opt)?;
-    print(&loglio_host::sim::summary(&opt, &report))
+#[cfg(feature = "sim")]
+fn sim_run(opt: loglio_host::cmd::sim::SimOptions) -> anyhow::Result<()> {
+    let report = loglio_host::cmd::sim::run(&opt)?;
+    print(&loglio_host::cmd::sim::summary(&opt, &report))
 }
 
+#[cfg(feature = "sim")]
 /// A simulator scenario by name, or an error that lists the known ones.
 fn scenario_kind(name: &str) -> anyhow::Result<loglio_firmware_sim::scenario::ScenarioKind> {
     use loglio_firmware_sim::scenario::ScenarioKind;
@@ -591,6 +613,7 @@ fn scenario_kind(name: &str) -> anyhow::Result<loglio_firmware_sim::scenario::Sc
     })
 }
 
+#[cfg(feature = "sim")]
 fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
     if !(a.rate > 0.0 && a.rate.is_finite()) {
         bail!("--rate must be a positive number, not {}", a.rate);
@@ -607,7 +630,7 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
     {
         bail!("--seconds must be in (0, 600], not {s}");
     }
-    sim_run(loglio_host::sim::SimOptions {
+    sim_run(loglio_host::cmd::sim::SimOptions {
         kind,
         sensor,
         seed: a.seed,
@@ -622,6 +645,7 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
     })
 }
 
+#[cfg(feature = "sim")]
 fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
     if !(a.rate > 0.0 && a.rate.is_finite()) {
         bail!("--rate must be a positive number, not {}", a.rate);
@@ -635,7 +659,7 @@ fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
         "loglio demo: {} s of a simulated Velodyne VLP-32C on a car driving through a town (firmware-sim, seed 1)",
         a.seconds
     ))?;
-    sim_run(loglio_host::sim::SimOptions {
+    sim_run(loglio_host::cmd::sim::SimOptions {
         kind: ScenarioKind::Vehicle,
         sensor: SensorModel::Vlp32c,
         seed: 1,
@@ -717,7 +741,7 @@ fn eval_cmd(a: EvalArgs) -> anyhow::Result<()> {
 }
 
 fn bag_info_cmd(a: BagInfoArgs) -> anyhow::Result<()> {
-    use loglio_host::bag::{BagEvent, BagOptions, BagReader, TopicKind};
+    use loglio_host::input::bag::{BagEvent, BagOptions, BagReader, TopicKind};
     let cfg = match &a.config {
         Some(path) => Config::load(path)?,
         None => {

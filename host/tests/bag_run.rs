@@ -8,8 +8,8 @@ use std::process::Output;
 
 use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKind};
-use loglio_host::bag::msg::{Encoding, IMU, Imu, POINTCLOUD2, PointCloud2, PointField, datatype};
-use loglio_host::bag::ros1_writer::Ros1BagWriter;
+use loglio_host::input::bag::msg::{Encoding, IMU, Imu, POINTCLOUD2, PointCloud2, PointField, datatype};
+use loglio_host::input::bag::ros1_writer::Ros1BagWriter;
 
 mod common;
 use common::{extrinsic_config, number_after};

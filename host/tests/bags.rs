@@ -8,14 +8,14 @@ use std::io::{Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 use loglio_core::scan::NO_PIXEL;
-use loglio_host::bag::cloud::build::{self, FieldSpec};
-use loglio_host::bag::msg::{self, Encoding, IMU, Imu, MessageType, POINTCLOUD2, PointCloud2, STRING};
-use loglio_host::bag::ros1_writer::{ChunkCompression, Ros1BagWriter};
-use loglio_host::bag::{
-    BagError, BagEvent, BagFormat, BagItem, BagOptions, BagReader, BagStats, PacketKind, TopicKind,
-};
 use loglio_host::config::{Config, Preset};
 use loglio_host::diag;
+use loglio_host::input::bag::cloud::build::{self, FieldSpec};
+use loglio_host::input::bag::msg::{self, Encoding, IMU, Imu, MessageType, POINTCLOUD2, PointCloud2, STRING};
+use loglio_host::input::bag::ros1_writer::{ChunkCompression, Ros1BagWriter};
+use loglio_host::input::bag::{
+    BagError, BagEvent, BagFormat, BagItem, BagOptions, BagReader, BagStats, PacketKind, TopicKind,
+};
 
 /// A scratch directory, removed when dropped unless `LOGLIO_KEEP_TEST_FILES` is set (to look
 /// at the bags with other tools).

@@ -295,6 +295,8 @@ fn live_tracks_the_simulator_and_ctrl_c_writes_every_output() {
     assert!(!err.iter().any(|l| l.contains("panicked") || l.contains("error:")), "{err:?}");
     // Status lines came (once a second) with the drop counts.
     assert!(err.iter().any(|l| l.starts_with("live: ") && l.contains("drops: socket queue")), "{err:?}");
+    // The status and the latest pose lead the line.
+    assert!(err.iter().any(|l| l.starts_with("live: ok, at (") && l.contains(" m, yaw ")), "{err:?}");
 
     // Counts against what the simulator sent: every data packet decoded, no IMU frame lost.
     // The simulator also sends the Ouster's IMU packets, 100 a second, to a port nobody

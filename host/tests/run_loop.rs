@@ -10,11 +10,12 @@ use std::time::{Duration, Instant};
 
 use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::scenario::{Event as SimEvent, ScenarioKind};
+use loglio_host::cmd::sim::{self, SimOptions};
 use loglio_host::config::KnnSearch;
 use loglio_host::eval::{Format, read_trajectory};
-use loglio_host::pipeline::{OutputOptions, OwnedScan};
+use loglio_host::run::runner::OwnedScan;
 use loglio_host::run::{self, Event, RunOptions};
-use loglio_host::sim::{self, SimOptions};
+use loglio_host::sink::files::OutputOptions;
 use loglio_host::sink::{ChannelSink, LiveStatus, SinkEvent, SinkOptions, Sinks, Wants};
 
 /// Poses in a TUM text (comment lines left out).

@@ -399,7 +399,7 @@ impl Transport {
                 Ok(Transport::Udp(s))
             }
             MavlinkUrl::Serial { path, baud } => {
-                let p = crate::serial::open(path, *baud, Duration::from_millis(100))
+                let p = crate::input::serial::open(path, *baud, Duration::from_millis(100))
                     .map_err(|e| SinkError(format!("cannot open {path}: {e}")))?;
                 Ok(Transport::Serial(p))
             }

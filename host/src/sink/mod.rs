@@ -20,6 +20,7 @@ use std::time::{Duration, Instant};
 
 pub mod args;
 pub mod callback;
+pub mod files;
 pub mod foxglove;
 pub mod mavlink;
 pub mod mcap;

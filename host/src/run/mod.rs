@@ -6,8 +6,9 @@
 //! ```no_run
 //! use loglio_core::imu::ImuSample;
 //! use loglio_host::config::{Config, Preset};
-//! use loglio_host::pipeline::{OutputOptions, OwnedScan};
+//! use loglio_host::run::runner::OwnedScan;
 //! use loglio_host::run::{self, Event, RunOptions};
+//! use loglio_host::sink::files::OutputOptions;
 //! use loglio_host::sink::{ChannelSink, SinkEvent, SinkOptions, Sinks, Wants};
 //!
 //! # fn my_imu_and_scans() -> Vec<Event> { Vec::new() }
@@ -25,13 +26,17 @@
 //! });
 //! // Any iterator of events is a source (a driver's callback can feed a channel's iterator).
 //! let events = my_imu_and_scans().into_iter();
-//! let layout = loglio_host::pipeline::config_layout(&cfg)?;
+//! let layout = loglio_host::run::engine::config_layout(&cfg)?;
 //! let opts = RunOptions { sinks, ..RunOptions::default() };
 //! let (stats, _files) = run::drive(&cfg, layout, events, opts)?;
 //! consumer.join().ok();
 //! println!("{} scans", stats.scans);
-//! # Ok::<(), loglio_host::pipeline::PipelineError>(())
+//! # Ok::<(), loglio_host::error::PipelineError>(())
 //! ```
+
+pub mod engine;
+pub mod runner;
+pub mod setup;
 
 use std::io;
 use std::sync::Arc;
@@ -41,10 +46,11 @@ use loglio_core::imu::ImuSample;
 use loglio_core::range_image::RangeImageLayout;
 
 use crate::config::Config;
-use crate::pipeline::{
-    self, Finished, OutputOptions, Outputs, OwnedScan, PipelineError, RunStats, Runner, StorageClass,
-};
+use crate::error::PipelineError;
+use crate::run::engine::StorageClass;
+use crate::run::runner::{OwnedScan, RunStats, Runner};
 use crate::sink::Sinks;
+use crate::sink::files::{Finished, OutputOptions, Outputs};
 
 /// What a source yields, in the order it has them.
 #[derive(Clone, Debug, PartialEq)]
@@ -115,10 +121,10 @@ pub fn drive(
     opts: RunOptions<'_>,
 ) -> Result<(RunStats, Finished), PipelineError> {
     let class = StorageClass::choose(layout.rows(), layout.cols(), cfg.mapping.map_capacity)?;
-    let core = pipeline::odometry_config(cfg, layout)?;
+    let core = engine::odometry_config(cfg, layout)?;
     let outputs = Outputs::new(opts.outputs)?;
     let RunOptions { sinks, stop, cpu_clock, before_finish, .. } = opts;
-    pipeline::with_engine(&core, class, |engine| {
+    engine::with_engine(&core, class, |engine| {
         let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
         runner.sinks = sinks;
         if cpu_clock {

@@ -1,5 +1,5 @@
 //! `loglio bag`: the odometry over a ROS bag (ROS 1, rosbag2 sqlite3, MCAP) through
-//! [`crate::bag::BagReader`]: `sensor_msgs/PointCloud2` from the Velodyne or Ouster drivers (or
+//! [`crate::input::bag::BagReader`]: `sensor_msgs/PointCloud2` from the Velodyne or Ouster drivers (or
 //! any cloud: clouds without ring or time fields get them from geometry, with one warning),
 //! raw `velodyne_msgs/VelodyneScan` or Ouster packets (decoded by the core), and
 //! `sensor_msgs/Imu` or the Ouster IMU packets. Topics are found by type unless named.
@@ -9,13 +9,16 @@ use std::time::Instant;
 
 use loglio_core::scan::ScanPoint;
 
-use crate::bag::{BagEvent, BagOptions, BagReader, PacketKind, TopicKind};
 use crate::config::SensorFamily;
 use crate::diag::warn;
-use crate::lidar_stream::{Decoded, LidarStream, SensorDecoder};
+use crate::error::PipelineError;
+use crate::input::bag::{BagEvent, BagOptions, BagReader, PacketKind, TopicKind};
+use crate::input::lidar_stream::{self, Decoded, LidarStream, SensorDecoder};
 use crate::output::Progress;
-use crate::pipeline::{self, Finished, Outputs, OwnedScan, PipelineError, RunStats, Runner, StorageClass};
-use crate::replay::RunSetup;
+use crate::run::engine::{self, StorageClass};
+use crate::run::runner::{OwnedScan, RunStats, Runner};
+use crate::run::setup::RunSetup;
+use crate::sink::files::{Finished, Outputs};
 
 /// A bag run's settings.
 #[derive(Clone, Debug)]
@@ -51,9 +54,6 @@ pub struct BagRunReport {
     pub wall_s: f64,
 }
 
-const PORT_LIDAR: u16 = 1;
-const PORT_IMU: u16 = 2;
-
 /// Runs the odometry over a bag.
 pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
     let wall = Instant::now();
@@ -71,7 +71,7 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
     // configuration's, or the bag's metadata topic, read in a first pass).
     let packets = matches!(sel.lidar.1, TopicKind::VelodyneScan | TopicKind::OusterPacket);
     let mut meta = match &cfg.sensor.ouster_metadata {
-        Some(p) => Some(crate::ouster_meta::load(p).map_err(|e| PipelineError(e.to_string()))?),
+        Some(p) => Some(crate::input::ouster_meta::load(p).map_err(|e| PipelineError(e.to_string()))?),
         None => None,
     };
     if sel.lidar.1 == TopicKind::OusterPacket {
@@ -85,8 +85,10 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
             let mut first =
                 BagReader::open(&opt.bag, bag_opts()?).map_err(|e| PipelineError(e.to_string()))?;
             for item in first.by_ref().take(100_000) {
-                if let Ok(crate::bag::BagItem { event: BagEvent::OusterMetadata(json), .. }) = item {
-                    meta = Some(crate::ouster_meta::parse(&json).map_err(|e| PipelineError(e.to_string()))?);
+                if let Ok(crate::input::bag::BagItem { event: BagEvent::OusterMetadata(json), .. }) = item {
+                    meta = Some(
+                        crate::input::ouster_meta::parse(&json).map_err(|e| PipelineError(e.to_string()))?,
+                    );
                     break;
                 }
             }
@@ -107,16 +109,16 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
         if packets { Some(SensorDecoder::new(&cfg, meta.as_ref().map(|m| &m.intrinsics))?) } else { None };
     let layout = match &dec {
         Some(d) => d.layout(),
-        None => pipeline::config_layout(&cfg)?,
+        None => engine::config_layout(&cfg)?,
     };
     if let Some(m) = &meta {
         cfg.sensor.columns = m.intrinsics.columns_per_frame as u32;
     }
     let class = StorageClass::choose(layout.rows(), layout.cols(), cfg.mapping.map_capacity)?;
-    let core = pipeline::odometry_config(&cfg, layout)?;
+    let core = engine::odometry_config(&cfg, layout)?;
     let n = dec.as_ref().map_or(0, |d| d.max_points());
     let (mut a, mut b) = (vec![ScanPoint::default(); n], vec![ScanPoint::default(); n]);
-    let mut stream = dec.map(|d| LidarStream::new(&cfg, d, &mut a, &mut b, PORT_LIDAR, PORT_IMU));
+    let mut stream = dec.map(|d| LidarStream::of_kinds(&cfg, d, &mut a, &mut b));
     let outputs = Outputs::new(opt.setup.outputs()?)?;
     let progress = if opt.progress {
         Progress::new(reader.total_messages().unwrap_or(0), "messages", false)
@@ -124,11 +126,11 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
         Progress::hidden()
     };
     let scan_offset_ns = (cfg.time.scan_stamp_offset * 1e9).round() as i64;
-    let (stats, finished) = pipeline::with_engine(&core, class, |engine| -> Result<_, PipelineError> {
+    let (stats, finished) = engine::with_engine(&core, class, |engine| -> Result<_, PipelineError> {
         let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
         runner.sinks = opt.setup.sinks.build();
         let mut read_error = None;
-        let mut pacer = opt.realtime.map(crate::replay::Pacer::new);
+        let mut pacer = opt.realtime.map(crate::input::pace::Pacer::new);
         let (stop, _signals) = crate::run::Signals::stop_flag();
         while let Some(item) = reader.next() {
             if stop.load(std::sync::atomic::Ordering::Relaxed) {
@@ -156,8 +158,11 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
                 BagEvent::Imu(s) => runner.imu(s)?,
                 BagEvent::LidarPacket(p) => {
                     let Some(st) = stream.as_mut() else { continue };
-                    let port = if p.kind == PacketKind::OusterImu { PORT_IMU } else { PORT_LIDAR };
-                    match st.packet(port, &p.bytes, p.stamp_ns) {
+                    let kind = match p.kind {
+                        PacketKind::Velodyne | PacketKind::OusterLidar => lidar_stream::PacketKind::Lidar,
+                        PacketKind::OusterImu => lidar_stream::PacketKind::OusterImu,
+                    };
+                    match st.packet_of_kind(kind, &p.bytes, p.stamp_ns) {
                         Some(Decoded::Scan(s)) => runner.scan(s, 0)?,
                         Some(Decoded::Imu(s)) => runner.imu(s)?,
                         None => {}

@@ -20,7 +20,7 @@
 //! use loglio_core::scan::ScanPoint;
 //! use loglio_core::scan_assembly::{AssemblerConfig, ScanAssembler};
 //! use loglio_core::sensor::velodyne::{Config, Decoder, Model};
-//! use loglio_host::{pcap::PcapReader, time_align::VelodyneClock};
+//! use loglio_host::input::{pcap::PcapReader, time_align::VelodyneClock};
 //!
 //! let mut dec = Decoder::new(Config::new(Model::Vlp16))?; // layout: dec.layout() (for Ring FALS)
 //! let (mut a, mut b) = (vec![ScanPoint::default(); 40_000], vec![ScanPoint::default(); 40_000]);

@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 use mcap::sans_io::summary_reader::{SummaryReadEvent, SummaryReader};
 
 use super::{BagError, RawEvent, RawMsg, RawSource, TopicInfo};
-use crate::bag::msg::Encoding;
+use crate::input::bag::msg::Encoding;
 
 fn encoding(message_encoding: &str) -> Option<Encoding> {
     match message_encoding {

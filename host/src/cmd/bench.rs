@@ -13,11 +13,14 @@ use loglio_core::imu::ImuSample;
 use loglio_firmware_sim::scenario::{Event, ScenarioKind};
 use serde_json::json;
 
+use crate::cmd::sim::{self, SimOptions};
 use crate::config::{AssociationMode, KnnSearch, Preset};
+use crate::error::PipelineError;
 use crate::machine;
 use crate::output::Progress;
-use crate::pipeline::{self, OutputOptions, Outputs, OwnedScan, PipelineError, Runner, StorageClass};
-use crate::sim::{self, SimOptions};
+use crate::run::engine::{self, StorageClass};
+use crate::run::runner::{OwnedScan, Runner};
+use crate::sink::files::{OutputOptions, Outputs};
 
 /// Times of one configuration.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -75,9 +78,9 @@ fn time_mode(
     cfg.mapping.knn_search = knn_search;
     let layout = sc.layout().clone();
     let class = StorageClass::choose(layout.rows(), layout.cols(), cfg.mapping.map_capacity)?;
-    let core = pipeline::odometry_config(&cfg, layout)?;
+    let core = engine::odometry_config(&cfg, layout)?;
     let per_scan =
-        pipeline::with_engine(&core, class, |engine| -> Result<Vec<(u64, [u64; 6])>, PipelineError> {
+        engine::with_engine(&core, class, |engine| -> Result<Vec<(u64, [u64; 6])>, PipelineError> {
             let mut runner = Runner::new(engine, Outputs::new(OutputOptions::default())?, 0.0);
             let timed = std::rc::Rc::new(std::cell::RefCell::new(Vec::new()));
             let sink = timed.clone();

@@ -8,7 +8,7 @@
 //! string.
 //!
 //! ```no_run
-//! use loglio_host::bag::{BagEvent, BagOptions, BagReader};
+//! use loglio_host::input::bag::{BagEvent, BagOptions, BagReader};
 //! use loglio_host::config::{Config, Preset};
 //! # fn main() -> Result<(), Box<dyn std::error::Error>> {
 //! let cfg = Config::preset(Preset::Vlp16);

@@ -14,7 +14,7 @@
 //!
 //! - A receive thread never waits on the rest: it hands each datagram on with `try_send`, and a
 //!   datagram that finds the queue full is dropped and counted (*socket queue* drops). The
-//!   kernel's receive buffer in front of it ([`crate::udp`], `SO_RCVBUF`) absorbs bursts while
+//!   kernel's receive buffer in front of it ([`crate::input::udp`], `SO_RCVBUF`) absorbs bursts while
 //!   the thread is descheduled.
 //! - The decode thread turns datagrams into scans ([`LidarStream`], as the replay does) and
 //!   Ouster IMU packets into samples. Undecodable and out-of-order packets are *decoder* drops.
@@ -53,11 +53,14 @@ use loglio_core::imu::ImuSample;
 
 use crate::config::{Config, ImuSource, LidarTimeSource, SensorFamily};
 use crate::diag::warn;
-use crate::lidar_stream::{self, Decoded, LidarStream, SensorDecoder, VELODYNE_POSITION_PORT};
-use crate::pipeline::{self, Finished, OwnedScan, PipelineError, RunStats, Runner};
-use crate::replay::{PacketSetup, RunSetup};
-use crate::serial::ImuFrameReader;
-use crate::udp::{self, UdpSource};
+use crate::error::PipelineError;
+use crate::input::lidar_stream::{self, Decoded, LidarStream, SensorDecoder, VELODYNE_POSITION_PORT};
+use crate::input::serial::ImuFrameReader;
+use crate::input::udp::{self, UdpSource};
+use crate::run::engine;
+use crate::run::runner::{OwnedScan, RunStats, Runner};
+use crate::run::setup::{PacketSetup, RunSetup};
+use crate::sink::files::{self, Finished};
 
 /// Datagrams waiting for the decode thread (about 1.4 s of a VLP-32C, 3 s of an OS1-128).
 pub const DATAGRAM_QUEUE: usize = 2048;
@@ -246,7 +249,7 @@ enum ImuPort {
 fn open_imu(path: &Path, baud: u32) -> Result<ImuPort, PipelineError> {
     let shown = path.display();
     let meta = std::fs::metadata(path).map_err(|e| {
-        let ports = crate::serial::ports();
+        let ports = crate::input::serial::ports();
         let listed = if ports.is_empty() {
             "no serial ports found on this computer".to_string()
         } else {
@@ -268,7 +271,7 @@ fn open_imu(path: &Path, baud: u32) -> Result<ImuPort, PipelineError> {
         )));
     }
     let path_str = path.to_string_lossy();
-    crate::serial::open(&path_str, baud, POLL).map(ImuPort::Serial).map_err(|e| {
+    crate::input::serial::open(&path_str, baud, POLL).map(ImuPort::Serial).map_err(|e| {
         PipelineError(format!("IMU serial device {shown}: {}", crate::diag::one_line(&e.to_string())))
     })
 }
@@ -638,14 +641,14 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
         None => format!("the Ouster IMU packets (UDP {bind}:{imu_port})"),
     };
 
-    let outputs = pipeline::Outputs::new(opt.setup.outputs()?)?;
+    let outputs = files::Outputs::new(opt.setup.outputs()?)?;
     let stop_signal = Arc::new(AtomicBool::new(false));
     let _signals = if opt.handle_signals { Some(crate::run::Signals::register(&stop_signal)?) } else { None };
     let scan_period_s = 1.0 / cfg.sensor.scan_rate_hz;
     let preset = cfg.preset;
     let decode_setup = DecodeSetup { cfg: cfg.clone(), dec, lidar_port, imu_port, hold_for_gps };
 
-    let res = pipeline::with_engine(&core, class, move |engine| -> Result<_, PipelineError> {
+    let res = engine::with_engine(&core, class, move |engine| -> Result<_, PipelineError> {
         let t0 = Instant::now();
         let counters = Arc::new(Counters::default());
         let stop_rx = Arc::new(AtomicBool::new(false));
@@ -793,7 +796,9 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                         scan_period_s,
                         &snapshot(c, &runner.stats, &t),
                     );
-                    line = format!("{}; {line}", pose_phrase(runner.latest.as_ref()));
+                    // "live: <status and pose>; <rates, latency, drops>": the status first.
+                    let rest = line.strip_prefix("live: ").unwrap_or(&line).to_string();
+                    line = format!("live: {}; {rest}", pose_phrase(runner.latest.as_ref()));
                     if !runner.sinks.is_empty() {
                         line.push_str(&format!("; outputs: {}", runner.sinks.status_phrase()));
                     }
@@ -928,7 +933,7 @@ pub fn summary(r: &LiveReport) -> String {
         c.latency_mean_s * 1e3,
         c.latency_max_s * 1e3
     ));
-    s.push_str(&crate::replay::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s));
+    s.push_str(&crate::run::runner::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s));
     s
 }
 

@@ -25,10 +25,11 @@ use crate::knn_pca::{PcaNormal, knn_pca_normals};
 /// The bundled capture's name, metadata and xyz decode.
 pub const BUNDLED_NAME: &str = "OS-1-32-G_v2.1.1_1024x10 frame 0 (ouster-sdk test capture)";
 /// Metadata of the bundled capture.
-pub const BUNDLED_METADATA: &str = include_str!("../../tests/data/ouster-sdk/OS-1-32-G_v2.1.1_1024x10.json");
+pub const BUNDLED_METADATA: &str =
+    include_str!("../../../tests/data/ouster-sdk/OS-1-32-G_v2.1.1_1024x10.json");
 /// The SDK's xyz decode of the bundled capture.
 pub const BUNDLED_XYZ: &[u8] = include_bytes!(
-    "../../tests/data/ouster-sdk/ref-ouster-sdk/OS-1-32-G_v2.1.1_1024x10.frame0.xyz_m.f32le.bin"
+    "../../../tests/data/ouster-sdk/ref-ouster-sdk/OS-1-32-G_v2.1.1_1024x10.frame0.xyz_m.f32le.bin"
 );
 
 /// `loglio normals` arguments.

@@ -10,8 +10,9 @@ use loglio_core::sensor::velodyne::{self, Model};
 use loglio_core::sensor::velodyne_position::{PositionPacket, PositionRepr};
 
 use crate::config::{Config, LidarTimeSource, Preset, SensorFamily};
-use crate::pipeline::{OwnedScan, PipelineError};
-use crate::time_align::{self, TimeAlignConfig, VelodyneClock};
+use crate::error::PipelineError;
+use crate::input::time_align::{self, TimeAlignConfig, VelodyneClock};
+use crate::run::runner::OwnedScan;
 
 /// Velodyne position packets' UDP port.
 pub const VELODYNE_POSITION_PORT: u16 = 8308;
@@ -46,8 +47,8 @@ impl SensorDecoder {
                 vc.max_range = vc.max_range.max(cfg.sensor.max_range as f32);
                 let dec = match &cfg.sensor.calibration {
                     Some(p) => {
-                        let calib =
-                            crate::velodyne_calib::load(p).map_err(|e| PipelineError(e.to_string()))?;
+                        let calib = crate::input::velodyne_calib::load(p)
+                            .map_err(|e| PipelineError(e.to_string()))?;
                         velodyne::Decoder::with_calibration(vc, calib)
                     }
                     None => velodyne::Decoder::new(vc),
@@ -107,10 +108,23 @@ pub struct StreamStats {
     pub imu_packets: u64,
     /// IMU packets refused.
     pub bad_imu_packets: u64,
-    /// Datagrams on ports nothing listens to.
+    /// Packets nothing decodes: datagrams on ports nothing listens to, Ouster IMU packets for a
+    /// Velodyne.
     pub other_ports: u64,
     /// Incomplete scans (the first and last partial turns, packet gaps).
     pub incomplete_scans: u64,
+}
+
+/// What a packet is, as its source tells it: a UDP port for sockets and pcaps, the message
+/// type for a bag (so no source has to pretend to be another).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PacketKind {
+    /// LiDAR data (Velodyne data packet, Ouster lidar packet).
+    Lidar,
+    /// An Ouster IMU packet.
+    OusterImu,
+    /// A Velodyne position (GPS/PPS) packet, for the clock.
+    VelodynePosition,
 }
 
 /// Packets in, scans and IMU samples out.
@@ -118,8 +132,8 @@ pub struct LidarStream<'a> {
     dec: SensorDecoder,
     asm: ScanAssembler<'a>,
     time: TimeAlignConfig,
-    lidar_port: u16,
-    imu_port: u16,
+    /// The LiDAR data and Ouster IMU ports (`None`: the source tells each packet's kind).
+    ports: Option<(u16, u16)>,
     /// Counts.
     pub stats: StreamStats,
 }
@@ -148,6 +162,17 @@ impl<'a> LidarStream<'a> {
         lidar_port: u16,
         imu_port: u16,
     ) -> Self {
+        LidarStream { ports: Some((lidar_port, imu_port)), ..Self::of_kinds(cfg, dec, a, b) }
+    }
+
+    /// A stream over `dec` for a source that tells each packet's kind (a bag): see
+    /// [`LidarStream::packet_of_kind`].
+    pub fn of_kinds(
+        cfg: &Config,
+        dec: SensorDecoder,
+        a: &'a mut [ScanPoint],
+        b: &'a mut [ScanPoint],
+    ) -> Self {
         let source = match cfg.time.lidar_time_source {
             LidarTimeSource::Packet => time_align::LidarTimeSource::Sensor,
             LidarTimeSource::Capture => time_align::LidarTimeSource::Capture,
@@ -156,8 +181,7 @@ impl<'a> LidarStream<'a> {
             dec,
             asm: ScanAssembler::new(AssemblerConfig::cut_at_degrees(0.0), a, b),
             time: TimeAlignConfig { source, offset_ns: 0 },
-            lidar_port,
-            imu_port,
+            ports: None,
             stats: StreamStats::default(),
         }
     }
@@ -185,8 +209,33 @@ impl<'a> LidarStream<'a> {
 
     /// Takes one UDP payload received on `port` at `capture_ns`.
     pub fn packet(&mut self, port: u16, payload: &[u8], capture_ns: u64) -> Option<Decoded> {
+        match self.port_kind(port) {
+            Some(kind) => self.packet_of_kind(kind, payload, capture_ns),
+            None => {
+                self.stats.other_ports += 1;
+                None
+            }
+        }
+    }
+
+    /// What a datagram on `port` is: the LiDAR port's data first, the IMU port only for an
+    /// Ouster, then Velodyne position packets (8308).
+    fn port_kind(&self, port: u16) -> Option<PacketKind> {
+        match self.ports {
+            Some((lidar, _)) if port == lidar => Some(PacketKind::Lidar),
+            Some((_, imu)) if port == imu && matches!(self.dec, SensorDecoder::Ouster(_)) => {
+                Some(PacketKind::OusterImu)
+            }
+            _ if port == VELODYNE_POSITION_PORT => Some(PacketKind::VelodynePosition),
+            _ => None,
+        }
+    }
+
+    /// Takes one packet of `kind` received at `capture_ns`; one this decoder cannot use (an
+    /// Ouster IMU packet for a Velodyne) counts as [`StreamStats::other_ports`].
+    pub fn packet_of_kind(&mut self, kind: PacketKind, payload: &[u8], capture_ns: u64) -> Option<Decoded> {
         let time = self.time;
-        if port == self.lidar_port {
+        if kind == PacketKind::Lidar {
             let done = match &mut self.dec {
                 SensorDecoder::Velodyne { dec, clock } => {
                     let Ok((pkt, repr)) = dec.parse(payload) else {
@@ -224,7 +273,7 @@ impl<'a> LidarStream<'a> {
                     None
                 }
             }
-        } else if port == self.imu_port && matches!(self.dec, SensorDecoder::Ouster(_)) {
+        } else if kind == PacketKind::OusterImu && matches!(self.dec, SensorDecoder::Ouster(_)) {
             let SensorDecoder::Ouster(dec) = &mut self.dec else { return None };
             match dec.imu(payload).ok().and_then(|r| r.sample(0)) {
                 Some(mut s) => {
@@ -239,7 +288,7 @@ impl<'a> LidarStream<'a> {
                     None
                 }
             }
-        } else if port == VELODYNE_POSITION_PORT {
+        } else if kind == PacketKind::VelodynePosition {
             if let SensorDecoder::Velodyne { clock, .. } = &mut self.dec
                 && let Ok(p) = PositionPacket::new_checked(payload)
             {

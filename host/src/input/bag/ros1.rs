@@ -17,7 +17,7 @@ use rosbag::record_types::Compression;
 use rosbag::{ChunkRecord, IndexRecord, MessageRecord, RosBag};
 
 use super::{BagError, RawEvent, RawMsg, RawSource, TopicInfo, ros1_scan};
-use crate::bag::msg::Encoding;
+use crate::input::bag::msg::Encoding;
 
 pub(super) const MAGIC: &[u8] = b"#ROSBAG V2.0\n";
 

@@ -10,12 +10,13 @@ use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKin
 use nalgebra::Isometry3;
 
 use crate::config::{AssociationMode, Config, KnnSearch, Preset};
+use crate::error::PipelineError;
 use crate::eval::{self, Trajectory};
 use crate::output::Progress;
-use crate::pipeline::{
-    self, EstPose, Finished, OutputOptions, OwnedScan, PipelineError, RunStats, Runner, StorageClass,
-};
+use crate::run::engine::StorageClass;
+use crate::run::runner::{self, OwnedScan, RunStats, Runner};
 use crate::run::{self, RunOptions};
+use crate::sink::files::{self, EstPose, Finished, OutputOptions};
 
 /// What to simulate and where to write.
 #[derive(Clone, Debug)]
@@ -180,7 +181,7 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
     } else {
         Progress::hidden()
     };
-    let mut pace = opt.realtime.map(crate::replay::Pacer::new);
+    let mut pace = opt.realtime.map(crate::input::pace::Pacer::new);
     let events = sc.events().map(|ev| match ev {
         Event::Imu(s) => {
             if let Some(p) = &mut pace {
@@ -212,7 +213,7 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
         before_finish: Some(Box::new(|runner: &mut Runner<'_>| {
             let gt = ground_truth(&sc, &runner.outputs.poses);
             if let Some(dir) = &opt.out {
-                pipeline::write_tum(&dir.join("groundtruth.tum"), &gt)?;
+                files::write_tum(&dir.join("groundtruth.tum"), &gt)?;
             }
             runner.outputs.set_ground_truth(Some(to_trajectory(&gt)));
             Ok(())
@@ -237,7 +238,7 @@ pub fn summary(opt: &SimOptions, r: &SimReport) -> String {
         opt.sensor.name(),
         opt.seed,
         st.scans,
-        pipeline::status_summary(st),
+        runner::status_summary(st),
         st.imu_in
     );
     let mean = st.mean_scan_s();
@@ -293,7 +294,7 @@ mod tests {
         assert_eq!(cfg.imu.gravity, loglio_firmware_sim::trajectory::GRAVITY);
         assert_eq!(cfg.mapping.association, AssociationMode::Plain);
         // ... and they reach the filter.
-        let core = crate::pipeline::odometry_config(&cfg, sc.layout().clone()).unwrap();
+        let core = crate::run::engine::odometry_config(&cfg, sc.layout().clone()).unwrap();
         assert_eq!(core.eskf.noise.gyro, 1.25e-3);
         assert_eq!(core.eskf.noise.acc, 3.5e-2);
         assert_eq!(core.eskf.noise.gyro_bias_walk, 2.5e-5);
@@ -304,7 +305,7 @@ mod tests {
         // No measurement budget unless asked for; `mapping.max_points` reaches the association.
         assert_eq!(core.association.max_points, 0);
         let file = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nmax_points = 5000\n").unwrap();
-        let core = crate::pipeline::odometry_config(&file, sc.layout().clone()).unwrap();
+        let core = crate::run::engine::odometry_config(&file, sc.layout().clone()).unwrap();
         assert_eq!(core.association.max_points, 5000);
         let err = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nmax_points = -1\n").unwrap_err();
         assert!(err.0.contains("mapping.max_points"), "{}", err.0);
@@ -313,7 +314,7 @@ mod tests {
         assert_eq!(core.association.knn_reach, KnnReach::Neighbourhood);
         let file = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nknn_search = \"block\"\n").unwrap();
         assert_eq!(file.mapping.knn_search, KnnSearch::Block);
-        let core = crate::pipeline::odometry_config(&file, sc.layout().clone()).unwrap();
+        let core = crate::run::engine::odometry_config(&file, sc.layout().clone()).unwrap();
         assert_eq!(core.association.knn_reach, KnnReach::Block);
         let err = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nknn_search = \"kd\"\n").unwrap_err();
         assert_eq!(err.0, "config: mapping.knn_search = \"kd\" is not one of: exact, block");

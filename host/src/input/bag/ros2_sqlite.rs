@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 use rusqlite::{Connection, OpenFlags};
 
 use super::{BagError, RawEvent, RawMsg, RawSource, TopicInfo};
-use crate::bag::msg::Encoding;
+use crate::input::bag::msg::Encoding;
 
 const PAGE: usize = 64;
 

@@ -1,0 +1,233 @@
+//! `loglio replay`: a pcap (Velodyne or Ouster) plus the IMU from a CSV file, a serial capture
+//! (loglio's COBS frames) or the Ouster IMU packets in the same pcap, as fast as possible or in
+//! real time, with a progress bar; writes every output.
+
+use std::fs::File;
+use std::io::BufReader;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use loglio_core::imu::ImuSample;
+
+use crate::config::{ImuSource, SensorFamily};
+use crate::diag::warn;
+use crate::error::PipelineError;
+use crate::input::lidar_stream::{self, Decoded, LidarStream};
+use crate::input::pace::Pacer;
+use crate::input::serial::ImuFrameReader;
+use crate::output::Progress;
+use crate::run::engine::{self};
+use crate::run::runner::{RunStats, Runner};
+use crate::run::setup::{PacketSetup, RunSetup};
+use crate::sink::files::{Finished, Outputs};
+
+/// Where the replay's IMU comes from.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum ImuInput {
+    /// A CSV file `t,gx,gy,gz,ax,ay,az`.
+    Csv(PathBuf),
+    /// A capture of loglio's serial IMU frames.
+    Serial(PathBuf),
+    /// The Ouster IMU packets in the pcap.
+    OusterPackets,
+}
+
+impl ImuInput {
+    /// The IMU input of a file: CSV if it starts like the CSV header, serial frames otherwise.
+    pub fn detect(path: &Path) -> Result<ImuInput, PipelineError> {
+        let mut head = [0u8; 64];
+        let n = {
+            use std::io::Read;
+            let mut f = File::open(path).map_err(|e| PipelineError(format!("{}: {e}", path.display())))?;
+            f.read(&mut head).map_err(|e| PipelineError(format!("{}: {e}", path.display())))?
+        };
+        let text = String::from_utf8_lossy(&head[..n]);
+        let csvish = text.trim_start().starts_with("t,") || text.trim_start().starts_with('#');
+        Ok(if csvish || path.extension().is_some_and(|e| e == "csv") {
+            ImuInput::Csv(path.to_path_buf())
+        } else {
+            ImuInput::Serial(path.to_path_buf())
+        })
+    }
+}
+
+/// A replay's settings.
+#[derive(Clone, Debug)]
+pub struct ReplayOptions {
+    /// The pcap.
+    pub pcap: PathBuf,
+    /// The IMU (`None`: the configuration's `imu.source`: Ouster packets or `imu.csv_path`).
+    pub imu: Option<ImuInput>,
+    /// Pace by the capture times (`rate` x real time).
+    pub realtime: Option<f64>,
+    /// The shared run settings.
+    pub setup: RunSetup,
+    /// Show the progress bar.
+    pub progress: bool,
+}
+
+/// A finished replay.
+#[derive(Debug)]
+pub struct ReplayReport {
+    /// Counts and times.
+    pub stats: RunStats,
+    /// What was written and the evaluation.
+    pub finished: Finished,
+    /// Packet counts.
+    pub stream: lidar_stream::StreamStats,
+    /// Whether the Ouster's IMU packets were the IMU (else they were counted and left out).
+    pub imu_packets_used: bool,
+    /// The scan period, s.
+    pub scan_period_s: f64,
+    /// Wall time, s.
+    pub wall_s: f64,
+}
+
+enum ImuFeed {
+    Samples(std::vec::IntoIter<ImuSample>),
+    Serial(Box<ImuFrameReader<BufReader<File>>>),
+    None,
+}
+
+impl ImuFeed {
+    fn next(&mut self) -> Result<Option<ImuSample>, PipelineError> {
+        match self {
+            ImuFeed::Samples(it) => Ok(it.next()),
+            ImuFeed::Serial(r) => r
+                .next_frame()
+                .map(|f| f.map(|f| f.sample()))
+                .map_err(|e| PipelineError(format!("IMU capture: {e}"))),
+            ImuFeed::None => Ok(None),
+        }
+    }
+}
+
+/// Runs a replay.
+pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
+    let wall = Instant::now();
+    let cfg = opt.setup.load_config()?;
+    let imu = match (&opt.imu, cfg.imu.source) {
+        (Some(i), _) => i.clone(),
+        (None, ImuSource::Ouster) => ImuInput::OusterPackets,
+        (None, ImuSource::Csv) => ImuInput::Csv(cfg.imu.csv_path.clone().unwrap_or_default()),
+        (None, ImuSource::Serial) => {
+            return Err(PipelineError(
+                "no IMU for the replay: pass --imu FILE (an IMU CSV or a serial capture), or use an Ouster's IMU packets (--ouster-imu)"
+                    .into(),
+            ));
+        }
+    };
+    let imu_packets_used = imu == ImuInput::OusterPackets;
+    if imu_packets_used && cfg.preset.family() != SensorFamily::Ouster {
+        return Err(PipelineError(format!(
+            "--ouster-imu needs an Ouster preset (os1-*), not {}",
+            cfg.preset
+        )));
+    }
+    let PacketSetup { dec, lidar_port, imu_port, class, core } = PacketSetup::new(&cfg)?;
+    let mut feed = match &imu {
+        ImuInput::Csv(p) => ImuFeed::Samples(
+            crate::input::imu_csv::load(p).map_err(|e| PipelineError(e.to_string()))?.into_iter(),
+        ),
+        ImuInput::Serial(p) => {
+            let f = File::open(p).map_err(|e| PipelineError(format!("{}: {e}", p.display())))?;
+            ImuFeed::Serial(Box::new(ImuFrameReader::new(BufReader::new(f))))
+        }
+        ImuInput::OusterPackets => ImuFeed::None,
+    };
+    let mut reader = crate::input::pcap::PcapReader::open(&opt.pcap)
+        .map_err(|e| PipelineError(format!("{}: {e}", opt.pcap.display())))?;
+    let total = std::fs::metadata(&opt.pcap).map(|m| m.len()).unwrap_or(0);
+    let progress = if opt.progress { Progress::new(total, "", true) } else { Progress::hidden() };
+    let outputs = Outputs::new(opt.setup.outputs()?)?;
+    let (a_len, _) = (dec.max_points(), ());
+    let mut a = vec![loglio_core::scan::ScanPoint::default(); a_len];
+    let mut b = vec![loglio_core::scan::ScanPoint::default(); a_len];
+    let mut stream = LidarStream::new(&cfg, dec, &mut a, &mut b, lidar_port, imu_port);
+    let offset_ns = (cfg.time.lidar_imu_offset * 1e9) as i64;
+    let res = engine::with_engine(&core, class, |engine| -> Result<_, PipelineError> {
+        let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
+        runner.sinks = opt.setup.sinks.build();
+        let mut next_imu = feed.next()?;
+        let mut bytes = 0u64;
+        let mut pacer = opt.realtime.map(Pacer::new);
+        let mut read_error = None;
+        let (stop, _signals) = crate::run::Signals::stop_flag();
+        loop {
+            if stop.load(std::sync::atomic::Ordering::Relaxed) {
+                warn("stopped by a signal; writing what was estimated");
+                break;
+            }
+            let udp = match reader.next_udp() {
+                Ok(Some(u)) => u,
+                Ok(None) => break,
+                Err(e) => {
+                    read_error = Some(e.to_string());
+                    break;
+                }
+            };
+            bytes += udp.payload.len() as u64 + 58;
+            progress.set_position(bytes.min(total));
+            if let Some(wait) = pacer.as_mut().and_then(|p| p.wait(udp.ts_ns, Instant::now())) {
+                std::thread::sleep(wait);
+            }
+            let (port, payload, ts) = (udp.dst_port, udp.payload, udp.ts_ns);
+            match stream.packet(port, payload, ts) {
+                // The sensor's own IMU only when it is the one chosen: with an IMU file, a second
+                // IMU (another frame, another clock) must not be mixed into the file's samples.
+                Some(Decoded::Imu(s)) if imu_packets_used => runner.imu(s)?,
+                Some(Decoded::Imu(_)) => {}
+                Some(Decoded::Scan(scan)) => {
+                    // The file IMU up to a little past this scan's end first.
+                    let until = scan.end_ns().saturating_add(200_000_000);
+                    while let Some(s) = next_imu {
+                        if s.t_ns.saturating_add_signed(offset_ns) > until {
+                            break;
+                        }
+                        runner.imu(s)?;
+                        next_imu = feed.next()?;
+                    }
+                    runner.scan(scan, 0)?;
+                }
+                None => {}
+            }
+        }
+        if let Some(Decoded::Scan(scan)) = stream.flush() {
+            runner.scan(scan, 0)?;
+        }
+        while let Some(s) = next_imu {
+            runner.imu(s)?;
+            next_imu = feed.next()?;
+        }
+        if let Some(e) = read_error {
+            if runner.stats.scans == 0 && runner.pending() == 0 {
+                return Err(PipelineError(format!("{}: {e}", opt.pcap.display())));
+            }
+            warn(format!("{}: {e}; replayed the packets before it", opt.pcap.display()));
+        }
+        let fin = runner.finish()?;
+        Ok(fin)
+    })??;
+    progress.finish();
+    let ps = reader.stats;
+    if ps.corrupt_records > 0 || ps.truncated_at_eof {
+        warn(format!(
+            "{}: {} corrupt records skipped{}",
+            opt.pcap.display(),
+            ps.corrupt_records,
+            if ps.truncated_at_eof { ", truncated at the end" } else { "" }
+        ));
+    }
+    if stream.stats.bad_packets > 0 {
+        warn(format!("{} LiDAR packets could not be decoded and were dropped", stream.stats.bad_packets));
+    }
+    let (stats, finished) = res;
+    Ok(ReplayReport {
+        stats,
+        finished,
+        stream: stream.stats,
+        imu_packets_used,
+        scan_period_s: 1.0 / cfg.sensor.scan_rate_hz,
+        wall_s: wall.elapsed().as_secs_f64(),
+    })
+}

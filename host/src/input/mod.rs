@@ -1,0 +1,13 @@
+//! The sources: everything that brings sensor data into a run (files, sockets, serial ports,
+//! bags), decodes it and hands the run loop time-ordered IMU samples and whole scans.
+
+pub mod bag;
+pub mod imu_csv;
+pub mod lidar_stream;
+pub mod ouster_meta;
+pub mod pace;
+pub mod pcap;
+pub mod serial;
+pub mod time_align;
+pub mod udp;
+pub mod velodyne_calib;

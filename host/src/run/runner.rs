@@ -1,0 +1,450 @@
+//! [`Runner`] orders the inputs (every IMU sample up to a scan's end is pushed before the scan
+//! is processed), times each scan with a std clock and writes the [`Outputs`].
+
+use std::collections::VecDeque;
+use std::fmt;
+use std::io;
+use std::time::Instant;
+
+use loglio_core::eskf::{Eskf, Predicted};
+use loglio_core::imu::{ImuPush, ImuSample};
+use loglio_core::output::{ScanResult, StageTimes, Status};
+use loglio_core::scan::{ScanPoint, ScanView};
+
+use crate::error::PipelineError;
+use crate::output::ScanStatus;
+use crate::run::engine::{Engine, StdClock};
+use crate::sink::files::{Finished, Outputs};
+use crate::sink::{LiveStatus, PoseSample, ScanOutput, SinkEvent, SinkStats, Sinks};
+
+/// A scan the host holds until the IMU covers it.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct OwnedScan {
+    /// Absolute start, ns.
+    pub start_ns: u64,
+    /// The points (`t` seconds since `start_ns`).
+    pub points: Vec<ScanPoint>,
+}
+
+impl OwnedScan {
+    /// The scan end: the latest point time (the start when empty), as the core computes it.
+    pub fn end_ns(&self) -> u64 {
+        let t_max = self.points.iter().filter(|p| p.t.is_finite()).fold(0.0f32, |m, p| m.max(p.t));
+        self.start_ns.saturating_add((t_max as f64 * 1e9) as u64)
+    }
+}
+
+/// The host's view of a scan's status.
+pub fn scan_status(s: &Status) -> ScanStatus {
+    match s {
+        Status::Ok => ScanStatus::Ok,
+        Status::Degraded { .. } => ScanStatus::Degraded,
+        Status::ImuOnly(_) => ScanStatus::ImuOnly,
+        Status::Initialising(_) => ScanStatus::Initialising,
+        Status::Reinitialising(_) => ScanStatus::Reinitialising,
+    }
+}
+
+/// Counts and times of a run.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RunStats {
+    /// Scans processed.
+    pub scans: u64,
+    /// Scans per status: initialising, ok, degraded, imu-only, re-initialising.
+    pub status: [u64; 5],
+    /// IMU samples received (before the core's checks).
+    pub imu_in: u64,
+    /// IMU samples the core refused (out of order, duplicate, non-finite).
+    pub imu_dropped: u64,
+    /// IMU samples discarded because they were more than a second older than the next scan.
+    pub imu_stale: u64,
+    /// Scans processed before the IMU reached their end (the IMU stream lagged or ended).
+    pub scans_without_imu: u64,
+    /// Scans whose points exceeded the storage (the excess was cut).
+    pub scans_truncated: u64,
+    /// First and last LiDAR scan end, ns.
+    pub lidar_span: Option<(u64, u64)>,
+    /// First and last IMU time (after the offset), ns.
+    pub imu_span: Option<(u64, u64)>,
+    /// Sum of the per-stage times, ns.
+    pub stage_sum: StageTimes,
+    /// Wall time per scan in the core, ns.
+    pub scan_ns: Vec<u64>,
+    /// The live outputs' counts (filled at the end of the run).
+    pub sinks: Vec<SinkStats>,
+}
+
+impl RunStats {
+    /// Mean time per scan, seconds.
+    pub fn mean_scan_s(&self) -> f64 {
+        if self.scan_ns.is_empty() {
+            return 0.0;
+        }
+        self.scan_ns.iter().sum::<u64>() as f64 * 1e-9 / self.scan_ns.len() as f64
+    }
+
+    /// Median time per scan, seconds.
+    pub fn median_scan_s(&self) -> f64 {
+        let mut v = self.scan_ns.clone();
+        if v.is_empty() {
+            return 0.0;
+        }
+        v.sort_unstable();
+        v[v.len() / 2] as f64 * 1e-9
+    }
+
+    /// Checks that the streams overlapped: a one-line error otherwise.
+    pub fn check_overlap(&self) -> Result<(), PipelineError> {
+        match (self.lidar_span, self.imu_span) {
+            (None, _) => Err(PipelineError("no LiDAR scans in the input".into())),
+            (Some(_), None) => Err(PipelineError("no IMU samples in the input".into())),
+            (Some(l), Some(i)) => {
+                crate::input::time_align::check_overlap(l, i).map_err(|e| PipelineError(e.to_string()))?;
+                Ok(())
+            }
+        }
+    }
+}
+
+fn widen(span: &mut Option<(u64, u64)>, t: u64) {
+    *span = Some(span.map_or((t, t), |(a, b)| (a.min(t), b.max(t))));
+}
+
+/// A callback after each processed scan: its result, the counts so far and the `arrival` the
+/// scan was given to [`Runner::scan`] with (live: when its last packet was received).
+pub type ScanCallback<'e> = Box<dyn FnMut(&ScanResult, &RunStats, u64) + 'e>;
+
+/// Most scans held while waiting for the IMU before one is processed without it.
+pub const MAX_PENDING_SCANS: usize = 8;
+
+/// Feeds the odometry in the right order and writes the outputs.
+///
+/// IMU samples and scans may arrive interleaved in any order the sources produce; a scan is
+/// processed once an IMU sample at or after its end has arrived (every sample up to its end is
+/// pushed first), when [`MAX_PENDING_SCANS`] are waiting, when the caller says the wait is over
+/// ([`Runner::process_ready`] with `force`), or at [`Runner::finish`].
+pub struct Runner<'e> {
+    engine: &'e mut dyn Engine,
+    clock: StdClock,
+    imu_offset_ns: i64,
+    imu: VecDeque<ImuSample>,
+    last_imu_ns: Option<u64>,
+    scans: VecDeque<(OwnedScan, u64)>,
+    spare: Vec<Vec<ScanPoint>>,
+    /// The outputs.
+    pub outputs: Outputs,
+    /// Counts and times.
+    pub stats: RunStats,
+    /// Called after each processed scan with its result.
+    pub on_scan: Option<ScanCallback<'e>>,
+    /// The live outputs (ROS 2, MAVLink, Foxglove, an embedding program's), each behind its
+    /// own bounded queue: offered every scan's result and, between scans, the IMU-propagated
+    /// pose; they never hold the odometry up.
+    pub sinks: Sinks,
+    /// The latest scan's pose (the status line's).
+    pub latest: Option<PoseSample>,
+    /// A copy of the filter after the latest scan, propagated with each later IMU sample for
+    /// the high-rate pose.
+    predictor: Option<Eskf>,
+    map_sent_ns: Option<u64>,
+    origin: Instant,
+}
+
+impl fmt::Debug for Runner<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Runner").field("stats", &self.stats).finish_non_exhaustive()
+    }
+}
+
+impl<'e> Runner<'e> {
+    /// A runner over `engine`; IMU stamps are moved onto the LiDAR clock by `imu_offset_s`
+    /// (`time.lidar_imu_offset`).
+    pub fn new(engine: &'e mut dyn Engine, outputs: Outputs, imu_offset_s: f64) -> Self {
+        Runner {
+            engine,
+            clock: StdClock::new(),
+            imu_offset_ns: (imu_offset_s * 1e9).round() as i64,
+            imu: VecDeque::new(),
+            last_imu_ns: None,
+            scans: VecDeque::new(),
+            spare: Vec::new(),
+            outputs,
+            stats: RunStats::default(),
+            on_scan: None,
+            sinks: Sinks::default(),
+            latest: None,
+            predictor: None,
+            map_sent_ns: None,
+            origin: Instant::now(),
+        }
+    }
+
+    /// Times the odometry by this thread's CPU time ([`StdClock::thread_cpu`]).
+    pub fn use_thread_cpu_clock(&mut self) {
+        self.clock = StdClock::thread_cpu();
+    }
+
+    /// Sets the monotonic clock origin of the `arrival` times given to [`Self::scan`] (a live
+    /// source's start), so that the sinks' latency (`ready_ns - arrival_ns`) is on one clock.
+    pub fn set_origin(&mut self, origin: Instant) {
+        self.origin = origin;
+    }
+
+    fn now_ns(&self) -> u64 {
+        self.origin.elapsed().as_nanos().min(u128::from(u64::MAX)) as u64
+    }
+
+    /// Propagates the live predictor with one IMU sample and offers the pose to the sinks.
+    fn propagate_live(&mut self, s: &ImuSample) {
+        let Some(f) = &mut self.predictor else { return };
+        if s.t_ns <= f.time_ns() {
+            return;
+        }
+        if let Predicted::Jump { .. } = f.predict(s) {
+            // A jump re-seeds the filter on the next scan: no pose until then.
+            self.predictor = None;
+            return;
+        }
+        let Some(latest) = &self.latest else { return };
+        let bg = f.state().bg;
+        let omega = [f64::from(s.gyro[0]) - bg.x, f64::from(s.gyro[1]) - bg.y, f64::from(s.gyro[2]) - bg.z];
+        let pose = PoseSample::from_filter(f, latest.status, latest.resets, omega);
+        self.sinks.send(SinkEvent::ImuPose(pose));
+    }
+
+    /// Offers a processed scan to the sinks and restarts the high-rate predictor from it.
+    fn publish(&mut self, index: u64, res: &ScanResult, arrival: u64) {
+        let status = LiveStatus::of(&res.status);
+        let resets = self.engine.resets();
+        let filter = self.engine.filter();
+        let pose = match (&filter, status) {
+            (Some(f), s) if s != LiveStatus::Initialising => {
+                let omega = f.held_sample().map_or([0.0; 3], |h| {
+                    let bg = f.state().bg;
+                    [f64::from(h.gyro[0]) - bg.x, f64::from(h.gyro[1]) - bg.y, f64::from(h.gyro[2]) - bg.z]
+                });
+                PoseSample::from_filter(f, status, resets, omega)
+            }
+            _ => PoseSample::placeholder(res.pose.t_ns, status, resets),
+        };
+        self.latest = Some(pose);
+        if self.sinks.is_empty() {
+            return;
+        }
+        let wants = self.sinks.wants();
+        let cloud = (wants.cloud && status.is_tracking()).then(|| {
+            let mut v = Vec::new();
+            self.engine.scan_cloud(&mut v);
+            std::sync::Arc::new(v)
+        });
+        let every_ns = (self.sinks.opt.map_every_s.max(0.0) * 1e9) as u64;
+        let map_due = wants.map
+            && status.is_tracking()
+            && self.map_sent_ns.is_none_or(|t| res.pose.t_ns.saturating_sub(t) >= every_ns);
+        let map = map_due.then(|| {
+            self.map_sent_ns = Some(res.pose.t_ns);
+            let mut v = Vec::new();
+            self.engine.map_points(&mut v);
+            std::sync::Arc::new(v)
+        });
+        let out = ScanOutput {
+            index,
+            scan_start_ns: res.scan_start_ns,
+            pose,
+            process_ms: res.times.total_ns as f64 * 1e-6,
+            map_voxels: self.engine.map_voxels(),
+            points: res.points,
+            cloud,
+            map,
+            arrival_ns: arrival,
+            ready_ns: self.now_ns(),
+        };
+        self.sinks.send(SinkEvent::Scan(std::sync::Arc::new(out)));
+        self.predictor = if wants.imu_pose && status.is_tracking() { filter } else { None };
+        if let Some(f) = &mut self.predictor {
+            // The samples already received beyond the scan's end.
+            for s in self.imu.iter() {
+                if s.t_ns > f.time_ns() && matches!(f.predict(s), Predicted::Jump { .. }) {
+                    self.predictor = None;
+                    break;
+                }
+            }
+        }
+    }
+
+    /// The engine.
+    pub fn engine(&self) -> &dyn Engine {
+        &*self.engine
+    }
+
+    /// A cleared point buffer to fill for [`Self::scan`] (recycled from processed scans).
+    pub fn buffer(&mut self) -> Vec<ScanPoint> {
+        let mut v = self.spare.pop().unwrap_or_default();
+        v.clear();
+        v
+    }
+
+    /// Takes one IMU sample (sensor clock; the offset is applied here).
+    pub fn imu(&mut self, mut s: ImuSample) -> Result<(), PipelineError> {
+        s.t_ns = s.t_ns.saturating_add_signed(self.imu_offset_ns);
+        self.stats.imu_in += 1;
+        widen(&mut self.stats.imu_span, s.t_ns);
+        self.last_imu_ns = Some(self.last_imu_ns.map_or(s.t_ns, |t| t.max(s.t_ns)));
+        self.imu.push_back(s);
+        if self.predictor.is_some() {
+            self.propagate_live(&s);
+        }
+        // With no scan waiting, keep about 5 s (1 kHz) of samples for the first one.
+        if self.scans.is_empty() && self.imu.len() > 5000 {
+            self.imu.pop_front();
+            self.stats.imu_stale += 1;
+        }
+        self.process_ready(false, None)
+    }
+
+    /// Takes one scan.
+    pub fn scan(&mut self, scan: OwnedScan, arrival: u64) -> Result<(), PipelineError> {
+        widen(&mut self.stats.lidar_span, scan.end_ns());
+        self.scans.push_back((scan, arrival));
+        self.process_ready(false, None)
+    }
+
+    /// Scans waiting for the IMU.
+    pub fn pending(&self) -> usize {
+        self.scans.len()
+    }
+
+    /// Processes the waiting scans the IMU covers; with `force`, every waiting scan; with
+    /// `older_than`, those that arrived before it (a caller's wall clock: the live wait bound).
+    pub fn process_ready(&mut self, force: bool, older_than: Option<u64>) -> Result<(), PipelineError> {
+        while let Some((front, arrival)) = self.scans.front() {
+            let end = front.end_ns();
+            let covered = self.last_imu_ns.is_some_and(|t| t >= end);
+            let waited = older_than.is_some_and(|t| *arrival <= t);
+            if !(covered || force || waited || self.scans.len() > MAX_PENDING_SCANS) {
+                break;
+            }
+            let Some((scan, arrival)) = self.scans.pop_front() else { break };
+            if !covered {
+                self.stats.scans_without_imu += 1;
+            }
+            self.process(scan, arrival)?;
+        }
+        Ok(())
+    }
+
+    fn process(&mut self, scan: OwnedScan, arrival: u64) -> Result<(), PipelineError> {
+        let end = scan.end_ns();
+        let stale_before = scan.start_ns.saturating_sub(1_000_000_000);
+        while let Some(s) = self.imu.front() {
+            if s.t_ns > end {
+                break;
+            }
+            let s = *s;
+            self.imu.pop_front();
+            if s.t_ns < stale_before {
+                self.stats.imu_stale += 1;
+                continue;
+            }
+            if !matches!(self.engine.push_imu(s), ImuPush::Accepted | ImuPush::Held) {
+                self.stats.imu_dropped += 1;
+            }
+        }
+        if scan.points.len() > self.engine.max_points() {
+            self.stats.scans_truncated += 1;
+        }
+        let res = self
+            .engine
+            .process_scan(ScanView { start_ns: scan.start_ns, points: &scan.points }, &mut self.clock);
+        let st = &mut self.stats;
+        st.status[match scan_status(&res.status) {
+            ScanStatus::Initialising => 0,
+            ScanStatus::Ok => 1,
+            ScanStatus::Degraded => 2,
+            ScanStatus::ImuOnly => 3,
+            ScanStatus::Reinitialising => 4,
+        }] += 1;
+        let t = &res.times;
+        let s = &mut st.stage_sum;
+        s.normals_ns += t.normals_ns;
+        s.undistort_ns += t.undistort_ns;
+        s.downsample_ns += t.downsample_ns;
+        s.association_ns += t.association_ns;
+        s.update_ns += t.update_ns;
+        s.map_ns += t.map_ns;
+        s.total_ns += t.total_ns;
+        st.scan_ns.push(t.total_ns);
+        let index = st.scans;
+        st.scans += 1;
+        self.outputs.record(index, &res, t.total_ns as f64 * 1e-6, self.engine.map_voxels())?;
+        self.publish(index, &res, arrival);
+        if let Some(cb) = &mut self.on_scan {
+            cb(&res, &self.stats, arrival);
+        }
+        if self.spare.len() < 4 {
+            self.spare.push(scan.points);
+        }
+        Ok(())
+    }
+
+    /// Processes what is left and writes the final outputs. Fails when the streams never
+    /// overlapped (no IMU, no scans, or disjoint times).
+    pub fn finish(mut self) -> Result<(RunStats, Finished), PipelineError> {
+        self.process_ready(true, None)?;
+        self.stats.sinks = self.sinks.finish();
+        self.stats.check_overlap()?;
+        let fin = self.outputs.finish(&*self.engine)?;
+        Ok((self.stats, fin))
+    }
+
+    /// Flushes the streaming outputs (Ctrl-C).
+    pub fn flush(&mut self) -> io::Result<()> {
+        self.outputs.flush()
+    }
+}
+
+/// A summary line of the status counts.
+pub fn status_summary(st: &RunStats) -> String {
+    let names = ["initialising", "ok", "degraded", "imu-only", "re-initialising"];
+    let parts: Vec<String> =
+        names.iter().zip(st.status).filter(|(_, n)| *n > 0).map(|(name, n)| format!("{n} {name}")).collect();
+    parts.join(", ")
+}
+
+/// The summary of a run: scans, timing, margin, ATE and files.
+pub fn summary(stats: &RunStats, fin: &Finished, scan_period_s: f64, wall_s: f64) -> String {
+    let mean = stats.mean_scan_s();
+    let mut s = format!("{} scans ({}), {} IMU samples", stats.scans, status_summary(stats), stats.imu_in);
+    if stats.imu_dropped + stats.imu_stale > 0 {
+        s.push_str(&format!(" ({} dropped, {} older than their scan)", stats.imu_dropped, stats.imu_stale));
+    }
+    if stats.scans_without_imu > 0 {
+        s.push_str(&format!("; {} scans without IMU up to their end", stats.scans_without_imu));
+    }
+    s.push('\n');
+    s.push_str(&format!(
+        "odometry: {:.1} ms per scan (mean), {:.1} ms (median); real-time margin {:.1}x (scan period {:.0} ms / mean)\n",
+        mean * 1e3,
+        stats.median_scan_s() * 1e3,
+        if mean > 0.0 { scan_period_s / mean } else { f64::INFINITY },
+        scan_period_s * 1e3
+    ));
+    if let Some(e) = &fin.eval {
+        s.push_str(&format!(
+            "ATE against ground truth (SE(3)-aligned, {} poses): rmse {:.3} m, max {:.3} m; rotation rmse {:.2} deg\n",
+            e.matched, e.ape_trans.rmse, e.ape_trans.max, e.ape_rot_deg.rmse
+        ));
+    }
+    s.push_str(&format!("wall time {wall_s:.1} s\n"));
+    for line in crate::sink::sinks_summary(&stats.sinks) {
+        s.push_str(&format!("live output {line}\n"));
+    }
+    if !fin.files.is_empty() {
+        s.push_str("wrote:");
+        for f in &fin.files {
+            s.push_str(&format!(" {}", f.display()));
+        }
+        s.push('\n');
+    }
+    s
+}
