@@ -16,6 +16,7 @@ use std::fmt::Write as _;
 use std::io::{BufWriter, Write};
 use std::path::Path;
 
+use loglio_core::sensor::imu_frame::ImuFrame;
 use serde_json::json;
 
 use crate::lidar::ouster::{self, Ouster};
@@ -40,7 +41,7 @@ pub struct Summary {
 /// Writes every output of `sc` into `dir` (created if needed).
 pub fn write_all(sc: &Scenario, dir: &Path) -> anyhow::Result<Summary> {
     std::fs::create_dir_all(dir)?;
-    let ep = if sc.config().lidar.model().is_velodyne() { Endpoint::VELODYNE } else { Endpoint::OUSTER };
+    let ep = endpoint(sc);
     let mut pcap = PcapWriter::new(BufWriter::new(std::fs::File::create(dir.join("lidar.pcap"))?))?;
     let mut serial = Vec::new();
     let mut sum = Summary::default();
@@ -58,23 +59,41 @@ pub fn write_all(sc: &Scenario, dir: &Path) -> anyhow::Result<Summary> {
     sum.serial_bytes = serial.len() as u64;
     let frames = decode_serial(&serial);
     sum.imu_frames = frames.len() as u64;
+    std::fs::write(dir.join("imu.csv"), imu_csv(&frames))?;
+    let times: Vec<u64> = frames.iter().map(|f| f.t_ns).collect();
+    write_truth_and_meta(sc, &times, dir)?;
+    Ok(sum)
+}
+
+/// The network address the scenario's sensor sends from.
+pub fn endpoint(sc: &Scenario) -> Endpoint {
+    if sc.config().lidar.model().is_velodyne() { Endpoint::VELODYNE } else { Endpoint::OUSTER }
+}
+
+/// The `imu.csv` text of `frames` (a non-finite value is written `nan` or `inf`).
+pub fn imu_csv(frames: &[ImuFrame]) -> String {
+    let num = |v: f32| if v.is_nan() { "nan".to_string() } else { format!("{v:e}") };
     let mut csv = String::from("t,gx,gy,gz,ax,ay,az\n");
-    for f in &frames {
+    for f in frames {
         let _ = writeln!(
             csv,
-            "{}.{:09},{:e},{:e},{:e},{:e},{:e},{:e}",
+            "{}.{:09},{},{},{},{},{},{}",
             f.t_ns / 1_000_000_000,
             f.t_ns % 1_000_000_000,
-            f.gyro[0],
-            f.gyro[1],
-            f.gyro[2],
-            f.acc[0],
-            f.acc[1],
-            f.acc[2]
+            num(f.gyro[0]),
+            num(f.gyro[1]),
+            num(f.gyro[2]),
+            num(f.acc[0]),
+            num(f.acc[1]),
+            num(f.acc[2])
         );
     }
-    std::fs::write(dir.join("imu.csv"), csv)?;
-    let times: Vec<u64> = frames.iter().map(|f| f.t_ns).collect();
+    csv
+}
+
+/// Writes the ground truth at `times` (`groundtruth.tum`, `lidar_groundtruth.tum`),
+/// `scenario.json` and, for an Ouster, `ouster_metadata.json`.
+pub fn write_truth_and_meta(sc: &Scenario, times: &[u64], dir: &Path) -> anyhow::Result<()> {
     std::fs::write(dir.join("groundtruth.tum"), tum::trajectory(times.iter().copied(), |t| sc.pose_at(t)))?;
     std::fs::write(
         dir.join("lidar_groundtruth.tum"),
@@ -88,7 +107,7 @@ pub fn write_all(sc: &Scenario, dir: &Path) -> anyhow::Result<Summary> {
         serde_json::to_writer_pretty(&mut f, &ouster_metadata(o))?;
         f.flush()?;
     }
-    Ok(sum)
+    Ok(())
 }
 
 /// A description of the scenario for the host and for people.

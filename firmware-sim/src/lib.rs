@@ -8,6 +8,8 @@
 #![cfg_attr(target_os = "none", no_std)]
 
 #[cfg(not(target_os = "none"))]
+pub mod fault;
+#[cfg(not(target_os = "none"))]
 pub mod files;
 pub mod imu_board;
 pub mod imu_chip;
