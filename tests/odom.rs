@@ -85,7 +85,8 @@ impl Trace {
         for r in &self.results {
             let i = match r.status {
                 Status::Ok => 0,
-                Status::Degraded { .. } => 1,
+                // Updated by the scan after a bridged sensor pause.
+                Status::Degraded { .. } | Status::Bridged(_) => 1,
                 Status::ImuOnly(_) => 2,
                 Status::Initialising(_) => 3,
                 Status::Reinitialising(_) => 4,

@@ -361,6 +361,8 @@ impl PropagationFlags {
     pub const STALE: u8 = 4;
     /// A sample was dropped.
     pub const DROPPED: u8 = 8;
+    /// An IMU gap was bridged at constant velocity (see `EskfConfig::bridge_after_s`).
+    pub const BRIDGE: u8 = 16;
 
     /// Whether `bit` is set.
     pub fn has(&self, bit: u8) -> bool {
@@ -944,7 +946,7 @@ impl Eskf {
         }
         self.counters.steps = self.counters.steps.saturating_add(1);
         self.counters.gaps = self.counters.gaps.saturating_add(1);
-        self.flags.0 |= PropagationFlags::GAP;
+        self.flags.0 |= PropagationFlags::GAP | PropagationFlags::BRIDGE;
     }
 
     /// One integration step with a constant input over `dt` (module docs), with the process

@@ -73,7 +73,8 @@ use crate::imu::{
 };
 use crate::imu_guard::{ImuGuard, ImuGuardConfig};
 use crate::output::{
-    AssociationCounts, ImuOnlyReason, PoseEstimate, ReinitReason, ScanResult, StageTimes, Status,
+    AssociationCounts, BridgeReason, ImuOnlyReason, PoseEstimate, ReinitReason, ScanResult, StageTimes,
+    Status,
 };
 use crate::range_image::RangeImageLayout;
 use crate::ring_fals::{PointNormal, RingFals, RingFalsConfig, RingTable, TableError, storage_pixels};
@@ -88,6 +89,9 @@ use crate::voxel_map::{
 pub const IMU_QUEUE: usize = 256;
 /// IMU knots kept for the undistortion of one scan.
 pub const TRAJECTORY_KNOTS: usize = 64;
+/// A scan ending this long after the previous one follows a LiDAR gap (reported as
+/// [`Status::Bridged`]), s.
+pub const LIDAR_GAP_S: f64 = 0.5;
 /// Points later than this after the scan start are dropped (a scan lasts 0.1 s at 10 Hz), s.
 pub const MAX_SCAN_SPAN_S: f32 = 1.0;
 /// Consecutive samples that went back in time by more than `max_hold_s` before the odometry
@@ -356,6 +360,8 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     guard: ImuGuard,
     /// A jump happened in [`Self::propagate_imu`]: the next scan reports it.
     jumped: bool,
+    /// The end of the last scan processed after the initialisation.
+    last_scan_end_ns: Option<u64>,
 }
 
 impl<const PIX: usize, const PTS: usize, const DS: usize> core::fmt::Debug for Odometry<'_, PIX, PTS, DS> {
@@ -413,6 +419,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             last_kept: 0,
             guard: ImuGuard::new(cfg.imu_guard),
             jumped: false,
+            last_scan_end_ns: None,
         })
     }
 
@@ -538,6 +545,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         self.initializer.reset();
         self.map.clear();
         self.wait = WaitReason::Collecting { samples: 0, span_s: 0.0 };
+        self.last_scan_end_ns = None;
         self.stats.reinitialisations = self.stats.reinitialisations.saturating_add(1);
     }
 
@@ -748,6 +756,10 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         let t5 = clock.now_ns();
         times.map_ns = t5.saturating_sub(t4);
 
+        let lidar_gap = self
+            .last_scan_end_ns
+            .replace(end_ns)
+            .is_some_and(|t| end_ns.saturating_sub(t) as f64 * 1e-9 > LIDAR_GAP_S);
         let status = if let Some(r) = reinit {
             Status::Reinitialising(r)
         } else if kept == 0 {
@@ -755,7 +767,11 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         } else if building {
             Status::ImuOnly(ImuOnlyReason::BuildingMap)
         } else {
-            Status::from_update(&update, flags)
+            match Status::from_update(&update, flags) {
+                Status::Ok if lidar_gap => Status::Bridged(BridgeReason::LidarGap),
+                Status::Ok if flags.has(PropagationFlags::BRIDGE) => Status::Bridged(BridgeReason::ImuGap),
+                s => s,
+            }
         };
         match status {
             Status::ImuOnly(ImuOnlyReason::BuildingMap) => {}

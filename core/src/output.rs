@@ -23,6 +23,10 @@ pub enum Status {
         /// Number of degenerate directions.
         count: u8,
     },
+    /// Updated by the scan after a pause of one of the sensors that the filter bridged (the
+    /// IMU alone through a LiDAR gap, constant velocity through an IMU gap): the pose is
+    /// usable, with the bridge's larger covariance.
+    Bridged(BridgeReason),
     /// Propagated by the IMU only; the covariance grows.
     ImuOnly(ImuOnlyReason),
     /// Waiting for the IMU initialisation.
@@ -46,6 +50,16 @@ pub enum ImuOnlyReason {
     BuildingMap,
     /// The update produced non-finite numbers and was discarded.
     NumericalFailure,
+}
+
+/// Which sensor paused.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum BridgeReason {
+    /// No IMU samples for longer than `eskf.bridge_after_s`: constant velocity and attitude.
+    ImuGap,
+    /// No scan for longer than [`crate::odometry::LIDAR_GAP_S`]: the IMU alone.
+    LidarGap,
 }
 
 /// Why the filter re-initialises.

@@ -109,6 +109,7 @@ pub fn status_name(s: &Status) -> &'static str {
     match s {
         Status::Ok => "ok",
         Status::Degraded { .. } => "degraded",
+        Status::Bridged(_) => "bridged",
         Status::ImuOnly(_) => "imu-only",
         Status::Initialising(_) => "initialising",
         Status::Reinitialising(_) => "reinitialising",

@@ -241,6 +241,10 @@ pub fn summary(opt: &SimOptions, r: &SimReport) -> String {
         runner::status_summary(st),
         st.imu_in
     );
+    let faults = st.faults.phrase();
+    if !faults.is_empty() {
+        s.push_str(&format!("faults: {faults}\n"));
+    }
     let mean = st.mean_scan_s();
     s.push_str(&format!(
         "odometry: {:.1} ms per scan (mean), {:.1} ms (median), its thread's CPU time; real-time margin {:.1}x (scan period {:.0} ms / mean)\n",

@@ -64,12 +64,18 @@ pub struct ImuCsvStats {
     pub out_of_order: u64,
     /// Rows put back in order by the window (delivered, not dropped).
     pub reordered: u64,
+    /// Rows stamped more than [`FAR_AHEAD_NS`] after the rows around them (dropped).
+    pub wrong_stamps: u64,
 }
+
+/// A row this far after the newest row is held until the next row confirms it (a real gap)
+/// or comes before it (a wrong stamp): one bad stamp must not make every later row "late".
+pub const FAR_AHEAD_NS: u64 = 1_000_000_000;
 
 impl ImuCsvStats {
     /// Rows dropped, all kinds.
     pub fn dropped(&self) -> u64 {
-        self.non_finite + self.malformed + self.duplicates + self.out_of_order
+        self.non_finite + self.malformed + self.duplicates + self.out_of_order + self.wrong_stamps
     }
 
     /// One line per kind of drop (and for reordered rows), without the `warning: ` prefix.
@@ -98,6 +104,13 @@ impl ImuCsvStats {
             out.push(format!(
                 "IMU CSV: dropped {} of {n} rows out of time order by more than {REORDER_ROWS} rows",
                 self.out_of_order
+            ));
+        }
+        if self.wrong_stamps > 0 {
+            out.push(format!(
+                "IMU CSV: dropped {} of {n} rows stamped more than {} s after the rows around them (wrong stamps)",
+                self.wrong_stamps,
+                FAR_AHEAD_NS / 1_000_000_000
             ));
         }
         if self.reordered > 0 {
@@ -233,11 +246,35 @@ struct Sorter {
     seq: u64,
     /// The newest row time read so far.
     newest: Option<u64>,
+    /// A row far after the newest, waiting for the next row's verdict.
+    far: Option<ImuSample>,
     stats: ImuCsvStats,
 }
 
 impl Sorter {
     fn push(&mut self, s: ImuSample) {
+        if let Some(h) = self.far.take() {
+            if s.t_ns < h.t_ns {
+                self.stats.wrong_stamps += 1;
+            } else {
+                self.take(h);
+            }
+        }
+        if self.newest.is_some_and(|n| s.t_ns > n.saturating_add(FAR_AHEAD_NS)) {
+            self.far = Some(s);
+            return;
+        }
+        self.take(s);
+    }
+
+    /// The last row, if it waits for a verdict no row will give: taken (a gap at the end).
+    fn flush_far(&mut self) {
+        if let Some(h) = self.far.take() {
+            self.take(h);
+        }
+    }
+
+    fn take(&mut self, s: ImuSample) {
         let late = self.newest.is_some_and(|n| s.t_ns < n);
         self.newest = Some(self.newest.map_or(s.t_ns, |n| n.max(s.t_ns)));
         self.seq += 1;
@@ -269,6 +306,7 @@ pub fn parse_counted(r: impl BufRead) -> Result<(Vec<ImuSample>, ImuCsvStats), I
         out: Vec::new(),
         seq: 0,
         newest: None,
+        far: None,
         stats: ImuCsvStats::default(),
     };
     for (i, line) in r.lines().enumerate() {
@@ -311,6 +349,7 @@ pub fn parse_counted(r: impl BufRead) -> Result<(Vec<ImuSample>, ImuCsvStats), I
     if !header_seen {
         return Err(ImuCsvError { line: 0, problem: format!("empty file (expected the header `{HEADER}`)") });
     }
+    sorter.flush_far();
     while !sorter.heap.is_empty() {
         sorter.pop();
     }
@@ -323,8 +362,13 @@ pub fn parse_counted(r: impl BufRead) -> Result<(Vec<ImuSample>, ImuCsvStats), I
         return Err(ImuCsvError {
             line: 0,
             problem: format!(
-                "{bad} of {} rows are bad ({} non-finite, {} malformed, {} duplicates, {} out of order); refusing the file{first}",
-                stats.rows, stats.non_finite, stats.malformed, stats.duplicates, stats.out_of_order
+                "{bad} of {} rows are bad ({} non-finite, {} malformed, {} duplicates, {} out of order, {} wrong stamps); refusing the file{first}",
+                stats.rows,
+                stats.non_finite,
+                stats.malformed,
+                stats.duplicates,
+                stats.out_of_order,
+                stats.wrong_stamps
             ),
         });
     }
@@ -359,7 +403,7 @@ mod tests {
             (
                 "t,gx,gy,gz,ax,ay,az\n1,0,0,0,0,0,0\nx,0,0,0,0,0,0\ny,0,0,0,0,0,0\n",
                 0,
-                "2 of 3 rows are bad (0 non-finite, 2 malformed, 0 duplicates, 0 out of order); refusing the file; the first bad row, line 3: time `x`",
+                "2 of 3 rows are bad (0 non-finite, 2 malformed, 0 duplicates, 0 out of order, 0 wrong stamps); refusing the file; the first bad row, line 3: time `x`",
             ),
             ("t,gx,gy,gz,ax,ay,az\n1,0,0,nan,0,0,0\n", 0, "the first bad row, line 2: a NaN"),
             (
@@ -390,8 +434,10 @@ mod tests {
         ImuSample { t_ns, gyro: [k as f32 * 1e-4, -0.02, 0.3], acc: [0.5, (k % 7) as f32, 9.81] }
     }
 
-    /// 12,000 samples at 200 Hz written as 12,001 rows: one with a NaN, one repeated, one pair
-    /// swapped. Exactly the NaN row and the repeat are dropped; the pair is sorted back.
+    /// 12,000 samples at 200 Hz written as 12,002 rows: one with a NaN, one repeated, one pair
+    /// swapped, one extra stamped 60 s ahead. Exactly the NaN row, the repeat and the wrong
+    /// stamp are dropped; the pair is sorted back (before the stamp guard the +60 s row made
+    /// every later row "late": 3,000 of them counted as sorted back).
     #[test]
     fn bad_rows_are_dropped_and_counted_exactly() {
         let t0 = 1_700_000_000_000_000_000u64;
@@ -401,7 +447,8 @@ mod tests {
         rows.swap(9000, 9001);
         let dup = rows[7000].clone();
         rows.insert(7001, dup);
-        assert_eq!(rows.len(), 12_001);
+        rows.insert(9500, row(t0 + 9_499 * 5_000_000 + 60_000_000_000, 1));
+        assert_eq!(rows.len(), 12_002);
         let text = format!("timestamp,gx,gy,gz,ax,ay,az\n{}", rows.concat());
         let (got, stats) = parse_counted(text.as_bytes()).unwrap();
         let mut want = good.clone();
@@ -411,28 +458,31 @@ mod tests {
         assert_eq!(
             stats,
             ImuCsvStats {
-                rows: 12_001,
+                rows: 12_002,
                 samples: 11_999,
                 non_finite: 1,
                 malformed: 0,
                 duplicates: 1,
                 out_of_order: 0,
-                reordered: 1
+                reordered: 1,
+                wrong_stamps: 1,
             }
         );
         assert_eq!(
             stats.warnings(),
             vec![
-                "IMU CSV: dropped 1 of 12001 rows with a NaN or infinite value".to_string(),
-                "IMU CSV: dropped 1 of 12001 rows repeating the time of an earlier row (duplicates)"
+                "IMU CSV: dropped 1 of 12002 rows with a NaN or infinite value".to_string(),
+                "IMU CSV: dropped 1 of 12002 rows repeating the time of an earlier row (duplicates)"
                     .to_string(),
-                "IMU CSV: 1 of 12001 rows were out of time order and sorted back".to_string(),
+                "IMU CSV: dropped 1 of 12002 rows stamped more than 1 s after the rows around them (wrong stamps)"
+                    .to_string(),
+                "IMU CSV: 1 of 12002 rows were out of time order and sorted back".to_string(),
             ]
         );
         // `parse` says the same, one warning per kind.
         let (r, warnings) = crate::diag::capture(|| parse(text.as_bytes()));
         assert_eq!(r.unwrap(), want);
-        assert_eq!(warnings.len(), 3, "{warnings:?}");
+        assert_eq!(warnings.len(), 4, "{warnings:?}");
         assert!(warnings.iter().all(|w| w.starts_with("warning: IMU CSV: ")));
     }
 
@@ -469,7 +519,7 @@ mod tests {
         let e = parse_counted(text.as_bytes()).unwrap_err().to_string();
         assert_eq!(
             e,
-            "IMU CSV: 600 of 1000 rows are bad (0 non-finite, 600 malformed, 0 duplicates, 0 out of order); refusing the file; the first bad row, line 2: expected 7 fields, found 1"
+            "IMU CSV: 600 of 1000 rows are bad (0 non-finite, 600 malformed, 0 duplicates, 0 out of order, 0 wrong stamps); refusing the file; the first bad row, line 2: expected 7 fields, found 1"
         );
     }
 }

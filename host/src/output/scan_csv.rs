@@ -18,6 +18,8 @@ pub enum ScanStatus {
     Ok,
     /// Tracking, with directions the scan cannot observe carried by the IMU.
     Degraded,
+    /// Tracking again after a pause of the IMU or the LiDAR that the filter bridged.
+    Bridged,
     /// The scan was not used; the pose comes from the IMU alone.
     ImuOnly,
     /// Lost, starting over.
@@ -31,6 +33,7 @@ impl ScanStatus {
             ScanStatus::Initialising => "initialising",
             ScanStatus::Ok => "ok",
             ScanStatus::Degraded => "degraded",
+            ScanStatus::Bridged => "bridged",
             ScanStatus::ImuOnly => "imu-only",
             ScanStatus::Reinitialising => "re-initialising",
         }

@@ -181,6 +181,11 @@ pub trait Engine {
     fn scan_cloud(&self, out: &mut Vec<[f32; 3]>);
     /// Re-initialisations so far.
     fn resets(&self) -> u32;
+    /// Integrates the queued IMU samples up to `until_ns` without a scan (a LiDAR gap; see
+    /// [`Odometry::propagate_imu`]).
+    fn propagate_imu(&mut self, until_ns: u64) -> u32;
+    /// What the core's IMU outlier guard dropped and flagged.
+    fn imu_guard_stats(&self) -> loglio_core::imu_guard::ImuGuardStats;
 }
 
 struct CoreEngine<'a, const PIX: usize, const PTS: usize, const DS: usize> {
@@ -221,6 +226,12 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> Engine for CoreEngine<
     }
     fn resets(&self) -> u32 {
         self.odo.stats().reinitialisations
+    }
+    fn propagate_imu(&mut self, until_ns: u64) -> u32 {
+        self.odo.propagate_imu(until_ns)
+    }
+    fn imu_guard_stats(&self) -> loglio_core::imu_guard::ImuGuardStats {
+        self.odo.imu_guard_stats()
     }
 }
 

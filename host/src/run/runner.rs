@@ -42,6 +42,7 @@ pub fn scan_status(s: &Status) -> ScanStatus {
         Status::ImuOnly(_) => ScanStatus::ImuOnly,
         Status::Initialising(_) => ScanStatus::Initialising,
         Status::Reinitialising(_) => ScanStatus::Reinitialising,
+        Status::Bridged(_) => ScanStatus::Bridged,
     }
 }
 
@@ -51,7 +52,7 @@ pub struct RunStats {
     /// Scans processed.
     pub scans: u64,
     /// Scans per status: initialising, ok, degraded, imu-only, re-initialising.
-    pub status: [u64; 5],
+    pub status: [u64; 6],
     /// IMU samples received (before the core's checks).
     pub imu_in: u64,
     /// IMU samples the core refused (out of order, duplicate, non-finite).
@@ -72,7 +73,85 @@ pub struct RunStats {
     pub scan_ns: Vec<u64>,
     /// The live outputs' counts (filled at the end of the run).
     pub sinks: Vec<SinkStats>,
+    /// Timing faults and IMU outliers met.
+    pub faults: FaultCounts,
 }
+
+/// Timing faults and IMU outliers a run met (each also said as a `warning:`).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FaultCounts {
+    /// Pauses of the LiDAR longer than 0.5 s, and the longest, s.
+    pub lidar_gaps: u64,
+    /// The longest LiDAR gap, s.
+    pub lidar_gap_max_s: f64,
+    /// Pauses of the IMU longer than 0.2 s.
+    pub imu_gaps: u64,
+    /// The longest IMU gap, s.
+    pub imu_gap_max_s: f64,
+    /// IMU samples stamped far after their neighbours, dropped.
+    pub imu_stamp_jumps: u64,
+    /// The core's IMU outlier guard.
+    pub imu_guard: loglio_core::imu_guard::ImuGuardStats,
+}
+
+impl FaultCounts {
+    /// The end-of-run warnings: one per kind met.
+    pub fn warnings(&self) -> Vec<String> {
+        let g = &self.imu_guard;
+        let mut w = Vec::new();
+        if g.beyond_full_scale > 0 {
+            w.push(format!(
+                "{} IMU samples beyond the sensor's full scale were dropped as outliers",
+                g.beyond_full_scale
+            ));
+        }
+        if g.spikes > 0 {
+            w.push(format!("{} lone IMU spikes (outliers) were dropped", g.spikes));
+        }
+        if g.stamp_jumps > 0 {
+            w.push(format!(
+                "{} IMU samples with a stamp far after their neighbours were dropped",
+                g.stamp_jumps
+            ));
+        }
+        if g.saturated > 0 {
+            w.push(format!("{} IMU samples at the sensor's full scale: the IMU saturated", g.saturated));
+        }
+        w
+    }
+
+    /// One summary phrase (empty when nothing happened).
+    pub fn phrase(&self) -> String {
+        let mut p = Vec::new();
+        if self.lidar_gaps > 0 {
+            p.push(format!("{} LiDAR gaps (longest {:.2} s)", self.lidar_gaps, self.lidar_gap_max_s));
+        }
+        if self.imu_gaps > 0 {
+            p.push(format!("{} IMU gaps (longest {:.2} s)", self.imu_gaps, self.imu_gap_max_s));
+        }
+        let g = &self.imu_guard;
+        let stamps = self.imu_stamp_jumps + u64::from(g.stamp_jumps);
+        if stamps > 0 {
+            p.push(format!("{stamps} IMU samples with wrong stamps dropped"));
+        }
+        if g.beyond_full_scale + g.spikes > 0 {
+            p.push(format!("{} IMU outliers dropped", g.beyond_full_scale + g.spikes));
+        }
+        if g.saturated > 0 {
+            p.push(format!("{} saturated IMU samples", g.saturated));
+        }
+        p.join(", ")
+    }
+}
+
+/// An IMU sample this far after the last one is held until the next confirms it, ns.
+pub const IMU_FORWARD_NS: u64 = 500_000_000;
+/// An IMU pause longer than this is a gap (said and counted), ns.
+pub const IMU_GAP_NS: u64 = 200_000_000;
+/// A LiDAR pause longer than this is a gap (said and counted), ns.
+pub const LIDAR_GAP_NS: u64 = 500_000_000;
+/// With no scan waiting, IMU samples older than the newest by this are integrated without one.
+pub const PROPAGATE_LAG_NS: u64 = 1_000_000_000;
 
 impl RunStats {
     /// Mean time per scan, seconds.
@@ -148,6 +227,10 @@ pub struct Runner<'e> {
     predictor: Option<Eskf>,
     map_sent_ns: Option<u64>,
     origin: Instant,
+    /// An IMU sample stamped far after the last one, held until the next confirms it.
+    held_far: Option<ImuSample>,
+    /// The last scan's end (LiDAR gaps).
+    last_scan_end_ns: Option<u64>,
 }
 
 impl fmt::Debug for Runner<'_> {
@@ -176,6 +259,8 @@ impl<'e> Runner<'e> {
             predictor: None,
             map_sent_ns: None,
             origin: Instant::now(),
+            held_far: None,
+            last_scan_end_ns: None,
         }
     }
 
@@ -284,26 +369,98 @@ impl<'e> Runner<'e> {
         v
     }
 
-    /// Takes one IMU sample (sensor clock; the offset is applied here).
+    /// Takes one IMU sample (sensor clock; the offset is applied here). A sample stamped more
+    /// than [`IMU_FORWARD_NS`] after the last one is held until the next sample confirms it (a
+    /// real gap) or comes before it (a wrong stamp: dropped and counted), so that one bad stamp
+    /// neither stalls the samples behind it nor makes every scan look covered.
     pub fn imu(&mut self, mut s: ImuSample) -> Result<(), PipelineError> {
         s.t_ns = s.t_ns.saturating_add_signed(self.imu_offset_ns);
         self.stats.imu_in += 1;
+        if let Some(h) = self.held_far.take() {
+            if s.t_ns < h.t_ns {
+                self.stats.faults.imu_stamp_jumps += 1;
+                if self.stats.faults.imu_stamp_jumps <= 3 {
+                    crate::diag::warn(format!(
+                        "an IMU sample stamped {:.3} s after its neighbours was dropped (a wrong stamp; counted)",
+                        (h.t_ns - self.last_imu_ns.unwrap_or(h.t_ns)) as f64 * 1e-9
+                    ));
+                }
+            } else {
+                self.accept_imu(h)?;
+            }
+        }
+        if self.last_imu_ns.is_some_and(|t| s.t_ns > t.saturating_add(IMU_FORWARD_NS)) {
+            self.held_far = Some(s);
+            return Ok(());
+        }
+        self.accept_imu(s)
+    }
+
+    fn accept_imu(&mut self, s: ImuSample) -> Result<(), PipelineError> {
+        if let Some(last) = self.last_imu_ns
+            && s.t_ns > last
+        {
+            let gap_ns = s.t_ns - last;
+            if gap_ns > IMU_GAP_NS {
+                let f = &mut self.stats.faults;
+                f.imu_gaps += 1;
+                f.imu_gap_max_s = f.imu_gap_max_s.max(gap_ns as f64 * 1e-9);
+                if f.imu_gaps <= 3 {
+                    crate::diag::warn(format!(
+                        "IMU gap of {:.2} s: the scans carried the pose at constant velocity (bridged)",
+                        gap_ns as f64 * 1e-9
+                    ));
+                }
+            }
+        }
         widen(&mut self.stats.imu_span, s.t_ns);
         self.last_imu_ns = Some(self.last_imu_ns.map_or(s.t_ns, |t| t.max(s.t_ns)));
         self.imu.push_back(s);
         if self.predictor.is_some() {
             self.propagate_live(&s);
         }
-        // With no scan waiting, keep about 5 s (1 kHz) of samples for the first one.
-        if self.scans.is_empty() && self.imu.len() > 5000 {
-            self.imu.pop_front();
-            self.stats.imu_stale += 1;
+        // No scan waiting and more than a second of samples: the IMU carries the state
+        // through the LiDAR's silence (samples older than any scan still to come).
+        if self.scans.is_empty()
+            && let (Some(first), Some(newest)) = (self.imu.front(), self.last_imu_ns)
+            && newest.saturating_sub(first.t_ns) > 2 * PROPAGATE_LAG_NS
+        {
+            let until = newest - PROPAGATE_LAG_NS;
+            while let Some(s) = self.imu.front() {
+                if s.t_ns > until {
+                    break;
+                }
+                let s = *s;
+                self.imu.pop_front();
+                if !matches!(self.engine.push_imu(s), ImuPush::Accepted | ImuPush::Held) {
+                    self.stats.imu_dropped += 1;
+                }
+            }
+            self.engine.propagate_imu(until);
         }
         self.process_ready(false, None)
     }
 
     /// Takes one scan.
     pub fn scan(&mut self, scan: OwnedScan, arrival: u64) -> Result<(), PipelineError> {
+        let end = scan.end_ns();
+        if let Some(last) = self.last_scan_end_ns
+            && end > last
+        {
+            let gap_ns = end - last;
+            if gap_ns > LIDAR_GAP_NS {
+                let f = &mut self.stats.faults;
+                f.lidar_gaps += 1;
+                f.lidar_gap_max_s = f.lidar_gap_max_s.max(gap_ns as f64 * 1e-9);
+                if f.lidar_gaps <= 3 {
+                    crate::diag::warn(format!(
+                        "LiDAR gap of {:.2} s: the IMU carried the pose (bridged)",
+                        gap_ns as f64 * 1e-9
+                    ));
+                }
+            }
+        }
+        self.last_scan_end_ns = Some(self.last_scan_end_ns.map_or(end, |t| t.max(end)));
         widen(&mut self.stats.lidar_span, scan.end_ns());
         self.scans.push_back((scan, arrival));
         self.process_ready(false, None)
@@ -363,6 +520,7 @@ impl<'e> Runner<'e> {
             ScanStatus::Degraded => 2,
             ScanStatus::ImuOnly => 3,
             ScanStatus::Reinitialising => 4,
+            ScanStatus::Bridged => 5,
         }] += 1;
         let t = &res.times;
         let s = &mut st.stage_sum;
@@ -390,7 +548,14 @@ impl<'e> Runner<'e> {
     /// Processes what is left and writes the final outputs. Fails when the streams never
     /// overlapped (no IMU, no scans, or disjoint times).
     pub fn finish(mut self) -> Result<(RunStats, Finished), PipelineError> {
+        if let Some(h) = self.held_far.take() {
+            self.accept_imu(h)?;
+        }
         self.process_ready(true, None)?;
+        self.stats.faults.imu_guard = self.engine.imu_guard_stats();
+        for w in self.stats.faults.warnings() {
+            crate::diag::warn(w);
+        }
         self.stats.sinks = self.sinks.finish();
         self.stats.check_overlap()?;
         let fin = self.outputs.finish(&*self.engine)?;
@@ -405,7 +570,7 @@ impl<'e> Runner<'e> {
 
 /// A summary line of the status counts.
 pub fn status_summary(st: &RunStats) -> String {
-    let names = ["initialising", "ok", "degraded", "imu-only", "re-initialising"];
+    let names = ["initialising", "ok", "degraded", "imu-only", "re-initialising", "bridged"];
     let parts: Vec<String> =
         names.iter().zip(st.status).filter(|(_, n)| *n > 0).map(|(name, n)| format!("{n} {name}")).collect();
     parts.join(", ")
@@ -420,6 +585,10 @@ pub fn summary(stats: &RunStats, fin: &Finished, scan_period_s: f64, wall_s: f64
     }
     if stats.scans_without_imu > 0 {
         s.push_str(&format!("; {} scans without IMU up to their end", stats.scans_without_imu));
+    }
+    let faults = stats.faults.phrase();
+    if !faults.is_empty() {
+        s.push_str(&format!("; faults: {faults}"));
     }
     s.push('\n');
     s.push_str(&format!(

@@ -187,7 +187,7 @@ pub fn heartbeat_payload(system_status: u8) -> [u8; HEARTBEAT_LEN] {
 pub fn system_status(s: LiveStatus) -> u8 {
     match s {
         LiveStatus::Initialising => mav_state::BOOT,
-        LiveStatus::Ok | LiveStatus::Degraded { .. } => mav_state::ACTIVE,
+        LiveStatus::Ok | LiveStatus::Degraded { .. } | LiveStatus::Bridged { .. } => mav_state::ACTIVE,
         LiveStatus::ImuOnly | LiveStatus::Lost => mav_state::CRITICAL,
     }
 }

@@ -42,6 +42,12 @@ pub enum LiveStatus {
         /// The degenerate axes.
         axes: u8,
     },
+    /// Tracking again after a pause of the IMU (`imu_gap`) or of the LiDAR that the filter
+    /// bridged: usable, with a larger covariance.
+    Bridged {
+        /// Whether the IMU paused (else the LiDAR).
+        imu_gap: bool,
+    },
     /// The scan did not update the state: IMU propagation only.
     ImuOnly,
     /// The filter lost track and starts over (a new world frame: `resets` counts them).
@@ -58,6 +64,9 @@ impl LiveStatus {
             Status::ImuOnly(_) => LiveStatus::ImuOnly,
             Status::Initialising(_) => LiveStatus::Initialising,
             Status::Reinitialising(_) => LiveStatus::Lost,
+            Status::Bridged(r) => {
+                LiveStatus::Bridged { imu_gap: matches!(r, loglio_core::output::BridgeReason::ImuGap) }
+            }
         }
     }
 
@@ -65,7 +74,7 @@ impl LiveStatus {
     pub fn quality(self) -> u8 {
         match self {
             LiveStatus::Ok => 100,
-            LiveStatus::Degraded { .. } => 50,
+            LiveStatus::Degraded { .. } | LiveStatus::Bridged { .. } => 50,
             LiveStatus::ImuOnly => 20,
             LiveStatus::Initialising | LiveStatus::Lost => 0,
         }
@@ -97,6 +106,8 @@ impl fmt::Display for LiveStatus {
                 }
                 f.write_str(")")
             }
+            LiveStatus::Bridged { imu_gap: true } => f.write_str("bridged (IMU gap)"),
+            LiveStatus::Bridged { imu_gap: false } => f.write_str("bridged (LiDAR gap)"),
             LiveStatus::ImuOnly => f.write_str("imu-only"),
             LiveStatus::Lost => f.write_str("lost"),
         }
