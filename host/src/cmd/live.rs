@@ -193,6 +193,8 @@ pub struct LiveReport {
     pub scan_period_s: f64,
     /// Wall time, s.
     pub wall_s: f64,
+    /// Latency from a scan's last packet to its result, beside its processing time.
+    pub result_latency: crate::sink::WireLatency,
 }
 
 /// What the threads count (read by the status line).
@@ -524,6 +526,8 @@ struct ScanTimes {
     latency_sum_ns: u64,
     latency_max_ns: u64,
     scans: u64,
+    /// Last packet to result of every scan, beside its processing time (the summary's).
+    result: crate::sink::WireLatency,
 }
 
 /// A stall warning that is given once per silence.
@@ -695,6 +699,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
         let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
         runner.sinks = opt.setup.sinks.build();
         runner.set_origin(t0);
+        runner.sinks.set_origin(t0);
         {
             let times = Rc::clone(&times);
             runner.on_scan = Some(Box::new(move |res, _, arrival| {
@@ -703,6 +708,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                 t.window.push((latency, res.times.total_ns));
                 t.latency_sum_ns += latency;
                 t.latency_max_ns = t.latency_max_ns.max(latency);
+                t.result.record(latency, res.times.total_ns);
                 t.scans += 1;
             }));
         }
@@ -839,9 +845,10 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
             )));
         }
         let (stats, finished) = runner.finish()?;
-        Ok((stats, finished, counts, stopped_by))
+        let result_latency = std::mem::take(&mut times.borrow_mut().result);
+        Ok((stats, finished, counts, stopped_by, result_latency))
     })??;
-    let (stats, finished, counts, stopped_by) = res;
+    let (stats, finished, counts, stopped_by, result_latency) = res;
     Ok(LiveReport {
         stats,
         finished,
@@ -849,6 +856,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
         stopped_by,
         scan_period_s,
         wall_s: wall.elapsed().as_secs_f64(),
+        result_latency,
     })
 }
 
@@ -933,6 +941,16 @@ pub fn summary(r: &LiveReport) -> String {
         c.latency_mean_s * 1e3,
         c.latency_max_s * 1e3
     ));
+    // The figures beside the processing time of the same scans: what a sink adds on top.
+    let from = "latency from the last packet of a scan";
+    if let Some(p) = r.result_latency.phrase() {
+        s.push_str(&format!("{from} to its result: {p}\n"));
+    }
+    for st in &r.stats.sinks {
+        if let Some(p) = st.wire.phrase() {
+            s.push_str(&format!("{from} to its pose sent by {}: {p}\n", st.name));
+        }
+    }
     s.push_str(&crate::run::runner::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s));
     s
 }

@@ -428,6 +428,8 @@ pub struct MavlinkSink {
     last_scan_ns: Option<u64>,
     /// The latest interval between two scan poses, ns.
     scan_dt_ns: Option<u64>,
+    /// When the latest scan's ODOMETRY was sent.
+    pose_sent: Option<Instant>,
 }
 
 /// How far past the last scan pose IMU-propagated poses are sent, ns. Without scans (a LiDAR
@@ -455,6 +457,7 @@ impl MavlinkSink {
             last_sent_ns: None,
             last_scan_ns: None,
             scan_dt_ns: None,
+            pose_sent: None,
         })
     }
 
@@ -535,11 +538,18 @@ impl Sink for MavlinkSink {
         let odo = match pose {
             Some(p) if p.status != LiveStatus::Initialising => {
                 self.last_sent_ns = Some(self.last_sent_ns.map_or(p.t_ns, |l| l.max(p.t_ns)));
-                self.send(ODOMETRY_ID, ODOMETRY_CRC_EXTRA, &Odometry::of(&p).payload())
+                self.send(ODOMETRY_ID, ODOMETRY_CRC_EXTRA, &Odometry::of(&p).payload()).map(|()| true)
             }
-            _ => Ok(()),
+            _ => Ok(false),
         };
-        hb.and(odo)
+        if matches!(ev, SinkEvent::Scan(_)) {
+            self.pose_sent = matches!(odo, Ok(true)).then(Instant::now);
+        }
+        hb.and(odo.map(|_| ()))
+    }
+
+    fn pose_sent(&mut self) -> Option<Instant> {
+        self.pose_sent.take()
     }
 }
 

@@ -28,7 +28,7 @@
 //! multicast (a Cyclone DDS node then needs `127.0.0.1` among its `Discovery/Peers`; with a
 //! multicast interface Cyclone's defaults work as they are). Tested against Cyclone DDS.
 
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use nalgebra::{Matrix3, Matrix6, Quaternion as NQuat, UnitQuaternion};
 use rustdds::no_key::DataWriter;
@@ -202,6 +202,8 @@ pub struct Ros2Sink {
     tf: DataWriter<TfMessage>,
     cloud: DataWriter<PointCloud2>,
     map: DataWriter<PointCloud2>,
+    /// When the latest scan's odometry was written (the cloud and the map follow it).
+    pose_sent: Option<Instant>,
     // Dropped last: the writers need it.
     _participant: DomainParticipant,
 }
@@ -244,7 +246,7 @@ impl Ros2Sink {
         let cloud = publisher.create_datawriter_no_key_cdr(&t, Some(q)).map_err(|e| dds("writer", &e))?;
         let (t, q) = writer(&format!("rt{namespace}/map"), CLOUD, qos(1, true))?;
         let map = publisher.create_datawriter_no_key_cdr(&t, Some(q)).map_err(|e| dds("writer", &e))?;
-        Ok(Ros2Sink { opt, odom, odom_imu, tf, cloud, map, _participant: participant })
+        Ok(Ros2Sink { opt, odom, odom_imu, tf, cloud, map, pose_sent: None, _participant: participant })
     }
 
     fn header(&self, t_ns: u64) -> Header {
@@ -263,7 +265,9 @@ impl Ros2Sink {
                 first_err.get_or_insert_with(|| SinkError(format!("{what}: {e}")));
             }
         };
-        note("odometry", self.odom.write(odometry(&s.pose, f, c), None).map_err(|e| e.to_string()));
+        let odom = self.odom.write(odometry(&s.pose, f, c), None).map_err(|e| e.to_string());
+        self.pose_sent = odom.is_ok().then(Instant::now);
+        note("odometry", odom);
         note("tf", self.tf.write(transform(&s.pose, f, c), None).map_err(|e| e.to_string()));
         if let Some(pts) = &s.cloud {
             let m = PointCloud2::xyz(self.header(s.pose.t_ns), pts.iter());
@@ -294,6 +298,10 @@ impl Sink for Ros2Sink {
                 self.odom_imu.write(m, None).map_err(|e| SinkError(format!("odometry_imu: {e}")))
             }
         }
+    }
+
+    fn pose_sent(&mut self) -> Option<Instant> {
+        self.pose_sent.take()
     }
 
     fn finish(&mut self) -> Result<(), SinkError> {

@@ -179,3 +179,66 @@ fn status_names_and_quality() {
     assert_eq!(LiveStatus::Lost.quality(), 0);
     assert!(!LiveStatus::Initialising.is_tracking());
 }
+
+/// The wire latency is the pose's send time less the scan's arrival on the run's clock, kept
+/// beside the processing time; scans of unknown arrival (files) and failed sends are left out.
+#[test]
+fn wire_latency_is_measured_on_the_runs_clock() {
+    let (sink, gate, _) = gated(Some(4));
+    open(&gate);
+    let mut sinks = Sinks::new(SinkOptions { queue: 64, ..SinkOptions::default() });
+    // The origin 1 s ago; scans "arrived" 30 ms before now on that clock.
+    let origin = Instant::now() - Duration::from_secs(1);
+    sinks.set_origin(origin);
+    sinks.add(sink).unwrap();
+    for i in 0..5 {
+        let SinkEvent::Scan(mut s) = scan(i) else { unreachable!() };
+        let o = Arc::make_mut(&mut s);
+        o.arrival_ns = if i == 2 { 0 } else { origin.elapsed().as_nanos() as u64 - 30_000_000 };
+        o.process_ms = 20.0;
+        sinks.send(SinkEvent::Scan(s));
+    }
+    let st = sinks.finish();
+    // Scan 2 has no arrival; the 4th handled (scan 3) failed.
+    assert_eq!(st[0].wire.scans, 3);
+    let [med, p99] = st[0].wire.latency_ms().unwrap();
+    assert!((30.0..1000.0).contains(&med) && p99 >= med, "{med} {p99}");
+    assert_eq!(st[0].wire.process_ms(), Some([20.0, 20.0]));
+    let line = &sinks_summary(&st)[0];
+    assert!(line.contains("; pose latency from the scan's last packet: median "), "{line}");
+    assert!(line.contains("(processing of the same 3 scans: median 20.0 ms, p99 20.0 ms)"), "{line}");
+}
+
+/// Without an origin (a file run) nothing is measured and the summary says nothing of it.
+#[test]
+fn no_origin_no_latency() {
+    let (sink, gate, _) = gated(None);
+    open(&gate);
+    let mut sinks = Sinks::new(SinkOptions::default());
+    sinks.add(sink).unwrap();
+    let SinkEvent::Scan(mut s) = scan(0) else { unreachable!() };
+    Arc::make_mut(&mut s).arrival_ns = 5;
+    sinks.send(SinkEvent::Scan(s));
+    let st = sinks.finish();
+    assert_eq!(st[0].wire, WireLatency::default());
+    assert!(!sinks_summary(&st)[0].contains("latency"));
+}
+
+/// Median and p99 by nearest rank; past the cap a uniform reservoir keeps the size bounded.
+#[test]
+fn wire_latency_quantiles_and_bound() {
+    let mut w = WireLatency::default();
+    assert_eq!(w.latency_ms(), None);
+    assert_eq!(w.phrase(), None);
+    for i in 1..=100u64 {
+        w.record(i * 1_000_000, 500_000);
+    }
+    assert_eq!(w.latency_ms(), Some([50.0, 99.0]));
+    assert_eq!(w.process_ms(), Some([0.5, 0.5]));
+    for i in 0..(WireLatency::CAP as u64 * 3) {
+        w.record(i % 1000 * 1000, 0);
+    }
+    assert_eq!(w.scans, 100 + WireLatency::CAP as u64 * 3);
+    let [med, _] = w.latency_ms().unwrap();
+    assert!((0.4..0.6).contains(&med), "{med}");
+}
