@@ -442,7 +442,7 @@ impl<'a> LidarStream<'a> {
     /// stream's is the first known id seen, not the configured model's: two real VLP-16
     /// captures report 0x21. Unknown ids are decoded as configured.
     fn velodyne_foreign(&mut self, id: u8) -> bool {
-        if velodyne_product_name(id) == "unknown model" {
+        if !matches!(id, 0x21 | 0x22 | 0x24 | 0x28) {
             return false;
         }
         match self.velodyne_id {
