@@ -32,14 +32,10 @@ const RUN_LIMIT: Duration = Duration::from_secs(120);
 /// fixes of that day 28 of the 30 rows were here (LiDAR gaps of 2-5 s 156-1030x, IMU spikes
 /// 5-58x, every damaged IMU CSV refused).
 const KNOWN_FAILING: &[(&str, &str)] = &[
-    ("handheld-vlp16/lidar-stamp+60s", "silent; 31 scans degraded after it, ATE 1.35x (> 1.05x)"),
-    ("handheld-vlp16/foreign-packets-3s", "silent, nothing flagged; ATE 1.48 m (423x)"),
     (
         "handheld-vlp16/imu-gap-2s",
         "bridged and said, but ATE 8.9x (> 3x): the gap's scans are undistorted without rates",
     ),
-    ("vehicle-vlp32c/lidar-stamp+60s", "silent; 62 scans imu-only after it, ATE 1.24x (> 1.05x)"),
-    ("vehicle-vlp32c/foreign-packets-3s", "VLP-16 packets ignored silently: no warning, nothing flagged"),
     (
         "vehicle-vlp32c/imu-gap-2s",
         "bridged and said, but ATE 4.6x (> 3x): the gap's scans are undistorted without rates",
@@ -87,7 +83,9 @@ fn rows() -> Vec<Row> {
             faults: vec![Fault::Foreign { from_s: 5.0, to_s: 8.0 }],
             max_ate_ratio: 3.0,
             warning_contains: &["foreign", "other sensor", "model"],
-            must_flag: true,
+            // The other sensor's packets are dropped before the scan assembly (counted, said):
+            // no scan is hurt, so none has to be flagged; it "matters" only if they get in.
+            must_flag: false,
             flag_window_s: (5.0, 8.5),
         },
         Row {

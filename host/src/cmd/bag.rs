@@ -172,8 +172,16 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
             }
             progress.set_position(reader.stats().messages);
         }
-        if let Some(Some(Decoded::Scan(s))) = stream.as_mut().map(|st| st.flush()) {
-            runner.scan(s, 0)?;
+        if let Some(st) = stream.as_mut() {
+            while let Some(d) = st.flush() {
+                match d {
+                    Decoded::Scan(s) => runner.scan(s, 0)?,
+                    Decoded::Imu(s) => runner.imu(s)?,
+                }
+            }
+            for w in st.warnings() {
+                warn(w);
+            }
         }
         if let Some(e) = read_error {
             if runner.stats.scans == 0 && runner.pending() == 0 {

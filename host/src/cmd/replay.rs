@@ -192,8 +192,12 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
                 None => {}
             }
         }
-        if let Some(Decoded::Scan(scan)) = stream.flush() {
-            runner.scan(scan, 0)?;
+        while let Some(d) = stream.flush() {
+            match d {
+                Decoded::Scan(scan) => runner.scan(scan, 0)?,
+                Decoded::Imu(s) if imu_packets_used => runner.imu(s)?,
+                Decoded::Imu(_) => {}
+            }
         }
         while let Some(s) = next_imu {
             runner.imu(s)?;
@@ -220,6 +224,9 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
     }
     if stream.stats.bad_packets > 0 {
         warn(format!("{} LiDAR packets could not be decoded and were dropped", stream.stats.bad_packets));
+    }
+    for w in stream.warnings() {
+        warn(w);
     }
     let (stats, finished) = res;
     Ok(ReplayReport {
