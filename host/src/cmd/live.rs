@@ -442,7 +442,10 @@ fn decode(s: DecodeSetup, rx: Receiver<Datagram>, tx: SyncSender<Msg>, c: Arc<Co
         let out = stream.packet(d.port, &d.data, d.capture_ns);
         let st = stream.stats;
         c.lidar_packets.store(st.lidar_packets, Relaxed);
-        c.decoder_drops.store(st.bad_packets + st.rejected_packets + st.bad_imu_packets, Relaxed);
+        c.decoder_drops.store(
+            st.bad_packets + st.rejected_packets + st.bad_imu_packets + st.foreign + st.stamp_jumps,
+            Relaxed,
+        );
         c.missing_packets.store(stream.assembly_stats().missing_packets, Relaxed);
         match out {
             Some(Decoded::Scan(scan)) => {
@@ -465,7 +468,10 @@ fn decode(s: DecodeSetup, rx: Receiver<Datagram>, tx: SyncSender<Msg>, c: Arc<Co
             Some(Decoded::Imu(_)) | None => {}
         }
     }
-    // The turn being assembled is incomplete: it is not processed.
+    // The turn being assembled is incomplete: it is not processed. What was dropped is said.
+    for w in stream.warnings() {
+        warn(w);
+    }
 }
 
 /// Sets the stop flag when dropped (every way out of the run stops the threads).
