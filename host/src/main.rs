@@ -501,9 +501,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
 
 fn replay_cmd(a: ReplayArgs) -> anyhow::Result<()> {
     use loglio_host::cmd::replay::{ImuInput, ReplayOptions};
-    if !(a.rate > 0.0 && a.rate.is_finite()) {
-        bail!("--rate must be a positive number, not {}", a.rate);
-    }
+    check_rate(a.rate)?;
     let imu = match (&a.imu, a.ouster_imu) {
         (Some(p), _) => Some(ImuInput::detect(p)?),
         (None, true) => Some(ImuInput::OusterPackets),
@@ -576,9 +574,7 @@ fn bench_cmd(a: BenchArgs) -> anyhow::Result<()> {
 }
 
 fn bag_cmd(a: BagArgs) -> anyhow::Result<()> {
-    if !(a.rate > 0.0 && a.rate.is_finite()) {
-        bail!("--rate must be a positive number, not {}", a.rate);
-    }
+    check_rate(a.rate)?;
     let opt = loglio_host::cmd::bag::BagRunOptions {
         bag: a.bag,
         lidar_topic: a.lidar_topic,
@@ -615,9 +611,7 @@ fn scenario_kind(name: &str) -> anyhow::Result<loglio_firmware_sim::scenario::Sc
 
 #[cfg(feature = "sim")]
 fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
-    if !(a.rate > 0.0 && a.rate.is_finite()) {
-        bail!("--rate must be a positive number, not {}", a.rate);
-    }
+    check_rate(a.rate)?;
     use loglio_firmware_sim::lidar::SensorModel;
     let kind = scenario_kind(&a.scenario)?;
     let sensor =
@@ -647,9 +641,7 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
 
 #[cfg(feature = "sim")]
 fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
-    if !(a.rate > 0.0 && a.rate.is_finite()) {
-        bail!("--rate must be a positive number, not {}", a.rate);
-    }
+    check_rate(a.rate)?;
     use loglio_firmware_sim::lidar::SensorModel;
     use loglio_firmware_sim::scenario::ScenarioKind;
     if !(a.seconds > 2.5 && a.seconds <= 600.0) {
@@ -672,6 +664,14 @@ fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
         realtime: a.realtime.then_some(a.rate),
         sinks: a.outputs,
     })
+}
+
+/// `--rate` of `--realtime`: a positive number.
+fn check_rate(rate: f64) -> anyhow::Result<()> {
+    if !(rate > 0.0 && rate.is_finite()) {
+        bail!("--rate must be a positive number, not {rate}");
+    }
+    Ok(())
 }
 
 fn print(text: &str) -> anyhow::Result<()> {

@@ -530,63 +530,7 @@ from cyclonedds.idl import IdlStruct
 from cyclonedds.util import duration
 from cyclonedds.idl.types import int32, uint32, float64, array
 
-@dataclass
-class Time(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
-    sec: int32
-    nanosec: uint32
-
-@dataclass
-class Header(IdlStruct, typename="std_msgs::msg::dds_::Header_"):
-    stamp: Time
-    frame_id: str
-
-@dataclass
-class Point(IdlStruct, typename="geometry_msgs::msg::dds_::Point_"):
-    x: float64
-    y: float64
-    z: float64
-
-@dataclass
-class Vector3(IdlStruct, typename="geometry_msgs::msg::dds_::Vector3_"):
-    x: float64
-    y: float64
-    z: float64
-
-@dataclass
-class Quaternion(IdlStruct, typename="geometry_msgs::msg::dds_::Quaternion_"):
-    x: float64
-    y: float64
-    z: float64
-    w: float64
-
-@dataclass
-class Pose(IdlStruct, typename="geometry_msgs::msg::dds_::Pose_"):
-    position: Point
-    orientation: Quaternion
-
-@dataclass
-class PoseWithCovariance(IdlStruct, typename="geometry_msgs::msg::dds_::PoseWithCovariance_"):
-    pose: Pose
-    covariance: array[float64, 36]
-
-@dataclass
-class Twist(IdlStruct, typename="geometry_msgs::msg::dds_::Twist_"):
-    linear: Vector3
-    angular: Vector3
-
-@dataclass
-class TwistWithCovariance(IdlStruct, typename="geometry_msgs::msg::dds_::TwistWithCovariance_"):
-    twist: Twist
-    covariance: array[float64, 36]
-
-@dataclass
-class Odometry(IdlStruct, typename="nav_msgs::msg::dds_::Odometry_"):
-    header: Header
-    child_frame_id: str
-    pose: PoseWithCovariance
-    twist: TwistWithCovariance
-
-dp = DomainParticipant(int(sys.argv[1]))
+{ROS2_TYPES}dp = DomainParticipant(int(sys.argv[1]))
 qos = Qos(Policy.Reliability.Reliable(max_blocking_time=duration(milliseconds=100)), Policy.History.KeepLast(1000))
 r = DataReader(dp, Topic(dp, "rt/loglio/odometry", Odometry), qos=qos)
 print("ready", flush=True)
@@ -601,9 +545,6 @@ while not last:
         time.sleep(0.005)
 print(n, flush=True)
 "#;
-
-/// Cyclone DDS on loopback, discovering by unicast to 127.0.0.1 only (as `tests/ros2.rs`).
-const CYCLONE_XML: &str = r#"<CycloneDDS><Domain id="any"><General><Interfaces><NetworkInterface name="lo"/></Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery><Peers><Peer address="127.0.0.1"/></Peers><ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>20</MaxAutoParticipantIndex></Discovery></Domain></CycloneDDS>"#;
 
 /// A pymavlink listener on a UDP port of 127.0.0.1 (printed first): once the file `done`
 /// appears and 0.5 s pass quietly, prints `ODOMETRY-count bad-frame-count`.
@@ -698,8 +639,8 @@ fn live_with_every_output_drops_nothing_and_reports_the_wire_latency() {
     let out = run.dir.join("out");
     let domain = (1 + (std::process::id() * 3 + 101) % 200).to_string();
     let xml = run.dir.join("cyclonedds.xml");
-    std::fs::write(&xml, CYCLONE_XML).unwrap();
-    std::fs::write(run.dir.join("sub.py"), ODOM_SUBSCRIBER).unwrap();
+    std::fs::write(&xml, common::CYCLONE_XML).unwrap();
+    std::fs::write(run.dir.join("sub.py"), common::with_ros2_types(ODOM_SUBSCRIBER)).unwrap();
     std::fs::write(run.dir.join("mav.py"), MAVLINK_LISTENER).unwrap();
     let mut cmd = Command::new(&python);
     cmd.arg(run.dir.join("sub.py")).arg(&domain).env("CYCLONEDDS_URI", format!("file://{}", xml.display()));

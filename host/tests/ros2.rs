@@ -34,63 +34,7 @@ from cyclonedds.idl import IdlStruct
 from cyclonedds.util import duration
 from cyclonedds.idl.types import int32, uint32, uint8, float64, sequence, array
 
-@dataclass
-class Time(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
-    sec: int32
-    nanosec: uint32
-
-@dataclass
-class Header(IdlStruct, typename="std_msgs::msg::dds_::Header_"):
-    stamp: Time
-    frame_id: str
-
-@dataclass
-class Point(IdlStruct, typename="geometry_msgs::msg::dds_::Point_"):
-    x: float64
-    y: float64
-    z: float64
-
-@dataclass
-class Vector3(IdlStruct, typename="geometry_msgs::msg::dds_::Vector3_"):
-    x: float64
-    y: float64
-    z: float64
-
-@dataclass
-class Quaternion(IdlStruct, typename="geometry_msgs::msg::dds_::Quaternion_"):
-    x: float64
-    y: float64
-    z: float64
-    w: float64
-
-@dataclass
-class Pose(IdlStruct, typename="geometry_msgs::msg::dds_::Pose_"):
-    position: Point
-    orientation: Quaternion
-
-@dataclass
-class PoseWithCovariance(IdlStruct, typename="geometry_msgs::msg::dds_::PoseWithCovariance_"):
-    pose: Pose
-    covariance: array[float64, 36]
-
-@dataclass
-class Twist(IdlStruct, typename="geometry_msgs::msg::dds_::Twist_"):
-    linear: Vector3
-    angular: Vector3
-
-@dataclass
-class TwistWithCovariance(IdlStruct, typename="geometry_msgs::msg::dds_::TwistWithCovariance_"):
-    twist: Twist
-    covariance: array[float64, 36]
-
-@dataclass
-class Odometry(IdlStruct, typename="nav_msgs::msg::dds_::Odometry_"):
-    header: Header
-    child_frame_id: str
-    pose: PoseWithCovariance
-    twist: TwistWithCovariance
-
-@dataclass
+{ROS2_TYPES}@dataclass
 class Transform(IdlStruct, typename="geometry_msgs::msg::dds_::Transform_"):
     translation: Vector3
     rotation: Quaternion
@@ -216,9 +160,6 @@ out["first_odom_s"] = first_t
 print(json.dumps(out), flush=True)
 "#;
 
-/// Cyclone DDS on loopback, discovering by unicast to 127.0.0.1 only.
-const CYCLONE_XML: &str = r#"<CycloneDDS><Domain id="any"><General><Interfaces><NetworkInterface name="lo"/></Interfaces><AllowMulticast>false</AllowMulticast></General><Discovery><Peers><Peer address="127.0.0.1"/></Peers><ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>20</MaxAutoParticipantIndex></Discovery></Domain></CycloneDDS>"#;
-
 /// Skips (with the reason on stdout) under an emulating runner: the emulated odometry cannot
 /// keep up with `--realtime`, and the timing bounds would not hold.
 fn skip_under_runner(test: &str) -> bool {
@@ -243,9 +184,9 @@ struct Subscriber {
 impl Subscriber {
     fn start(python: &Path, dir: &Path, domain: &str, mode: &str) -> Subscriber {
         let script = dir.join("sub.py");
-        std::fs::write(&script, SUBSCRIBER).unwrap();
+        std::fs::write(&script, common::with_ros2_types(SUBSCRIBER)).unwrap();
         let xml = dir.join("cyclonedds.xml");
-        std::fs::write(&xml, CYCLONE_XML).unwrap();
+        std::fs::write(&xml, common::CYCLONE_XML).unwrap();
         let mut child = Command::new(python)
             .arg(&script)
             .arg(domain)
