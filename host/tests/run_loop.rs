@@ -52,7 +52,7 @@ fn a_channel_receives_every_scan_the_cloud_the_map_and_the_imu_rate_pose() {
     // A queue that holds the whole run: the odometry runs far faster than real time here.
     let mut sinks = Sinks::new(SinkOptions { queue: 1 << 16, map_every_s: 2.0, finish_timeout_s: 10.0 });
     sinks.add(Box::new(sink)).unwrap();
-    let events = sc.events().map(|ev| match ev {
+    let mut events = sc.events().map(|ev| match ev {
         SimEvent::Imu(s) => Event::Imu(s),
         SimEvent::Scan(s) => {
             Event::Scan { scan: OwnedScan { start_ns: s.start_ns, points: s.points }, arrival_ns: 0 }
@@ -63,7 +63,7 @@ fn a_channel_receives_every_scan_the_cloud_the_map_and_the_imu_rate_pose() {
         sinks,
         ..RunOptions::default()
     };
-    let (stats, _) = run::drive(&cfg, sc.layout().clone(), events, opts).unwrap();
+    let (stats, _) = run::drive(&cfg, sc.layout().clone(), &mut events, opts).unwrap();
     let got: Vec<SinkEvent> = rx.try_iter().collect();
     assert_eq!(stats.sinks.len(), 1);
     assert_eq!(stats.sinks[0].lost(), 0, "{:?}", stats.sinks);
@@ -150,7 +150,7 @@ fn the_stop_flag_ends_the_run_with_everything_written() {
     let stop = Arc::new(AtomicBool::new(false));
     let flag = Arc::clone(&stop);
     let mut scans = 0;
-    let events = sc.events().map(move |ev| match ev {
+    let mut events = sc.events().map(move |ev| match ev {
         SimEvent::Imu(s) => Event::Imu(s),
         SimEvent::Scan(s) => {
             scans += 1;
@@ -166,7 +166,7 @@ fn the_stop_flag_ends_the_run_with_everything_written() {
         ..RunOptions::default()
     };
     let ((stats, fin), warnings) =
-        loglio_host::diag::capture(|| run::drive(&cfg, sc.layout().clone(), events, opts).unwrap());
+        loglio_host::diag::capture(|| run::drive(&cfg, sc.layout().clone(), &mut events, opts).unwrap());
     assert_eq!(stats.scans, 40);
     assert_eq!(warnings, ["warning: stopped by a signal; writing what was estimated"]);
     assert!(fin.map_points > 1000);

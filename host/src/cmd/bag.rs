@@ -4,6 +4,7 @@
 //! raw `velodyne_msgs/VelodyneScan` or Ouster packets (decoded by the core), and
 //! `sensor_msgs/Imu` or the Ouster IMU packets. Topics are found by type unless named.
 
+use std::collections::VecDeque;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -15,10 +16,11 @@ use crate::error::PipelineError;
 use crate::input::bag::{BagEvent, BagOptions, BagReader, PacketKind, TopicKind};
 use crate::input::lidar_stream::{self, Decoded, LidarStream, SensorDecoder};
 use crate::output::Progress;
-use crate::run::engine::{self, StorageClass};
-use crate::run::runner::{OwnedScan, RunStats, Runner};
+use crate::run::engine;
+use crate::run::runner::{OwnedScan, RunStats};
 use crate::run::setup::RunSetup;
-use crate::sink::files::{Finished, Outputs};
+use crate::run::{Event, RunOptions, Source};
+use crate::sink::files::Finished;
 
 /// A bag run's settings.
 #[derive(Clone, Debug)]
@@ -114,83 +116,37 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
     if let Some(m) = &meta {
         cfg.sensor.columns = m.intrinsics.columns_per_frame as u32;
     }
-    let class = StorageClass::choose(layout.rows(), layout.cols(), cfg.mapping.map_capacity)?;
-    let core = engine::odometry_config(&cfg, layout)?;
     let n = dec.as_ref().map_or(0, |d| d.max_points());
     let (mut a, mut b) = (vec![ScanPoint::default(); n], vec![ScanPoint::default(); n]);
-    let mut stream = dec.map(|d| LidarStream::of_kinds(&cfg, d, &mut a, &mut b));
-    let outputs = Outputs::new(opt.setup.outputs()?)?;
+    let stream = dec.map(|d| LidarStream::of_kinds(&cfg, d, &mut a, &mut b));
     let progress = if opt.progress {
         Progress::new(reader.total_messages().unwrap_or(0), "messages", false)
     } else {
         Progress::hidden()
     };
-    let scan_offset_ns = (cfg.time.scan_stamp_offset * 1e9).round() as i64;
-    let (stats, finished) = engine::with_engine(&core, class, |engine| -> Result<_, PipelineError> {
-        let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
-        runner.sinks = opt.setup.sinks.build();
-        let mut read_error = None;
-        let mut pacer = opt.realtime.map(crate::input::pace::Pacer::new);
-        let (stop, _signals) = crate::run::Signals::stop_flag();
-        while let Some(item) = reader.next() {
-            if stop.load(std::sync::atomic::Ordering::Relaxed) {
-                warn("stopped by a signal; writing what was estimated");
-                break;
-            }
-            let item = match item {
-                Ok(i) => i,
-                Err(e) => {
-                    read_error = Some(e.to_string());
-                    break;
-                }
-            };
-            if let Some(p) = &mut pacer {
-                p.wait_for(item.record_ns);
-            }
-            match item.event {
-                BagEvent::Scan(sc) => runner.scan(
-                    OwnedScan {
-                        start_ns: sc.stamp_ns.saturating_add_signed(scan_offset_ns),
-                        points: sc.points,
-                    },
-                    0,
-                )?,
-                BagEvent::Imu(s) => runner.imu(s)?,
-                BagEvent::LidarPacket(p) => {
-                    let Some(st) = stream.as_mut() else { continue };
-                    let kind = match p.kind {
-                        PacketKind::Velodyne | PacketKind::OusterLidar => lidar_stream::PacketKind::Lidar,
-                        PacketKind::OusterImu => lidar_stream::PacketKind::OusterImu,
-                    };
-                    match st.packet_of_kind(kind, &p.bytes, p.stamp_ns) {
-                        Some(Decoded::Scan(s)) => runner.scan(s, 0)?,
-                        Some(Decoded::Imu(s)) => runner.imu(s)?,
-                        None => {}
-                    }
-                }
-                BagEvent::OusterMetadata(_) => {}
-            }
-            progress.set_position(reader.stats().messages);
+    let mut src = BagSource {
+        reader: &mut reader,
+        stream,
+        scan_offset_ns: (cfg.time.scan_stamp_offset * 1e9).round() as i64,
+        pacer: opt.realtime.map(crate::input::pace::Pacer::new),
+        progress: &progress,
+        ready: VecDeque::new(),
+        scans: 0,
+        done: false,
+    };
+    let (stop, _signals) = crate::run::Signals::stop_flag();
+    let opts = RunOptions {
+        outputs: opt.setup.outputs()?,
+        sinks: opt.setup.sinks.build(),
+        stop: Some(stop),
+        ..RunOptions::default()
+    };
+    let (stats, finished) = crate::run::drive(&cfg, layout, &mut src, opts)?;
+    if let Some(st) = &src.stream {
+        for w in st.warnings() {
+            warn(w);
         }
-        if let Some(st) = stream.as_mut() {
-            while let Some(d) = st.flush() {
-                match d {
-                    Decoded::Scan(s) => runner.scan(s, 0)?,
-                    Decoded::Imu(s) => runner.imu(s)?,
-                }
-            }
-            for w in st.warnings() {
-                warn(w);
-            }
-        }
-        if let Some(e) = read_error {
-            if runner.stats.scans == 0 && runner.pending() == 0 {
-                return Err(PipelineError(e));
-            }
-            warn(format!("{e}; ran the messages before it"));
-        }
-        runner.finish()
-    })??;
+    }
     progress.finish();
     Ok(BagRunReport {
         stats,
@@ -200,4 +156,87 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
         scan_period_s: 1.0 / cfg.sensor.scan_rate_hz,
         wall_s: wall.elapsed().as_secs_f64(),
     })
+}
+/// The bag as a source: clouds and IMU messages as they are, packets through the decoder and
+/// the scan assembly (told each packet's kind).
+struct BagSource<'a, 'b> {
+    reader: &'a mut BagReader,
+    stream: Option<LidarStream<'b>>,
+    scan_offset_ns: i64,
+    pacer: Option<crate::input::pace::Pacer>,
+    progress: &'a Progress,
+    ready: VecDeque<Event>,
+    scans: u64,
+    done: bool,
+}
+
+impl BagSource<'_, '_> {
+    fn take(&mut self, d: Decoded) {
+        match d {
+            Decoded::Scan(scan) => {
+                self.scans += 1;
+                self.ready.push_back(Event::Scan { scan, arrival_ns: 0 });
+            }
+            Decoded::Imu(s) => self.ready.push_back(Event::Imu(s)),
+        }
+    }
+
+    /// The end of the bag: the assembler's last scans.
+    fn finish(&mut self) {
+        while let Some(d) = self.stream.as_mut().and_then(LidarStream::flush) {
+            self.take(d);
+        }
+        self.done = true;
+    }
+}
+
+impl Source for BagSource<'_, '_> {
+    fn next_event(&mut self) -> Result<Option<Event>, PipelineError> {
+        loop {
+            if let Some(e) = self.ready.pop_front() {
+                return Ok(Some(e));
+            }
+            if self.done {
+                return Ok(None);
+            }
+            let item = match self.reader.next() {
+                None => {
+                    self.finish();
+                    continue;
+                }
+                Some(Ok(i)) => i,
+                Some(Err(e)) => {
+                    // The messages before the damage are used; none at all is an error.
+                    if self.scans == 0 {
+                        return Err(PipelineError(e.to_string()));
+                    }
+                    warn(format!("{e}; ran the messages before it"));
+                    self.finish();
+                    continue;
+                }
+            };
+            if let Some(p) = &mut self.pacer {
+                p.wait_for(item.record_ns);
+            }
+            match item.event {
+                BagEvent::Scan(sc) => self.take(Decoded::Scan(OwnedScan {
+                    start_ns: sc.stamp_ns.saturating_add_signed(self.scan_offset_ns),
+                    points: sc.points,
+                })),
+                BagEvent::Imu(s) => self.ready.push_back(Event::Imu(s)),
+                BagEvent::LidarPacket(p) => {
+                    let Some(st) = self.stream.as_mut() else { continue };
+                    let kind = match p.kind {
+                        PacketKind::Velodyne | PacketKind::OusterLidar => lidar_stream::PacketKind::Lidar,
+                        PacketKind::OusterImu => lidar_stream::PacketKind::OusterImu,
+                    };
+                    if let Some(d) = st.packet_of_kind(kind, &p.bytes, p.stamp_ns) {
+                        self.take(d);
+                    }
+                }
+                BagEvent::OusterMetadata(_) => {}
+            }
+            self.progress.set_position(self.reader.stats().messages);
+        }
+    }
 }

@@ -2,6 +2,7 @@
 //! (loglio's COBS frames) or the Ouster IMU packets in the same pcap, as fast as possible or in
 //! real time, with a progress bar; writes every output.
 
+use std::collections::VecDeque;
 use std::fs::File;
 use std::io::BufReader;
 use std::path::{Path, PathBuf};
@@ -16,10 +17,10 @@ use crate::input::lidar_stream::{self, Decoded, LidarStream};
 use crate::input::pace::Pacer;
 use crate::input::serial::ImuFrameReader;
 use crate::output::Progress;
-use crate::run::engine::{self};
-use crate::run::runner::{RunStats, Runner};
+use crate::run::runner::RunStats;
 use crate::run::setup::{PacketSetup, RunSetup};
-use crate::sink::files::{Finished, Outputs};
+use crate::run::{Event, RunOptions, Source};
+use crate::sink::files::Finished;
 
 /// Where the replay's IMU comes from.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -124,8 +125,8 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
             cfg.preset
         )));
     }
-    let PacketSetup { dec, lidar_port, imu_port, class, core } = PacketSetup::new(&cfg)?;
-    let mut feed = match &imu {
+    let PacketSetup { dec, lidar_port, imu_port, .. } = PacketSetup::new(&cfg)?;
+    let feed = match &imu {
         ImuInput::Csv(p) => ImuFeed::Samples(
             crate::input::imu_csv::load(p).map_err(|e| PipelineError(e.to_string()))?.into_iter(),
         ),
@@ -135,83 +136,39 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
         }
         ImuInput::OusterPackets => ImuFeed::None,
     };
-    let mut reader = crate::input::pcap::PcapReader::open(&opt.pcap)
+    let reader = crate::input::pcap::PcapReader::open(&opt.pcap)
         .map_err(|e| PipelineError(format!("{}: {e}", opt.pcap.display())))?;
     let total = std::fs::metadata(&opt.pcap).map(|m| m.len()).unwrap_or(0);
     let progress = if opt.progress { Progress::new(total, "", true) } else { Progress::hidden() };
-    let outputs = Outputs::new(opt.setup.outputs()?)?;
-    let (a_len, _) = (dec.max_points(), ());
-    let mut a = vec![loglio_core::scan::ScanPoint::default(); a_len];
-    let mut b = vec![loglio_core::scan::ScanPoint::default(); a_len];
-    let mut stream = LidarStream::new(&cfg, dec, &mut a, &mut b, lidar_port, imu_port);
-    let offset_ns = (cfg.time.lidar_imu_offset * 1e9) as i64;
-    let res = engine::with_engine(&core, class, |engine| -> Result<_, PipelineError> {
-        let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
-        runner.sinks = opt.setup.sinks.build();
-        let mut next_imu = feed.next()?;
-        let mut bytes = 0u64;
-        let mut pacer = opt.realtime.map(Pacer::new);
-        let mut read_error = None;
-        let (stop, _signals) = crate::run::Signals::stop_flag();
-        loop {
-            if stop.load(std::sync::atomic::Ordering::Relaxed) {
-                warn("stopped by a signal; writing what was estimated");
-                break;
-            }
-            let udp = match reader.next_udp() {
-                Ok(Some(u)) => u,
-                Ok(None) => break,
-                Err(e) => {
-                    read_error = Some(e.to_string());
-                    break;
-                }
-            };
-            bytes += udp.payload.len() as u64 + 58;
-            progress.set_position(bytes.min(total));
-            if let Some(wait) = pacer.as_mut().and_then(|p| p.wait(udp.ts_ns, Instant::now())) {
-                std::thread::sleep(wait);
-            }
-            let (port, payload, ts) = (udp.dst_port, udp.payload, udp.ts_ns);
-            match stream.packet(port, payload, ts) {
-                // The sensor's own IMU only when it is the one chosen: with an IMU file, a second
-                // IMU (another frame, another clock) must not be mixed into the file's samples.
-                Some(Decoded::Imu(s)) if imu_packets_used => runner.imu(s)?,
-                Some(Decoded::Imu(_)) => {}
-                Some(Decoded::Scan(scan)) => {
-                    // The file IMU up to a little past this scan's end first.
-                    let until = scan.end_ns().saturating_add(200_000_000);
-                    while let Some(s) = next_imu {
-                        if s.t_ns.saturating_add_signed(offset_ns) > until {
-                            break;
-                        }
-                        runner.imu(s)?;
-                        next_imu = feed.next()?;
-                    }
-                    runner.scan(scan, 0)?;
-                }
-                None => {}
-            }
-        }
-        while let Some(d) = stream.flush() {
-            match d {
-                Decoded::Scan(scan) => runner.scan(scan, 0)?,
-                Decoded::Imu(s) if imu_packets_used => runner.imu(s)?,
-                Decoded::Imu(_) => {}
-            }
-        }
-        while let Some(s) = next_imu {
-            runner.imu(s)?;
-            next_imu = feed.next()?;
-        }
-        if let Some(e) = read_error {
-            if runner.stats.scans == 0 && runner.pending() == 0 {
-                return Err(PipelineError(format!("{}: {e}", opt.pcap.display())));
-            }
-            warn(format!("{}: {e}; replayed the packets before it", opt.pcap.display()));
-        }
-        let fin = runner.finish()?;
-        Ok(fin)
-    })??;
+    let layout = dec.layout();
+    let (mut a, mut b) = lidar_stream::buffers(&dec);
+    let stream = LidarStream::new(&cfg, dec, &mut a, &mut b, lidar_port, imu_port);
+    let mut src = PcapSource {
+        reader,
+        stream,
+        feed,
+        next_imu: None,
+        started: false,
+        imu_packets_used,
+        offset_ns: (cfg.time.lidar_imu_offset * 1e9) as i64,
+        pacer: opt.realtime.map(Pacer::new),
+        progress: &progress,
+        total,
+        bytes: 0,
+        ready: VecDeque::new(),
+        scans: 0,
+        done: false,
+        pcap: &opt.pcap,
+    };
+    let (stop, _signals) = crate::run::Signals::stop_flag();
+    let opts = RunOptions {
+        outputs: opt.setup.outputs()?,
+        sinks: opt.setup.sinks.build(),
+        stop: Some(stop),
+        ..RunOptions::default()
+    };
+    let res = crate::run::drive(&cfg, layout, &mut src, opts)?;
+    let (reader, stream) = (src.reader, src.stream);
     progress.finish();
     let ps = reader.stats;
     if ps.corrupt_records > 0 || ps.truncated_at_eof {
@@ -237,4 +194,103 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
         scan_period_s: 1.0 / cfg.sensor.scan_rate_hz,
         wall_s: wall.elapsed().as_secs_f64(),
     })
+}
+/// The replay as a source: the pcap's packets decoded into scans (and the Ouster's IMU
+/// packets), with the file IMU interleaved up to a little past each scan's end.
+struct PcapSource<'a, 'b> {
+    reader: crate::input::pcap::PcapReader<BufReader<File>>,
+    stream: LidarStream<'b>,
+    feed: ImuFeed,
+    next_imu: Option<ImuSample>,
+    started: bool,
+    imu_packets_used: bool,
+    offset_ns: i64,
+    pacer: Option<Pacer>,
+    progress: &'a Progress,
+    total: u64,
+    bytes: u64,
+    ready: VecDeque<Event>,
+    scans: u64,
+    done: bool,
+    pcap: &'a Path,
+}
+
+impl PcapSource<'_, '_> {
+    /// Queues what a decoded packet gives.
+    fn take(&mut self, d: Decoded) -> Result<(), PipelineError> {
+        match d {
+            // The sensor's own IMU only when it is the one chosen: with an IMU file, a second
+            // IMU (another frame, another clock) must not be mixed into the file's samples.
+            Decoded::Imu(s) if self.imu_packets_used => self.ready.push_back(Event::Imu(s)),
+            Decoded::Imu(_) => {}
+            Decoded::Scan(scan) => {
+                // The file IMU up to a little past this scan's end first.
+                let until = scan.end_ns().saturating_add(200_000_000);
+                while let Some(s) = self.next_imu {
+                    if s.t_ns.saturating_add_signed(self.offset_ns) > until {
+                        break;
+                    }
+                    self.ready.push_back(Event::Imu(s));
+                    self.next_imu = self.feed.next()?;
+                }
+                self.scans += 1;
+                self.ready.push_back(Event::Scan { scan, arrival_ns: 0 });
+            }
+        }
+        Ok(())
+    }
+
+    /// The end of the pcap: the assembler's last scans, then the rest of the file IMU.
+    fn finish(&mut self) -> Result<(), PipelineError> {
+        while let Some(d) = self.stream.flush() {
+            self.take(d)?;
+        }
+        while let Some(s) = self.next_imu {
+            self.ready.push_back(Event::Imu(s));
+            self.next_imu = self.feed.next()?;
+        }
+        self.done = true;
+        Ok(())
+    }
+}
+
+impl Source for PcapSource<'_, '_> {
+    fn next_event(&mut self) -> Result<Option<Event>, PipelineError> {
+        if !self.started {
+            self.started = true;
+            self.next_imu = self.feed.next()?;
+        }
+        loop {
+            if let Some(e) = self.ready.pop_front() {
+                return Ok(Some(e));
+            }
+            if self.done {
+                return Ok(None);
+            }
+            let udp = match self.reader.next_udp() {
+                Ok(Some(u)) => u,
+                Ok(None) => {
+                    self.finish()?;
+                    continue;
+                }
+                Err(e) => {
+                    // The packets before the damage are used; none at all is an error.
+                    if self.scans == 0 {
+                        return Err(PipelineError(format!("{}: {e}", self.pcap.display())));
+                    }
+                    warn(format!("{}: {e}; replayed the packets before it", self.pcap.display()));
+                    self.finish()?;
+                    continue;
+                }
+            };
+            self.bytes += udp.payload.len() as u64 + 58;
+            self.progress.set_position(self.bytes.min(self.total));
+            if let Some(wait) = self.pacer.as_mut().and_then(|p| p.wait(udp.ts_ns, Instant::now())) {
+                std::thread::sleep(wait);
+            }
+            if let Some(d) = self.stream.packet(udp.dst_port, udp.payload, udp.ts_ns) {
+                self.take(d)?;
+            }
+        }
+    }
 }

@@ -182,7 +182,7 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
         Progress::hidden()
     };
     let mut pace = opt.realtime.map(crate::input::pace::Pacer::new);
-    let events = sc.events().map(|ev| match ev {
+    let mut events = sc.events().map(|ev| match ev {
         Event::Imu(s) => {
             if let Some(p) = &mut pace {
                 p.wait_for(s.t_ns);
@@ -219,7 +219,7 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
             Ok(())
         })),
     };
-    let (stats, finished) = run::drive(&cfg, layout, events, opts)?;
+    let (stats, finished) = run::drive(&cfg, layout, &mut events, opts)?;
     progress.finish();
     let mut finished = finished;
     if let Some(dir) = &opt.out {

@@ -25,10 +25,10 @@
 //!     }
 //! });
 //! // Any iterator of events is a source (a driver's callback can feed a channel's iterator).
-//! let events = my_imu_and_scans().into_iter();
+//! let mut events = my_imu_and_scans().into_iter();
 //! let layout = loglio_host::run::engine::config_layout(&cfg)?;
 //! let opts = RunOptions { sinks, ..RunOptions::default() };
-//! let (stats, _files) = run::drive(&cfg, layout, events, opts)?;
+//! let (stats, _files) = run::drive(&cfg, layout, &mut events, opts)?;
 //! consumer.join().ok();
 //! println!("{} scans", stats.scans);
 //! # Ok::<(), loglio_host::error::PipelineError>(())
@@ -110,14 +110,15 @@ impl std::fmt::Debug for RunOptions<'_> {
     }
 }
 
-/// Runs the odometry of `cfg` over `layout`'s range image on every event of `source`: the
+/// Runs the odometry of `cfg` over `layout`'s range image on every event of `source` (lent, so
+/// that the caller can read the source's own counts afterwards): the
 /// storage is allocated for the layout and the map capacity, the events are ordered for the
 /// core, each result goes to the files and the sinks, and what is left is written at the end
 /// (also after `stop`).
 pub fn drive(
     cfg: &Config,
     layout: RangeImageLayout,
-    mut source: impl Source,
+    source: &mut dyn Source,
     opts: RunOptions<'_>,
 ) -> Result<(RunStats, Finished), PipelineError> {
     let class = StorageClass::choose(layout.rows(), layout.cols(), cfg.mapping.map_capacity)?;
