@@ -89,7 +89,7 @@ impl Trace {
                 Status::Degraded { .. } | Status::Bridged(_) => 1,
                 Status::ImuOnly(_) => 2,
                 Status::Initialising(_) => 3,
-                Status::Reinitialising(_) => 4,
+                Status::Reinitialising(_) | Status::Lost { .. } => 4,
             };
             c[i] += 1;
         }

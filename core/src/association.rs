@@ -537,6 +537,7 @@ pub struct ScanAssociation<'a, 'm, C: Clock> {
     queries: &'a mut [[f32; 3]; KNN_CHUNK],
     nbrs: &'a mut [Neighbours; KNN_CHUNK],
     counts: AssociationCounts,
+    first: Option<AssociationCounts>,
     searched: Option<State>,
     searches: u32,
     clock: &'a mut C,
@@ -581,6 +582,7 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
             queries,
             nbrs,
             counts: AssociationCounts::default(),
+            first: None,
             searched: None,
             searches: 0,
             clock,
@@ -591,6 +593,11 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
     /// The counts of the last search.
     pub fn counts(&self) -> AssociationCounts {
         self.counts
+    }
+
+    /// The counts of the first search (at the predicted pose, before the update moved it).
+    pub fn first_counts(&self) -> AssociationCounts {
+        self.first.unwrap_or(self.counts)
     }
 
     /// How many searches ran (the rest of the iterations reused the correspondences).
@@ -703,6 +710,9 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
             start += len;
         }
         self.counts = counts;
+        if self.first.is_none() {
+            self.first = Some(counts);
+        }
         self.searched = Some(*x);
         self.searches += 1;
     }

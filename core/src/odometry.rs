@@ -73,8 +73,8 @@ use crate::imu::{
 };
 use crate::imu_guard::{ImuGuard, ImuGuardConfig};
 use crate::output::{
-    AssociationCounts, BridgeReason, ImuOnlyReason, PoseEstimate, ReinitReason, ScanResult, StageTimes,
-    Status,
+    AssociationCounts, BridgeReason, ImuOnlyReason, Integrity, PoseEstimate, ReinitReason, ScanResult,
+    StageTimes, Status,
 };
 use crate::range_image::RangeImageLayout;
 use crate::ring_fals::{PointNormal, RingFals, RingFalsConfig, RingTable, TableError, storage_pixels};
@@ -97,6 +97,56 @@ pub const MAX_SCAN_SPAN_S: f32 = 1.0;
 /// Consecutive samples that went back in time by more than `max_hold_s` before the odometry
 /// takes it as a clock reset and restarts.
 pub const CLOCK_RESET_SAMPLES: u32 = 10;
+
+/// The per-scan integrity check, at the predicted pose (the update's first association, before
+/// the update pulls the pose towards the scan): the normalised innovation (`Σ r²/R` per
+/// accepted residual) against its running mean, and of the measured points that found map
+/// surfaces near them, the share that matched against its running mean. A wrong estimate or
+/// scan (a bad stamp, another world's data, a divergence) puts the points beside the surfaces:
+/// the innovation jumps (50-120 against 0.2-0.3 on the handheld walk with another world's
+/// scans; at most 6.3x its mean on the clean scenarios) or the share collapses, while the
+/// status would still say `ok`. Points with no map near them (new space) do not count, so
+/// driving into the unknown is not "lost". Only where the map usually matches well (the mean
+/// share at least `min_mean`): in open sky the share sinks slowly to a few percent on sparse,
+/// far surfaces and the innovation of a few dozen residuals swings, and neither says anything.
+/// A scan whose update ends agreeing (the last association's share and innovation back within
+/// the bounds: a prediction that drifted, e.g. through a gap) is not low.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct IntegrityConfig {
+    /// A scan whose share is below this ...
+    pub min_share: f32,
+    /// ... and below this fraction of the running mean of the agreeing scans' shares ...
+    pub drop_ratio: f32,
+    /// A scan whose normalised innovation is above this multiple of the agreeing scans'
+    /// running mean ...
+    pub nis_ratio: f32,
+    /// ... and above this is "low" too ...
+    pub nis_floor: f32,
+    /// ... both only while the mean share is at least this (where the map usually matches
+    /// well) ...
+    pub min_mean: f32,
+    /// ... with at least this many points near the map is "low".
+    pub min_near: u32,
+    /// This many low scans in a row: [`Status::Lost`] (0 disables the check).
+    pub lost_scans: u32,
+    /// Lost for this many scans more: the odometry starts over (0: never).
+    pub restart_after: u32,
+}
+
+impl IntegrityConfig {
+    /// The defaults (see the field docs and `tests/odometry_faults.rs`).
+    pub const DEFAULT: IntegrityConfig = IntegrityConfig {
+        min_share: 0.2,
+        drop_ratio: 0.35,
+        nis_ratio: 10.0,
+        nis_floor: 4.0,
+        min_mean: 0.5,
+        min_near: 100,
+        lost_scans: 3,
+        restart_after: 50,
+    };
+}
 
 /// Which association the update uses (the paper's ablation).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -134,6 +184,8 @@ pub struct OdometryConfig {
     pub init: ImuInitConfig,
     /// IMU outlier rejection (full scale, spikes, stamps far ahead).
     pub imu_guard: ImuGuardConfig,
+    /// The per-scan agreement with the map that decides `lost`.
+    pub integrity: IntegrityConfig,
     /// IMU from LiDAR rotation.
     pub ext_rot: UnitQuaternion<f64>,
     /// LiDAR origin in the IMU frame, m.
@@ -158,6 +210,7 @@ impl OdometryConfig {
             eskf: EskfConfig { min_measurements: 20, ..EskfConfig::default() },
             init: ImuInitConfig::default(),
             imu_guard: ImuGuardConfig::DEFAULT,
+            integrity: IntegrityConfig::DEFAULT,
             ext_rot: UnitQuaternion::identity(),
             ext_pos: Vector3::zeros(),
             blind: 0.5,
@@ -342,6 +395,8 @@ pub struct OdometryStats {
     pub degraded: u32,
     /// Samples that went back in time by more than `max_hold_s` in a row (clock reset watch).
     pub reversed_run: u32,
+    /// Scans reported [`Status::Lost`].
+    pub lost: u32,
 }
 
 /// The LiDAR-inertial odometry over caller-owned storage.
@@ -362,6 +417,11 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     jumped: bool,
     /// The end of the last scan processed after the initialisation.
     last_scan_end_ns: Option<u64>,
+    /// Running means of the agreeing scans' shares of matching points and innovations.
+    share_mean: Option<f32>,
+    nis_mean: Option<f32>,
+    /// Low scans in a row.
+    low_run: u32,
 }
 
 impl<const PIX: usize, const PTS: usize, const DS: usize> core::fmt::Debug for Odometry<'_, PIX, PTS, DS> {
@@ -420,6 +480,9 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             guard: ImuGuard::new(cfg.imu_guard),
             jumped: false,
             last_scan_end_ns: None,
+            share_mean: None,
+            nis_mean: None,
+            low_run: 0,
         })
     }
 
@@ -546,6 +609,9 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         self.map.clear();
         self.wait = WaitReason::Collecting { samples: 0, span_s: 0.0 };
         self.last_scan_end_ns = None;
+        self.share_mean = None;
+        self.nis_mean = None;
+        self.low_run = 0;
         self.stats.reinitialisations = self.stats.reinitialisations.saturating_add(1);
     }
 
@@ -650,6 +716,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 update: UpdateResult::default(),
                 propagation: flags,
                 points: npoints,
+                integrity: Integrity::default(),
             };
         };
         let before = f.time_ns();
@@ -674,6 +741,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 update: UpdateResult::default(),
                 propagation: flags,
                 points: npoints,
+                integrity: Integrity::default(),
             };
         }
         if m > 0 {
@@ -705,6 +773,11 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         let building = self.map.is_empty();
         let mut update = UpdateResult::default();
         let mut counts = AssociationCounts::default();
+        let mut first = AssociationCounts::default();
+        let mut measured_n = 0u32;
+        let ic = self.cfg.integrity;
+        // The prediction, kept to fall back on when the scan disagrees with the map.
+        let prior = (ic.lost_scans > 0 && kept > 0 && !building).then(|| f.clone());
         if kept > 0 && !building {
             // The measured points first; the map still gets them all (step 6).
             let measured = select_measured(
@@ -725,13 +798,73 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             );
             update = f.update(&mut assoc);
             counts = assoc.counts();
+            first = assoc.first_counts();
+            measured_n = measured as u32;
             times.association_ns = assoc.elapsed_ns();
         }
         let t4 = clock.now_ns();
         times.update_ns = t4.saturating_sub(t3).saturating_sub(times.association_ns);
 
-        // 6. Map insertion at the updated pose.
-        if kept > 0 && update.outcome != UpdateOutcome::NumericalFailure {
+        // Integrity: of the points with map surfaces near them at the predicted pose, the share
+        // that matched.
+        let near = first
+            .accepted()
+            .saturating_add(first.rejected_residual)
+            .saturating_add(first.no_plane)
+            .saturating_add(first.rejected_consistency);
+        let mut integrity = Integrity { near, measured: measured_n, share_pct: 100, nis: 0.0, low: false };
+        if update.measurements[0] > 0 {
+            integrity.nis = (update.weighted_sq_residual[0] / f64::from(update.measurements[0])) as f32;
+        }
+        if kept > 0 && !building && near > 0 {
+            let share = first.accepted() as f32 / near as f32;
+            integrity.share_pct = (share * 100.0) as u8;
+            // The bounds, where the map usually matches well (none yet: nothing is low).
+            let bounds = match (self.share_mean, self.nis_mean) {
+                (Some(s), Some(n)) if s >= ic.min_mean && near >= ic.min_near => {
+                    Some((ic.min_share.min(ic.drop_ratio * s), ic.nis_floor.max(ic.nis_ratio * n)))
+                }
+                _ => None,
+            };
+            let disagrees = |share: f32, nis: f32| bounds.is_some_and(|(s, n)| share < s || nis > n);
+            // The update's last association and innovation, for a prediction that drifted.
+            let last =
+                counts.accepted().saturating_add(counts.rejected_residual).saturating_add(counts.no_plane);
+            let last = last.saturating_add(counts.rejected_consistency);
+            let it = usize::from(update.iterations.max(1)) - 1;
+            let nis_last = if update.measurements[it] > 0 {
+                (update.weighted_sq_residual[1] / f64::from(update.measurements[it])) as f32
+            } else {
+                f32::INFINITY
+            };
+            let share_last = if last > 0 { counts.accepted() as f32 / last as f32 } else { 0.0 };
+            integrity.low = disagrees(share, integrity.nis)
+                && (update.outcome != UpdateOutcome::Updated || disagrees(share_last, nis_last));
+            if integrity.low {
+                self.low_run = self.low_run.saturating_add(1);
+                // Not believed: the prediction stands (an update towards a scan that does not
+                // fit the map drags the pose away, and the next scans then "fit").
+                if let Some(p) = &prior
+                    && ic.lost_scans > 0
+                {
+                    *f = p.clone();
+                    update.outcome = UpdateOutcome::TooFewMeasurements;
+                }
+            } else {
+                self.low_run = 0;
+                self.share_mean = Some(self.share_mean.map_or(share, |m| 0.9 * m + 0.1 * share));
+                if update.measurements[0] > 0 {
+                    let n = integrity.nis;
+                    self.nis_mean = Some(self.nis_mean.map_or(n, |m| 0.9 * m + 0.1 * n));
+                }
+            }
+        }
+        let lost = ic.lost_scans > 0 && self.low_run >= ic.lost_scans;
+        let low = ic.lost_scans > 0 && self.low_run > 0;
+
+        // 6. Map insertion at the updated pose (not while the scans disagree with the map: it
+        // stays clean for the re-localisation).
+        if kept > 0 && update.outcome != UpdateOutcome::NumericalFailure && !low {
             self.last_kept = kept;
             let x = f.state();
             let r = x.rot.to_rotation_matrix().into_inner();
@@ -762,6 +895,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             .is_some_and(|t| end_ns.saturating_sub(t) as f64 * 1e-9 > LIDAR_GAP_S);
         let status = if let Some(r) = reinit {
             Status::Reinitialising(r)
+        } else if lost {
+            Status::Lost { inliers_pct: integrity.share_pct }
         } else if kept == 0 {
             Status::ImuOnly(ImuOnlyReason::EmptyScan)
         } else if building {
@@ -777,9 +912,16 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             Status::ImuOnly(ImuOnlyReason::BuildingMap) => {}
             Status::ImuOnly(_) => self.stats.imu_only = self.stats.imu_only.saturating_add(1),
             Status::Degraded { .. } => self.stats.degraded = self.stats.degraded.saturating_add(1),
+            Status::Lost { .. } => self.stats.lost = self.stats.lost.saturating_add(1),
             _ => {}
         }
         let pose = PoseEstimate::from_filter(f);
+        let mut status = status;
+        if lost && ic.restart_after > 0 && self.low_run >= ic.lost_scans.saturating_add(ic.restart_after) {
+            // The agreement never came back: start over in a new world frame.
+            self.restart();
+            status = Status::Reinitialising(ReinitReason::Lost);
+        }
         times.total_ns = clock.now_ns().saturating_sub(t0);
         ScanResult {
             scan_start_ns: scan.start_ns,
@@ -790,6 +932,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             update,
             propagation: flags,
             points: npoints,
+            integrity,
         }
     }
 }

@@ -27,6 +27,14 @@ pub enum Status {
     /// IMU alone through a LiDAR gap, constant velocity through an IMU gap): the pose is
     /// usable, with the bridge's larger covariance.
     Bridged(BridgeReason),
+    /// The scans no longer agree with the map (see [`crate::odometry::IntegrityConfig`]): the
+    /// pose is not to be trusted. The update is discarded and the map takes no scans
+    /// meanwhile, so it stays clean for the re-localisation; if the agreement does not
+    /// return, the odometry starts over.
+    Lost {
+        /// The last scan's share of matching points, percent.
+        inliers_pct: u8,
+    },
     /// Propagated by the IMU only; the covariance grows.
     ImuOnly(ImuOnlyReason),
     /// Waiting for the IMU initialisation.
@@ -70,6 +78,8 @@ pub enum ReinitReason {
     ImuJump,
     /// The state became non-finite.
     NonFinite,
+    /// Lost for longer than `integrity.restart_after` scans.
+    Lost,
 }
 
 impl Status {
@@ -226,6 +236,26 @@ pub struct ScanResult {
     pub propagation: PropagationFlags,
     /// Points in the scan, and after downsampling.
     pub points: [u32; 2],
+    /// The scan's agreement with the map at the predicted pose.
+    pub integrity: Integrity,
+}
+
+/// A scan's agreement with the map, measured at the predicted pose (the update's first
+/// association, before the update pulls the pose towards the scan).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Integrity {
+    /// Measured points with map surfaces near them (accepted, or rejected by the residual, the
+    /// normal consistency or the plane fit).
+    pub near: u32,
+    /// Measured points, all.
+    pub measured: u32,
+    /// Of the `near` points, the share accepted, percent (100 when not measured).
+    pub share_pct: u8,
+    /// The first iteration's normalised innovation, `Σ r²/R` per accepted residual.
+    pub nis: f32,
+    /// Whether the scan counted as disagreeing with the map.
+    pub low: bool,
 }
 
 #[cfg(test)]

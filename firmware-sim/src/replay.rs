@@ -110,6 +110,7 @@ pub fn status_name(s: &Status) -> &'static str {
         Status::Ok => "ok",
         Status::Degraded { .. } => "degraded",
         Status::Bridged(_) => "bridged",
+        Status::Lost { .. } => "lost",
         Status::ImuOnly(_) => "imu-only",
         Status::Initialising(_) => "initialising",
         Status::Reinitialising(_) => "reinitialising",

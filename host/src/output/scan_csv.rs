@@ -24,6 +24,8 @@ pub enum ScanStatus {
     ImuOnly,
     /// Lost, starting over.
     Reinitialising,
+    /// The scans no longer agree with the map: the pose is not to be trusted.
+    Lost,
 }
 
 impl ScanStatus {
@@ -36,6 +38,7 @@ impl ScanStatus {
             ScanStatus::Bridged => "bridged",
             ScanStatus::ImuOnly => "imu-only",
             ScanStatus::Reinitialising => "re-initialising",
+            ScanStatus::Lost => "lost",
         }
     }
 }

@@ -43,6 +43,7 @@ pub fn scan_status(s: &Status) -> ScanStatus {
         Status::Initialising(_) => ScanStatus::Initialising,
         Status::Reinitialising(_) => ScanStatus::Reinitialising,
         Status::Bridged(_) => ScanStatus::Bridged,
+        Status::Lost { .. } => ScanStatus::Lost,
     }
 }
 
@@ -51,8 +52,8 @@ pub fn scan_status(s: &Status) -> ScanStatus {
 pub struct RunStats {
     /// Scans processed.
     pub scans: u64,
-    /// Scans per status: initialising, ok, degraded, imu-only, re-initialising.
-    pub status: [u64; 6],
+    /// Scans per status: initialising, ok, degraded, imu-only, re-initialising, bridged, lost.
+    pub status: [u64; 7],
     /// IMU samples received (before the core's checks).
     pub imu_in: u64,
     /// IMU samples the core refused (out of order, duplicate, non-finite).
@@ -521,6 +522,7 @@ impl<'e> Runner<'e> {
             ScanStatus::ImuOnly => 3,
             ScanStatus::Reinitialising => 4,
             ScanStatus::Bridged => 5,
+            ScanStatus::Lost => 6,
         }] += 1;
         let t = &res.times;
         let s = &mut st.stage_sum;
@@ -570,7 +572,7 @@ impl<'e> Runner<'e> {
 
 /// A summary line of the status counts.
 pub fn status_summary(st: &RunStats) -> String {
-    let names = ["initialising", "ok", "degraded", "imu-only", "re-initialising", "bridged"];
+    let names = ["initialising", "ok", "degraded", "imu-only", "re-initialising", "bridged", "lost"];
     let parts: Vec<String> =
         names.iter().zip(st.status).filter(|(_, n)| *n > 0).map(|(name, n)| format!("{n} {name}")).collect();
     parts.join(", ")

@@ -63,7 +63,7 @@ impl LiveStatus {
             Status::Degraded { axes, .. } => LiveStatus::Degraded { axes: *axes },
             Status::ImuOnly(_) => LiveStatus::ImuOnly,
             Status::Initialising(_) => LiveStatus::Initialising,
-            Status::Reinitialising(_) => LiveStatus::Lost,
+            Status::Reinitialising(_) | Status::Lost { .. } => LiveStatus::Lost,
             Status::Bridged(r) => {
                 LiveStatus::Bridged { imu_gap: matches!(r, loglio_core::output::BridgeReason::ImuGap) }
             }
