@@ -901,6 +901,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             Status::ImuOnly(ImuOnlyReason::EmptyScan)
         } else if building {
             Status::ImuOnly(ImuOnlyReason::BuildingMap)
+        } else if low {
+            Status::ImuOnly(ImuOnlyReason::DisagreesWithMap { inliers_pct: integrity.share_pct })
         } else {
             match Status::from_update(&update, flags) {
                 Status::Ok if lidar_gap => Status::Bridged(BridgeReason::LidarGap),

@@ -58,6 +58,12 @@ pub enum ImuOnlyReason {
     BuildingMap,
     /// The update produced non-finite numbers and was discarded.
     NumericalFailure,
+    /// The scan disagreed with the map at the predicted pose (the integrity check): its update
+    /// was discarded and the map did not take it; three in a row are [`Status::Lost`].
+    DisagreesWithMap {
+        /// The share of its points near the map that matched, percent.
+        inliers_pct: u8,
+    },
 }
 
 /// Which sensor paused.
