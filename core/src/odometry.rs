@@ -45,6 +45,10 @@
 //! - **IMU gaps** (spacing above `eskf.max_gap_s`): bridged holding the last sample, with
 //!   inflated process noise (flagged `GAP` in [`ScanResult::propagation`]); while scans keep
 //!   coming each bridges its own interval and corrects the state, however long the gap.
+//!   Beyond `eskf.bridge_after_s` the bridge holds the velocity and the attitude, so a bridged
+//!   scan is undistorted without rotation; after its update it is undistorted again with the
+//!   motion that update found (the previous scan end to this one, constant rate, straight
+//!   line) and updated again from the same prediction, as LiDAR-only odometries do.
 //! - **IMU outliers** (beyond the full scale, lone spikes, lone stamps far ahead): dropped by
 //!   [`crate::imu_guard`] before the queue.
 //! - **Forward jumps** (the filter's time stepping by more than `eskf.max_hold_s`): re-seeded at the sample after the
@@ -89,6 +93,10 @@ use crate::voxel_map::{
 pub const IMU_QUEUE: usize = 256;
 /// IMU knots kept for the undistortion of one scan.
 pub const TRAJECTORY_KNOTS: usize = 64;
+
+/// Through an IMU gap (a bridged scan), how many times the scan is undistorted again with the
+/// motion its update found and updated again.
+const BRIDGE_REUNDISTORT_PASSES: usize = 1;
 /// A scan ending this long after the previous one follows a LiDAR gap (reported as
 /// [`Status::Bridged`]), s.
 pub const LIDAR_GAP_S: f64 = 0.5;
@@ -705,6 +713,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         let building = self.map.is_empty();
         let mut update = UpdateResult::default();
         let mut counts = AssociationCounts::default();
+        let bridged = flags.has(PropagationFlags::BRIDGE);
         if kept > 0 && !building {
             // The measured points first; the map still gets them all (step 6).
             let measured = select_measured(
@@ -723,9 +732,48 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 &mut st.neighbours,
                 clock,
             );
+            let prior = bridged.then(|| f.clone());
             update = f.update(&mut assoc);
             counts = assoc.counts();
             times.association_ns = assoc.elapsed_ns();
+            // Through an IMU gap the bridge does not turn within the scan: the update's motion
+            // from the previous scan end to this one undistorts the scan again, and the update
+            // runs again from the same prediction (the LiDAR's own constant-velocity model).
+            if let Some(prior) = prior {
+                // The undistortion the points are in: its trajectory (`None`: the scan's) and end.
+                let mut last: Option<ImuTrajectory<2>> = None;
+                let mut last_end = *prior.state();
+                for _ in 0..BRIDGE_REUNDISTORT_PASSES {
+                    if update.outcome != UpdateOutcome::Updated {
+                        break;
+                    }
+                    let span = st.trajectory.span_to(end_ns, f.state());
+                    let (pts, nrm) = (&mut st.points[..kept], &mut st.normals3[..kept]);
+                    // Cannot fail: both trajectories hold knots and the slices have equal lengths.
+                    let _ = match &last {
+                        Some(l) => l.redistort(&last_end, pts, Some(&mut *nrm)),
+                        None => st.trajectory.redistort(&last_end, pts, Some(&mut *nrm)),
+                    };
+                    let _ = span.undistort(f.state(), pts, Some(nrm));
+                    last_end = *f.state();
+                    last = Some(span);
+                    *f = prior.clone();
+                    let mut assoc = ScanAssociation::new(
+                        &self.map,
+                        &self.cfg.association,
+                        self.cfg.mode,
+                        &st.points[..measured],
+                        &st.normals3[..measured],
+                        &mut st.corr[..],
+                        &mut st.queries,
+                        &mut st.neighbours,
+                        clock,
+                    );
+                    update = f.update(&mut assoc);
+                    counts = assoc.counts();
+                    times.association_ns = times.association_ns.saturating_add(assoc.elapsed_ns());
+                }
+            }
         }
         let t4 = clock.now_ns();
         times.update_ns = t4.saturating_sub(t3).saturating_sub(times.association_ns);
