@@ -45,6 +45,10 @@
 //! - **IMU gaps** (spacing above `eskf.max_gap_s`): bridged holding the last sample, with
 //!   inflated process noise (flagged `GAP` in [`ScanResult::propagation`]); while scans keep
 //!   coming each bridges its own interval and corrects the state, however long the gap.
+//!   Beyond `eskf.bridge_after_s` the bridge holds the velocity and the attitude, so a bridged
+//!   scan is undistorted without rotation; after its update it is undistorted again with the
+//!   motion that update found (the previous scan end to this one, constant rate, straight
+//!   line) and updated again from the same prediction, as LiDAR-only odometries do.
 //! - **IMU outliers** (beyond the full scale, lone spikes, lone stamps far ahead): dropped by
 //!   [`crate::imu_guard`] before the queue.
 //! - **Forward jumps** (the filter's time stepping by more than `eskf.max_hold_s`): re-seeded at the sample after the
@@ -89,6 +93,12 @@ use crate::voxel_map::{
 pub const IMU_QUEUE: usize = 256;
 /// IMU knots kept for the undistortion of one scan.
 pub const TRAJECTORY_KNOTS: usize = 64;
+
+/// Through an IMU gap (a bridged scan), how many times the scan is undistorted again with the
+/// motion its update found and updated again.
+const BRIDGE_REUNDISTORT_PASSES: usize = 1;
+/// Scans after a gap of either sensor that re-localise without the integrity check.
+pub const RECOVERY_SCANS: u32 = 5;
 /// A scan ending this long after the previous one follows a LiDAR gap (reported as
 /// [`Status::Bridged`]), s.
 pub const LIDAR_GAP_S: f64 = 0.5;
@@ -422,6 +432,8 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     nis_mean: Option<f32>,
     /// Low scans in a row.
     low_run: u32,
+    /// Scans left that re-localise after a gap, not judged by the integrity check.
+    recovering: u32,
 }
 
 impl<const PIX: usize, const PTS: usize, const DS: usize> core::fmt::Debug for Odometry<'_, PIX, PTS, DS> {
@@ -483,6 +495,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             share_mean: None,
             nis_mean: None,
             low_run: 0,
+            recovering: 0,
         })
     }
 
@@ -778,6 +791,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         let ic = self.cfg.integrity;
         // The prediction, kept to fall back on when the scan disagrees with the map.
         let prior = (ic.lost_scans > 0 && kept > 0 && !building).then(|| f.clone());
+        let bridged = flags.has(PropagationFlags::BRIDGE);
         if kept > 0 && !building {
             // The measured points first; the map still gets them all (step 6).
             let measured = select_measured(
@@ -796,11 +810,50 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 &mut st.neighbours,
                 clock,
             );
+            let bridge_prior = bridged.then(|| f.clone());
             update = f.update(&mut assoc);
             counts = assoc.counts();
             first = assoc.first_counts();
             measured_n = measured as u32;
             times.association_ns = assoc.elapsed_ns();
+            // Through an IMU gap the bridge does not turn within the scan: the update's motion
+            // from the previous scan end to this one undistorts the scan again, and the update
+            // runs again from the same prediction (the LiDAR's own constant-velocity model).
+            if let Some(prior) = bridge_prior {
+                // The undistortion the points are in: its trajectory (`None`: the scan's) and end.
+                let mut last: Option<ImuTrajectory<2>> = None;
+                let mut last_end = *prior.state();
+                for _ in 0..BRIDGE_REUNDISTORT_PASSES {
+                    if update.outcome != UpdateOutcome::Updated {
+                        break;
+                    }
+                    let span = st.trajectory.span_to(end_ns, f.state());
+                    let (pts, nrm) = (&mut st.points[..kept], &mut st.normals3[..kept]);
+                    // Cannot fail: both trajectories hold knots and the slices have equal lengths.
+                    let _ = match &last {
+                        Some(l) => l.redistort(&last_end, pts, Some(&mut *nrm)),
+                        None => st.trajectory.redistort(&last_end, pts, Some(&mut *nrm)),
+                    };
+                    let _ = span.undistort(f.state(), pts, Some(nrm));
+                    last_end = *f.state();
+                    last = Some(span);
+                    *f = prior.clone();
+                    let mut assoc = ScanAssociation::new(
+                        &self.map,
+                        &self.cfg.association,
+                        self.cfg.mode,
+                        &st.points[..measured],
+                        &st.normals3[..measured],
+                        &mut st.corr[..],
+                        &mut st.queries,
+                        &mut st.neighbours,
+                        clock,
+                    );
+                    update = f.update(&mut assoc);
+                    counts = assoc.counts();
+                    times.association_ns = times.association_ns.saturating_add(assoc.elapsed_ns());
+                }
+            }
         }
         let t4 = clock.now_ns();
         times.update_ns = t4.saturating_sub(t3).saturating_sub(times.association_ns);
@@ -816,7 +869,16 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         if update.measurements[0] > 0 {
             integrity.nis = (update.weighted_sq_residual[0] / f64::from(update.measurements[0])) as f32;
         }
-        if kept > 0 && !building && near > 0 {
+        // After a pause of either sensor the prediction is known to be off: the first scans
+        // re-localise and are not judged (nor feed the means).
+        let after_gap = flags.has(PropagationFlags::BRIDGE)
+            || self.last_scan_end_ns.is_some_and(|t| end_ns.saturating_sub(t) as f64 * 1e-9 > LIDAR_GAP_S);
+        if after_gap {
+            self.recovering = RECOVERY_SCANS;
+        }
+        let recovering = self.recovering > 0;
+        self.recovering = self.recovering.saturating_sub(1);
+        if kept > 0 && !building && near > 0 && !recovering {
             let share = first.accepted() as f32 / near as f32;
             integrity.share_pct = (share * 100.0) as u8;
             // The bounds, where the map usually matches well (none yet: nothing is low).

@@ -172,6 +172,87 @@ impl<const N: usize> ImuTrajectory<N> {
         }
     }
 
+    /// A trajectory of two knots: this one's first and the state `x` at `t_ns` (e.g. the
+    /// updated scan end). Between them the pose moves at the constant rate and on the Hermite
+    /// curve of those two states: the motion a scan update found, in place of what was
+    /// recorded (through an IMU gap, a bridge that does not turn).
+    pub fn span_to(&self, t_ns: u64, x: &State) -> ImuTrajectory<2> {
+        let mut out = ImuTrajectory::<2>::new();
+        out.start_ns = self.start_ns;
+        let Some(&k) = self.knots.first() else {
+            out.push(t_ns, x);
+            return out;
+        };
+        // Cannot fail: the capacity is 2 and the buffer is empty.
+        let _ = out.knots.push(Knot { omega: V3::zeros(), ..k });
+        out.push(t_ns, x);
+        // A straight line between the two positions (the states' velocities are not used).
+        if let [a, b] = &mut out.knots[..] {
+            let v = (b.pos - a.pos) / (b.t - a.t);
+            a.vel = v;
+            b.vel = v;
+        }
+        out
+    }
+
+    /// The inverse of [`Self::undistort`] with the same `end`: `points` (and `normals`) in the
+    /// LiDAR frame at the end state back to the LiDAR frame at their own times, so that another
+    /// trajectory can undistort them again. Invalid points and normals are left as they are.
+    pub fn redistort(
+        &self,
+        end: &State,
+        points: &mut [ScanPoint],
+        mut normals: Option<&mut [[f32; 3]]>,
+    ) -> Result<UndistortStats, UndistortError> {
+        if self.knots.is_empty() {
+            return Err(UndistortError::NoPoses);
+        }
+        if normals.as_ref().is_some_and(|n| n.len() != points.len()) {
+            return Err(UndistortError::LengthMismatch);
+        }
+        let r_e_t = end.rot.to_rotation_matrix().into_inner().transpose();
+        let r_il = end.ext_rot.to_rotation_matrix().into_inner();
+        let r_il_t = r_il.transpose();
+        let mut stats = UndistortStats::default();
+        let mut cached: Option<(u32, M3, V3)> = None;
+        for (i, pt) in points.iter_mut().enumerate() {
+            let [x, y, z] = pt.xyz;
+            if !(x.is_finite() && y.is_finite() && z.is_finite() && pt.t.is_finite()) {
+                stats.invalid += 1;
+                continue;
+            }
+            let (a, b) = match cached {
+                Some((bits, a, b)) if bits == pt.t.to_bits() => (a, b),
+                _ => {
+                    // Cannot fail: knots is not empty.
+                    let (rot, pos, extrapolated) =
+                        self.pose_at(pt.t as f64).ok_or(UndistortError::NoPoses)?;
+                    if extrapolated {
+                        stats.extrapolated += 1;
+                    }
+                    stats.transforms += 1;
+                    // Forward: q = A p + b, A = R_ILᵀ R_eᵀ R R_IL, b = R_ILᵀ (R_eᵀ (R t_IL + p - p_e) - t_IL).
+                    let a = r_il_t * r_e_t * rot * r_il;
+                    let b = r_il_t * (r_e_t * (rot * end.ext_pos + pos - end.pos) - end.ext_pos);
+                    cached = Some((pt.t.to_bits(), a, b));
+                    (a, b)
+                }
+            };
+            // Inverse: p = Aᵀ (q - b).
+            let p = a.transpose() * (V3::new(x as f64, y as f64, z as f64) - b);
+            pt.xyz = [p.x as f32, p.y as f32, p.z as f32];
+            stats.moved += 1;
+            if let Some(ns) = normals.as_deref_mut() {
+                let n = &mut ns[i];
+                if crate::downsample::normal_is_valid(n) {
+                    let m = a.transpose() * V3::new(n[0] as f64, n[1] as f64, n[2] as f64);
+                    *n = [m.x as f32, m.y as f32, m.z as f32];
+                }
+            }
+        }
+        Ok(stats)
+    }
+
     /// The pose model that holds at `t`: `(valid from, valid to, reference knot a, rate ω,
     /// end knot b)`. Between knots `a` and `b`: `R = a.rot Exp(ω τ)` with `ω = b.omega` and a
     /// Hermite position; before the first knot (or with one knot) back along the first
@@ -581,6 +662,41 @@ mod tests {
         bad.pos.x = f64::NAN;
         assert_eq!(traj.push(T0 + 30_000_000, &bad), KnotPush::Ignored);
         assert_eq!(traj.ignored(), 2);
+    }
+
+    #[test]
+    fn redistort_inverts_undistort_and_span_to_interpolates_between_its_two_knots() {
+        let h = Helix::standard();
+        let mut traj = ImuTrajectory::<64>::new();
+        let end = *propagate(&h, 1.0, &mut traj).state();
+        let mut pts: Vec<ScanPoint> = (0..200)
+            .map(|i| {
+                let a = i as f32 * 0.1;
+                ScanPoint {
+                    xyz: [5.0 * a.cos(), 4.0 * a.sin(), 1.0 + 0.01 * i as f32],
+                    t: i as f32 * 0.0005,
+                    ..Default::default()
+                }
+            })
+            .collect();
+        let mut ns: Vec<[f32; 3]> =
+            (0..200).map(|i| if i % 2 == 0 { [0.0, 0.6, 0.8] } else { [0.0; 3] }).collect();
+        let (p0, n0) = (pts.clone(), ns.clone());
+        traj.undistort(&end, &mut pts, Some(&mut ns)).unwrap();
+        assert!(pts.iter().zip(&p0).any(|(a, b)| (a.xyz[0] - b.xyz[0]).abs() > 1e-3));
+        let st = traj.redistort(&end, &mut pts, Some(&mut ns)).unwrap();
+        assert_eq!(st.moved, 200);
+        for ((a, b), (m, n)) in pts.iter().zip(&p0).zip(ns.iter().zip(&n0)) {
+            assert!((0..3).all(|k| (a.xyz[k] - b.xyz[k]).abs() < 1e-5 && (m[k] - n[k]).abs() < 1e-5));
+        }
+        // Two knots: the first one's pose and the end state's, a straight line between.
+        let span = traj.span_to(T0 + (SCAN * 1e9) as u64, &end);
+        assert_eq!(span.knots().len(), 2);
+        let (a, b) = (span.knots()[0], span.knots()[1]);
+        assert_eq!((a.rot, a.pos), (traj.knots()[0].rot, traj.knots()[0].pos));
+        assert!((b.pos - end.pos).norm() < 1e-12);
+        let (_, p, extra) = span.pose_at(0.5 * (a.t + b.t)).unwrap();
+        assert!(!extra && (p - 0.5 * (a.pos + b.pos)).norm() < 1e-12);
     }
 
     #[test]
