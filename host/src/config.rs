@@ -12,7 +12,7 @@
 //! `loglio config --preset NAME` prints [`template`]: every key with a comment saying what it
 //! is, its unit and its range, set to the preset's value; it parses back to [`Config::preset`].
 //!
-//! # How the lead maps this onto the core (when the pipeline lands)
+//! # How this maps onto the core (`run::engine::odometry_config`)
 //!
 //! [`Config`] is a plain host struct on purpose; the core's config structs are built from it:
 //!
