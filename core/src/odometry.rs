@@ -369,7 +369,7 @@ impl<const PIX: usize, const PTS: usize, const DS: usize, const V: usize, const 
         Self { scan: ScanStorage::new(), map: MapStorage::new() }
     }
 
-    /// Bytes this storage takes (what the README states per preset).
+    /// Bytes this storage takes (docs/voxel-map.md states the default pool's).
     pub const fn bytes() -> usize {
         core::mem::size_of::<Self>()
     }

@@ -308,7 +308,7 @@ mod footprint {
     use crate::imu::{ImuInitializer, ImuQueue};
     use crate::undistort::ImuTrajectory;
 
-    /// The fixed memory of the estimation stages (the README states these figures).
+    /// The fixed memory of the estimation stages (docs/estimation.md states these figures).
     #[test]
     fn memory_footprint_is_fixed() {
         let sizes = [
