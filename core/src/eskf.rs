@@ -969,6 +969,25 @@ impl Eskf {
         }
     }
 
+    /// Widens the position variance (per world axis) to at least `var`, m^2: what the filter's
+    /// noise model misses through a long stretch of dead reckoning.
+    pub fn widen_position(&mut self, var: f64) {
+        if !var.is_finite() {
+            return;
+        }
+        for k in 0..3 {
+            let pp = (idx::POS + k, idx::POS + k);
+            self.p[pp] = self.p[pp].max(var);
+        }
+    }
+
+    /// Moves the position by `offset` (world, m): a re-localisation in the map.
+    pub fn shift_position(&mut self, offset: &V3) {
+        if offset.iter().all(|v| v.is_finite()) {
+            self.x.pos += offset;
+        }
+    }
+
     /// One integration step with a constant input over `dt` (module docs), with the process
     /// noise scaled by `q_scale`.
     fn integrate(&mut self, gyro: &V3, acc: &V3, dt: f64, q_scale: f64) {

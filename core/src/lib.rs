@@ -20,6 +20,8 @@
 //! | data association | [`association`] |
 //! | iterated error-state Kalman filter | [`eskf`] |
 //! | the per-scan pipeline | [`odometry`] |
+//! | IMU outliers (beyond full scale, spikes, wrong stamps) | [`imu_guard`] |
+//! | re-localisation in the map after a LiDAR gap or when lost | [`relocalise`] |
 #![no_std]
 #![cfg_attr(not(test), forbid(unsafe_code))]
 
@@ -35,6 +37,7 @@ pub mod math;
 pub mod odometry;
 pub mod output;
 pub mod range_image;
+pub mod relocalise;
 pub mod ring_fals;
 pub mod scan;
 pub mod scan_assembly;
