@@ -7,6 +7,7 @@ use std::vec::Vec;
 
 use super::*;
 
+use crate::surfel::SurfelCriteria;
 use crate::testutil::SplitMix as Rng;
 
 fn storage(cap: usize) -> (Vec<Voxel>, Vec<IndexSlot>) {
