@@ -5,6 +5,7 @@ use std::collections::HashMap;
 use std::vec;
 use std::vec::Vec;
 
+use super::knn::NEIGHBOURS;
 use super::voxel::round_sat;
 use super::*;
 
