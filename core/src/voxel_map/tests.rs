@@ -9,7 +9,7 @@ use super::knn::NEIGHBOURS;
 use super::voxel::round_sat;
 use super::*;
 
-use crate::surfel::SurfelCriteria;
+use crate::surfel::{SurfelCriteria, SurfelReject};
 use crate::testutil::SplitMix as Rng;
 
 fn storage(cap: usize) -> (Vec<Voxel>, Vec<IndexSlot>) {
