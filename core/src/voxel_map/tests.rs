@@ -5,6 +5,7 @@ use std::collections::HashMap;
 use std::vec;
 use std::vec::Vec;
 
+use super::index::{index_find, index_insert, index_remove_at};
 use super::knn::NEIGHBOURS;
 use super::voxel::round_sat;
 use super::*;
