@@ -10,7 +10,7 @@ use super::knn::NEIGHBOURS;
 use super::voxel::round_sat;
 use super::*;
 
-use crate::surfel::{SurfelCriteria, SurfelReject};
+use crate::surfel::{Moments, Shape, SurfelCriteria, SurfelReject};
 use crate::testutil::SplitMix as Rng;
 
 fn storage(cap: usize) -> (Vec<Voxel>, Vec<IndexSlot>) {
