@@ -42,6 +42,8 @@
 //! `saturate_at` (= 2 `eta`) points are in, it becomes `Saturated`. Converged and saturated
 //! voxels no longer change their distribution, count or ring normal.
 //!
+//! [`SurfelCriteria`]: surfel::SurfelCriteria
+//!
 //! ## Bounded memory
 //! - Points farther than `evict_radius` from the sensor are not inserted (counted).
 //! - Each [`VoxelMap::insert`] first sweeps `sweep_per_insert` pool slots from a cursor that

@@ -90,6 +90,8 @@ impl VoxelMap<'_> {
     /// `large.min_points` points from `large.min_voxels` voxels, meets the surfel criteria
     /// (`large.apply_criteria`), and every merged voxel's mean lies within
     /// `large.max_mean_distance` of the merged plane.
+    ///
+    /// [`Neighbours::voxels`]: super::Neighbours::voxels
     pub fn large_surfel(&self, voxels: &[VoxelHandle]) -> Result<LargeSurfel, SurfelReject> {
         let m = self.large_surfel_merge(voxels)?;
         let shape = Shape::of_covariance(&m.covariance());
