@@ -1,6 +1,7 @@
 //! Tests of Ring FALS: the selection networks proven exhaustively by the 0-1 principle, the
 //! arithmetic helpers against libm, and every vectorised stage against a scalar reference, bit for
 //! bit, on synthetic scans.
+use super::networks::{Cx, MEDIAN25, RANKS25_PRESORTED, RANKS25_PRESORTED_WIDE};
 use super::reference::{SPANS_PLANE, TRIM_LINES, solve_trimmed};
 use super::*;
 extern crate std;
