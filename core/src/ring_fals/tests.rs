@@ -4,6 +4,7 @@
 use super::networks::{Cx, MEDIAN25, RANKS25_PRESORTED, RANKS25_PRESORTED_WIDE};
 use super::reference::{SPANS_PLANE, TRIM_LINES, solve_trimmed};
 use super::*;
+use crate::range_image::RangeImageLayout;
 extern crate std;
 
 /// Runs a network on 64 bit-sliced 0/1 inputs at once (min = AND, max = OR).
