@@ -2,14 +2,14 @@
 //! tests only: the lane-parallel solve in `trimmed.rs` must give the same bits. Kept out of the
 //! production files (this module is `#[cfg(test)]`).
 
-use super::{
-    CENTRE, FIT_K, LINE_BOTTOM, LINE_LEFT, LINE_RIGHT, LINE_TOP, RingFalsConfig, RowCoeffs, adjugate_f32,
-    on_surface, to_global,
-};
+use super::trimmed::{LINE_BOTTOM, LINE_LEFT, LINE_RIGHT, LINE_TOP};
+use super::{CENTRE, FIT_K, RingFalsConfig, RowCoeffs, adjugate_f32, on_surface, to_global};
 
 /// Present-neighbour bit masks (bit k of the 3x3 window, centre excluded) whose offsets span
 /// both image directions (not all on one line through the centre). The scalar reference's
 /// table ([`solve_trimmed_lanes`] computes it).
+///
+/// [`solve_trimmed_lanes`]: super::trimmed::solve_trimmed_lanes
 pub(super) const SPANS_PLANE: [bool; 512] = {
     let mut t = [false; 512];
     let mut mask = 0;
@@ -47,6 +47,8 @@ pub(super) const SPANS_PLANE: [bool; 512] = {
 /// this did before step 3, cannot find a step along the scan lines: the first fit is pulled so
 /// far toward the other surface's three points that good points look worst. That left 5 % of
 /// a 16 x 1024 street scan's pixels without a normal (1 % now) and took four passes.
+///
+/// [`solve_trimmed_lanes`]: super::trimmed::solve_trimmed_lanes
 pub(super) fn solve_trimmed(
     rc: &RowCoeffs,
     cfg: &RingFalsConfig,
