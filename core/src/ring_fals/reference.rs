@@ -2,8 +2,10 @@
 //! tests only: the lane-parallel solve in `trimmed.rs` must give the same bits. Kept out of the
 //! production files (this module is `#[cfg(test)]`).
 
+use super::RingFalsConfig;
+use super::solve::{FIT_K, on_surface, to_global};
+use super::table::{CENTRE, RowCoeffs, adjugate_f32};
 use super::trimmed::{LINE_BOTTOM, LINE_LEFT, LINE_RIGHT, LINE_TOP};
-use super::{CENTRE, FIT_K, RingFalsConfig, RowCoeffs, adjugate_f32, on_surface, to_global};
 
 /// Present-neighbour bit masks (bit k of the 3x3 window, centre excluded) whose offsets span
 /// both image directions (not all on one line through the centre). The scalar reference's

@@ -3,6 +3,8 @@
 //! bit, on synthetic scans.
 use super::networks::{Cx, MEDIAN25, RANKS25_PRESORTED, RANKS25_PRESORTED_WIDE};
 use super::reference::{SPANS_PLANE, TRIM_LINES, solve_trimmed};
+use super::solve::{LANES, TRIM, log2_approx, rsqrt, solve_group_masked, solve_row_full};
+use super::trimmed::solve_trimmed_lanes;
 use super::*;
 use crate::range_image::RangeImageLayout;
 extern crate std;

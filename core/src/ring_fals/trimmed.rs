@@ -2,7 +2,9 @@
 //! again without their worst point, else without each edge line, branch-free over 8 pixels of a
 //! row so that it vectorises. Its scalar reference, bit for bit, is in `reference.rs`.
 
-use super::{CENTRE, FIT_K, LANES, PRE, RingFalsConfig, RowCoeffs, adjugate_f32, on_surface, to_global};
+use super::RingFalsConfig;
+use super::solve::{FIT_K, LANES, PRE, on_surface, to_global};
+use super::table::{CENTRE, RowCoeffs, adjugate_f32};
 
 /// [`solve_trimmed`] for up to [`LANES`] pixels of one row at once (lanes with `active` unset
 /// are ignored), branch-free across lanes so that it vectorises: every lane solves the same
