@@ -2,7 +2,7 @@
 //! Batcher networks for the median and the middle ranks of 25 values, each defined both as data
 //! and as straight-line lane code so that the tests verify them exhaustively (0-1 principle).
 
-use super::Lane;
+use super::median::Lane;
 
 /// Optimal 9-comparator sorting network for 5 values.
 #[inline(always)]

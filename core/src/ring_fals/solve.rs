@@ -2,11 +2,12 @@
 //! inverse matrix a row at a time, incomplete ones gathered 8 at a time into the masked
 //! least-squares solve and, when points are off the plane, into the trimmed solve.
 
+use super::median::round_small;
 use super::table::{CENTRE, RingTable, RowCoeffs, adjugate_f32};
 use super::trimmed::solve_trimmed_lanes;
 use super::{
     EMPTY, FULL, GAP, INVALID, KEY_EMPTY, KEY_SCALE, PAD, PARTIAL, RingFals, RingFalsConfig, has_normal,
-    round_small, wrap_row,
+    wrap_row,
 };
 
 /// Lanes of the gap-aware solve (f32): 8 neighbouring columns.

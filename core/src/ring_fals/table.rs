@@ -2,7 +2,8 @@
 //! in the centre pixel's scaled local frame and its inverse system matrix, built once in f64 from
 //! the beam intrinsics; the per-scan solve only reads it.
 
-use super::{ConfigError, KEY_SCALE, PAD, QLANES, RingFalsConfig};
+use super::median::QLANES;
+use super::{ConfigError, KEY_SCALE, PAD, RingFalsConfig};
 use crate::range_image::{MAX_COLS, MAX_ROWS, RangeImageLayout};
 
 /// Why a [`RingTable`] could not be built.

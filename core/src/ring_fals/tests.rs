@@ -1,9 +1,13 @@
 //! Tests of Ring FALS: the selection networks proven exhaustively by the 0-1 principle, the
 //! arithmetic helpers against libm, and every vectorised stage against a scalar reference, bit for
 //! bit, on synthetic scans.
-use super::networks::{Cx, MEDIAN25, RANKS25_PRESORTED, RANKS25_PRESORTED_WIDE};
+use super::median::{Lane, QLANES, round_small};
+use super::networks::{
+    Cx, MEDIAN25, RANKS25_PRESORTED, RANKS25_PRESORTED_WIDE, median25, ranks25_presorted,
+    ranks25_presorted_wide, sort5,
+};
 use super::reference::{SPANS_PLANE, TRIM_LINES, solve_trimmed};
-use super::solve::{LANES, TRIM, log2_approx, rsqrt, solve_group_masked, solve_row_full};
+use super::solve::{LANES, TRIM, log2_approx, rsqrt, rsqrt_norm, solve_group_masked, solve_row_full};
 use super::trimmed::solve_trimmed_lanes;
 use super::*;
 use crate::range_image::RangeImageLayout;
