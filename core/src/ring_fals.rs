@@ -56,6 +56,8 @@
 //! - Zero, too short, too long and non-finite ranges are filtered. When several points hit a
 //!   pixel the nearest wins (deterministic for any point order) and the others are counted.
 //!
+//! [`RangeImageLayout`]: crate::range_image::RangeImageLayout
+//!
 //! ## Using it
 //!
 //! ```

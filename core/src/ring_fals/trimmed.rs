@@ -14,6 +14,7 @@ use super::table::{CENTRE, RowCoeffs, adjugate_f32};
 /// Returns the normals and which lanes have one.
 ///
 /// [`solve_trimmed`]: super::reference::solve_trimmed
+/// [`solve_group_masked`]: super::solve::solve_group_masked
 #[inline(always)]
 pub(super) fn solve_trimmed_lanes(
     rc: &RowCoeffs,
