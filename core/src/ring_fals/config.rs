@@ -1,5 +1,5 @@
-//! The estimator's settings ([`RingFalsConfig`]) and their validation: every threshold of the
-//! range gate, the plane-fit check and the median, each with its documented range.
+//! The estimator's settings and their validation, each threshold with its documented range;
+//! separate because they are plain values that the table and every stage read.
 
 /// Settings of the estimator. [`RingFalsConfig::DEFAULT`] suits Velodyne and Ouster sensors.
 #[derive(Clone, Copy, Debug, PartialEq)]

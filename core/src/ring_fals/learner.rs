@@ -1,5 +1,5 @@
-//! Learning a [`RangeImageLayout`] from observed points, for sensors whose beam intrinsics are
-//! unknown: running sums per row, then a layout to build the table from as from a calibration.
+//! Learning a [`RangeImageLayout`] from observed points, for sensors without known intrinsics;
+//! separate because it is optional: the table is built from its layout as from a calibration.
 
 use crate::range_image::{LayoutError, MAX_ROWS, RangeImageLayout};
 use crate::scan::ScanPoint;

@@ -1,6 +1,5 @@
-//! Stage 3, the median: a 5x5 median per channel over the valid pixels on the centre's surface,
-//! on normals quantised to 16 bits, 16 columns at a time, through the selection networks (shared
-//! sorted column strips where the windows allow, sentinel-padded full networks elsewhere).
+//! Stage 3, the 5x5 median over the valid pixels on the centre's surface, 16 columns at a time;
+//! separate from the solve because it works on quantised lanes through the selection networks.
 
 use super::networks::{median25, ranks25_presorted, ranks25_presorted_wide, sort5};
 use super::solve::rsqrt_norm;

@@ -1,6 +1,5 @@
-//! Sorting and selection networks for the median: a 5-sorter for the column strips, and pruned
-//! Batcher networks for the median and the middle ranks of 25 values, each defined both as data
-//! and as straight-line lane code so that the tests verify them exhaustively (0-1 principle).
+//! The sorting and selection networks of the median, each as data and as straight-line lane code;
+//! separate so that the tests check the data exhaustively (0-1 principle) apart from its use.
 
 use super::median::Lane;
 

@@ -1,6 +1,5 @@
-//! The scalar reference of the trimmed solve, one pixel at a time and written to be read, for the
-//! tests only: the lane-parallel solve in `trimmed.rs` must give the same bits. Kept out of the
-//! production files (this module is `#[cfg(test)]`).
+//! The scalar reference of the trimmed solve, one pixel at a time, for the tests only (the module
+//! is `#[cfg(test)]`), out of the production files: `trimmed.rs` must give the same bits.
 
 use super::RingFalsConfig;
 use super::solve::{FIT_K, on_surface, to_global};

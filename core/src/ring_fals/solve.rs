@@ -1,6 +1,5 @@
-//! Stage 2, the solve: each pixel's normal from its 3x3 window, full windows through the table's
-//! inverse matrix a row at a time, incomplete ones gathered 8 at a time into the masked
-//! least-squares solve and, when points are off the plane, into the trimmed solve.
+//! Stage 2, each pixel's normal from its 3x3 window: full windows a row at a time, incomplete
+//! ones 8 at a time through the masked least squares; separate from the storage it fills.
 
 use super::median::round_small;
 use super::table::{CENTRE, RingTable, RowCoeffs, adjugate_f32};

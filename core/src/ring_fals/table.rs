@@ -1,6 +1,5 @@
-//! The Ring FALS lookup table of one sensor layout ([`RingTable`]): per row, the window geometry
-//! in the centre pixel's scaled local frame and its inverse system matrix, built once in f64 from
-//! the beam intrinsics; the per-scan solve only reads it.
+//! The lookup table of one sensor layout ([`RingTable`]): per row, the window geometry and its
+//! inverse matrix in the scaled local frame; built once in f64, only read per scan.
 
 use super::median::QLANES;
 use super::{ConfigError, KEY_SCALE, PAD, RingFalsConfig};

@@ -1,6 +1,5 @@
-//! Tests of Ring FALS: the arithmetic helpers against libm, and every vectorised stage against a
-//! scalar reference, bit for bit, on synthetic scans. The selection networks, proven exhaustively
-//! by the 0-1 principle, are tested in `tests/networks.rs`.
+//! Tests of Ring FALS: the arithmetic helpers against libm and every vectorised stage against a
+//! scalar reference, bit for bit; the selection networks are tested in `tests/networks.rs`.
 use super::median::round_small;
 use super::reference::{SPANS_PLANE, TRIM_LINES, solve_trimmed};
 use super::solve::{LANES, TRIM, log2_approx, rsqrt, rsqrt_norm, solve_group_masked, solve_row_full};

@@ -1,6 +1,5 @@
-//! The trimmed solve, lane-parallel: windows whose points do not all fit one plane are solved
-//! again without their worst point, else without each edge line, branch-free over 8 pixels of a
-//! row so that it vectorises. Its scalar reference, bit for bit, is in `reference.rs`.
+//! The trimmed solve, branch-free over 8 pixels: windows with points off the plane solved again
+//! without their worst point or an edge line; separate as the solve's longest lane code.
 
 use super::RingFalsConfig;
 use super::solve::{FIT_K, LANES, PRE, on_surface, to_global};

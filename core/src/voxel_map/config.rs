@@ -1,5 +1,5 @@
-//! The map's settings (every threshold, the paper's two sensor presets) and its construction
-//! errors: plain values, checked once when a map is made.
+//! The map's settings (every threshold, the two sensor presets) and its construction errors:
+//! plain values, apart from the map because they are checked once, when a map is made.
 
 use crate::surfel::SurfelCriteria;
 

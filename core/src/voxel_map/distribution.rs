@@ -1,6 +1,5 @@
-//! The distribution of each voxel (paper section IV-A): its sums read as `f64` moments, the
-//! eigen-analysis every `eta` points that makes it converged or saturated, and read access to it.
-//! Separate because it is the paper's state machine, apart from how points find their voxel.
+//! Each voxel's distribution (paper IV-A): its sums as `f64` moments, the evaluation every `eta`
+//! points that converges or saturates it, read access; the paper's state machine, on its own.
 
 use super::voxel::{STATE_ACCUMULATING, STATE_CONVERGED, STATE_SATURATED, Voxel};
 use super::{VoxelHandle, VoxelMap, normalised, to32, to64};

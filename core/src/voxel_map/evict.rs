@@ -1,6 +1,5 @@
-//! Bounded memory: the distance sweep that evicts voxels left behind the sensor a few slots per
-//! insert, the batch eviction of a full pool (farthest first, then least recently used), and the
-//! swap-remove that keeps the pool dense. Separate because only insertion calls it.
+//! Bounded memory: the distance sweep, the batch eviction of a full pool (farthest, then least
+//! recently used) and the swap-remove that keeps the pool dense; only insertion calls it.
 
 use super::index::{IndexSlot, hash_key, index_find_slot, index_remove_at};
 use super::voxel::Voxel;

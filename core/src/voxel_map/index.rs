@@ -1,6 +1,5 @@
-//! The hash index from voxel keys to pool positions: open addressing with linear probing and
-//! backward-shift deletion (no tombstones), and the hash that keeps the 8 voxels of a 2x2x2 block
-//! in adjacent slots. Separate because it knows nothing of voxels but their keys.
+//! The hash index from voxel keys to pool positions (linear probing, backward-shift deletion, a
+//! hash that keeps each 2x2x2 block in one cache line); separate because it sees only keys.
 
 /// One slot of the hash index: the key's 32-bit hash and the pool position + 1 (0 = empty).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]

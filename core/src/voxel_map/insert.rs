@@ -1,6 +1,5 @@
-//! Insertion of a scan: the points' voxels looked up in a software pipeline (index lines, then
-//! voxels, fetched ahead), new voxels created (making room in a full pool), and each point added
-//! to its voxel's sums and representatives. Separate because it is the map's only writer of points.
+//! Insertion of a scan: lookups pipelined ahead of use, new voxels (room made in a full pool),
+//! each point added to its voxel; separate because it is the only writer of points.
 
 use super::index::{hash_key, index_find, index_first_with_hash, index_insert};
 use super::voxel::{STATE_ACCUMULATING, STATE_CONVERGED, STATE_SATURATED, Voxel, update_rep};

@@ -1,6 +1,5 @@
-//! The k-nearest-neighbour search over the representatives of a query's 27 voxels: query
-//! types, the search order of the boxes, the sorted candidate list, and the batched pipeline
-//! that overlaps cache misses. Separate because it only reads the map.
+//! The k-NN search over the representatives of a query's 27 voxels (search order, sorted
+//! candidates, a batched pipeline that overlaps cache misses); separate as it only reads the map.
 
 use super::index::{block_hash, index_first_with_hash, sub_block};
 use super::voxel::{rep, rep_d2, rep_normal};

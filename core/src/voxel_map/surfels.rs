@@ -1,6 +1,5 @@
-//! The surfels of the map (paper IV-B3): a converged voxel's own (small) and the distributions of
-//! distinct neighbouring voxels merged by Eq. (5) (large), split at the eigen-analysis so that the
-//! association can batch it. Separate because it only reads the map's distributions.
+//! The small (one converged voxel) and large (neighbouring voxels merged by Eq. (5)) surfels of
+//! paper IV-B3; separate because they only read the distributions, for the association.
 
 use super::voxel::STATE_CONVERGED;
 use super::{MERGE_MAX, VoxelHandle, VoxelMap, to32, to64};

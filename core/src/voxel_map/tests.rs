@@ -1,7 +1,5 @@
-//! Tests of the map against exact references: batch moments in f64, brute-force k-NN, a
-//! `HashMap` model of the index and of the eviction, and long drives in a fixed pool, one file
-//! per part of the map in `tests/`. Here: the helpers they share, and the tests of the layout,
-//! the construction and bad input.
+//! Tests of the map against exact references, one file per part of the map in `tests/`; here
+//! the helpers they share and the tests of the layout, the construction and bad input.
 extern crate std;
 use std::collections::HashMap;
 use std::vec;

@@ -1,6 +1,5 @@
-//! One voxel of the pool: its 192-byte layout (what a query reads in the first cache line), the
-//! caller-owned storage, and the octant representatives, quantised to `i16` offsets and `i8`
-//! normals. Separate because the layout is what the speed of every other part rests on.
+//! One voxel of the pool: its 192-byte layout, the caller's storage and the octant
+//! representatives (quantised offsets and normals); the layout every other part's speed rests on.
 
 use super::{Derived, IndexSlot, MapConfig, MapError, OCTANTS, VoxelHandle, VoxelMap, d2f};
 

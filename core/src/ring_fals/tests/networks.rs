@@ -1,5 +1,5 @@
-//! The sorting and selection networks of the median: each network as data, checked on every
-//! 0/1 input (the 0-1 principle), and its straight-line lane code against sorting.
+//! Tests of the selection networks: each as data on every 0/1 input (the 0-1 principle), and
+//! its straight-line lane code against sorting.
 use crate::ring_fals::median::{Lane, QLANES};
 use crate::ring_fals::networks::{
     Cx, MEDIAN25, RANKS25_PRESORTED, RANKS25_PRESORTED_WIDE, median25, ranks25_presorted,

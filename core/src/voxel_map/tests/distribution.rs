@@ -1,5 +1,5 @@
-//! The voxels' distributions: incremental sums equal the batch moments in any insert order,
-//! planes converge while corners, poles and clouds saturate, and fixed voxels stay fixed.
+//! Tests of the distributions: incremental sums equal batch moments in any order, planes
+//! converge, corners, poles and clouds saturate, and fixed voxels stay fixed.
 
 use super::*;
 

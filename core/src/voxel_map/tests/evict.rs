@@ -1,5 +1,5 @@
-//! Bounded memory: insertion and eviction against a model, the eviction order of a full pool,
-//! the distance sweep, and long drives through a fixed pool.
+//! Tests of bounded memory: insertion and eviction against a model, the eviction order, the
+//! distance sweep, and long drives through a fixed pool.
 
 use super::*;
 

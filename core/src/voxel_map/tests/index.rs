@@ -1,5 +1,5 @@
-//! The hash index: a `HashMap` model with colliding hashes, full 32-bit hash collisions resolved
-//! by the key, and the block hashes from which the k-NN derives every neighbour's hash.
+//! Tests of the hash index: a `HashMap` model with colliding hashes, full 32-bit collisions
+//! resolved by the key, and the block hashes from which the k-NN derives its neighbours' hashes.
 
 use super::*;
 use crate::voxel_map::index::{index_find, index_insert, index_remove_at};

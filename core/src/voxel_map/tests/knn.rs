@@ -1,5 +1,5 @@
-//! The k-NN search against brute force over every representative, for both reaches, with and
-//! without one point per voxel.
+//! Tests of the k-NN search against brute force over every representative, for both reaches,
+//! with and without one point per voxel.
 
 use super::*;
 

@@ -1,4 +1,4 @@
-//! Small and large surfels: a merge equals the distribution of the union, non-coplanar
+//! Tests of the surfels: a merge equals the distribution of the union, non-coplanar
 //! neighbourhoods are refused, and the k-NN's voxels merge into a large surfel.
 
 use super::*;
