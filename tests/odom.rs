@@ -158,7 +158,7 @@ pub fn ate_rmse(est: &[Vector3<f64>], gt: &[Vector3<f64>]) -> f64 {
     (se / est.len() as f64).sqrt()
 }
 
-/// Prints a one-line summary of a trace (for the test logs and the README figures).
+/// Prints a one-line summary of a trace (for the test logs and docs/figures.md).
 pub fn summary(name: &str, mode: AssociationMode, tr: &Trace) -> String {
     let [ok, deg, imu, init, reinit] = tr.status_counts();
     let acc: u64 = tr.results.iter().map(|r| u64::from(r.associations.accepted())).sum();

@@ -13,15 +13,15 @@
 //!    towards the sensor that saw it) makes more than 90 degrees with the ray from `p_W` to the
 //!    LiDAR origin, `m · (o_W - p_W) <= 0`, is on the back of a surface the LiDAR cannot see
 //!    from here (the double-side issue of thin walls): it is removed from the neighbours. The
-//!    ray starts at the LiDAR origin, not at the IMU as in the reference (notes C.1 / I.5).
+//!    ray starts at the LiDAR origin, not at the IMU as in the reference.
 //!    Map points without a normal carry no evidence and stay. If fewer than `min_neighbours`
 //!    remain, the point is rejected (`rejected_visibility`).
 //! 3. **Consistency check** (modes `Full`, `PlaneOnly`). The mean angle between `n_W` and the
 //!    remaining neighbours' normals must be at most `max_mean_angle_deg` (60 degrees, the paper's
 //!    `alpha`), else the point is rejected (`rejected_consistency`). A query without a valid
-//!    normal skips this check (the reference drops such points altogether, notes A.6 step 7;
-//!    here they can still give a point-to-plane residual, which the plane-fit and residual tests
-//!    guard).
+//!    normal skips this check (in the reference such points never give a residual: a non-finite
+//!    normal drops the point, a zero one fails the angle test; here they can still give a
+//!    point-to-plane residual, which the plane-fit and residual tests guard).
 //! 4. **Hierarchy** (mode `Full`): the large-scale surfel merged from the remaining neighbours'
 //!    voxels ([`VoxelMap::large_surfel`]: Eq. (5) with true counts, the surfel criteria and the
 //!    0.15 m mean-to-plane test), else the small-scale surfel of the voxel holding `p_W` if that
@@ -38,7 +38,7 @@
 //!
 //! The measurement is `r = n · p_W + d` with its Jacobian row from
 //! [`PointToPlane::row`]; surfel and plane residuals have their own noise variance
-//! (`surfel_variance`, `plane_variance`; the reference uses 0.001 m² for both, notes C.3).
+//! (`surfel_variance`, `plane_variance`; the reference uses 0.001 m² for every residual).
 //!
 //! ## Iterations
 //! [`ScanAssociation`] implements [`Measurements`]. The search (steps 1-5) runs at the first

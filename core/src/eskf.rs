@@ -264,8 +264,9 @@ pub struct EskfConfig {
     /// A sample spacing above this is a jump: not integrated, seconds.
     pub max_hold_s: f64,
     /// Held longer than this (an IMU gap, the scans still coming), the last sample no longer
-    /// stands for the motion: the interval is bridged at constant velocity and attitude, with
-    /// the random walks below, and the scans correct it, seconds.
+    /// stands for the motion: the interval is bridged at the constant rate and velocity the
+    /// scans last measured ([`Eskf::set_bridge_motion`]; without it at constant velocity and
+    /// attitude), with the random walks below, and the scans correct it, seconds.
     pub bridge_after_s: f64,
     /// Acceleration the constant-velocity bridge allows for (white, per axis), m/s^2/√Hz.
     pub bridge_acc_std: f64,
@@ -696,6 +697,10 @@ pub struct Eskf {
     acc_scale: f64,
     flags: PropagationFlags,
     counters: PropagationCounters,
+    /// The motion an IMU gap is bridged with: body rate (rad/s) and world velocity (m/s), as
+    /// the scans last measured it ([`Eskf::set_bridge_motion`]); `None`: at rest in attitude,
+    /// the state's velocity.
+    bridge_motion: Option<(V3, V3)>,
 }
 
 fn set_diag3(p: &mut StateCov, i: usize, var: V3) {
@@ -766,6 +771,7 @@ impl Eskf {
             acc_scale,
             flags: PropagationFlags::default(),
             counters: PropagationCounters::default(),
+            bridge_motion: None,
         }
     }
 
@@ -924,7 +930,11 @@ impl Eskf {
     fn bridge(&mut self, dt: f64) {
         let r = self.x.rot.to_rotation_matrix().into_inner();
         let acc = r.transpose() * (-self.x.grav.vec()) + self.x.ba;
-        let gyro = self.x.bg;
+        let mut gyro = self.x.bg;
+        if let Some((w, v)) = self.bridge_motion {
+            gyro += w;
+            self.x.vel = v;
+        }
         let mut blocks = step_state(&mut self.x, &gyro, &acc, dt);
         // The bridge's motion depends on no measured input: neither the biases nor gravity nor
         // the attitude move it, so the scans' corrections must not leak into the biases.
@@ -947,6 +957,16 @@ impl Eskf {
         self.counters.steps = self.counters.steps.saturating_add(1);
         self.counters.gaps = self.counters.gaps.saturating_add(1);
         self.flags.0 |= PropagationFlags::GAP | PropagationFlags::BRIDGE;
+    }
+
+    /// The motion the scans last measured (body rate, rad/s; world velocity, m/s), held
+    /// through an IMU gap: the LiDAR's own constant-velocity model, whose prediction also
+    /// undistorts the bridged scans (the velocity state alone, corrected through the
+    /// position-velocity correlation of one scan, swings with every correction).
+    pub fn set_bridge_motion(&mut self, rate: V3, vel: V3) {
+        if rate.iter().chain(vel.iter()).all(|v| v.is_finite()) {
+            self.bridge_motion = Some((rate, vel));
+        }
     }
 
     /// One integration step with a constant input over `dt` (module docs), with the process

@@ -45,10 +45,11 @@
 //! - **IMU gaps** (spacing above `eskf.max_gap_s`): bridged holding the last sample, with
 //!   inflated process noise (flagged `GAP` in [`ScanResult::propagation`]); while scans keep
 //!   coming each bridges its own interval and corrects the state, however long the gap.
-//!   Beyond `eskf.bridge_after_s` the bridge holds the velocity and the attitude, so a bridged
-//!   scan is undistorted without rotation; after its update it is undistorted again with the
-//!   motion that update found (the previous scan end to this one, constant rate, straight
-//!   line) and updated again from the same prediction, as LiDAR-only odometries do.
+//!   Beyond `eskf.bridge_after_s` the bridge holds the rate and velocity between the last two
+//!   updated scan ends (the LiDAR's own constant-velocity model, as LiDAR-only odometries
+//!   predict), which also undistorts the bridged scan; after its update the scan is
+//!   undistorted again with the motion that update found (the previous scan end to this one,
+//!   constant rate, straight line) and updated again from the same prediction, twice.
 //! - **IMU outliers** (beyond the full scale, lone spikes, lone stamps far ahead): dropped by
 //!   [`crate::imu_guard`] before the queue.
 //! - **Forward jumps** (the filter's time stepping by more than `eskf.max_hold_s`): re-seeded at the sample after the
@@ -95,8 +96,11 @@ pub const IMU_QUEUE: usize = 256;
 pub const TRAJECTORY_KNOTS: usize = 64;
 
 /// Through an IMU gap (a bridged scan), how many times the scan is undistorted again with the
-/// motion its update found and updated again.
-const BRIDGE_REUNDISTORT_PASSES: usize = 1;
+/// motion its update found and updated again. Each pass halves the error of the bridge's
+/// prediction but weighs the previous scan end's error more (the undistortion starts there):
+/// 2 passes on the 2 s gap of the handheld walk 2.1x the clean ATE, 1 pass 3.1x, 3 passes
+/// 17x (the scan ends' errors alternate and grow).
+const BRIDGE_REUNDISTORT_PASSES: usize = 2;
 /// Scans after a gap of either sensor that re-localise without the integrity check.
 pub const RECOVERY_SCANS: u32 = 5;
 /// A scan ending this long after the previous one follows a LiDAR gap (reported as
@@ -365,7 +369,7 @@ impl<const PIX: usize, const PTS: usize, const DS: usize, const V: usize, const 
         Self { scan: ScanStorage::new(), map: MapStorage::new() }
     }
 
-    /// Bytes this storage takes (what the README states per preset).
+    /// Bytes this storage takes (docs/voxel-map.md states the default pool's).
     pub const fn bytes() -> usize {
         core::mem::size_of::<Self>()
     }
@@ -427,6 +431,8 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     jumped: bool,
     /// The end of the last scan processed after the initialisation.
     last_scan_end_ns: Option<u64>,
+    /// The last scan end's time, attitude and position (for the motion a bridge holds).
+    last_end: Option<(u64, UnitQuaternion<f64>, Vector3<f64>)>,
     /// Running means of the agreeing scans' shares of matching points and innovations.
     share_mean: Option<f32>,
     nis_mean: Option<f32>,
@@ -492,6 +498,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             guard: ImuGuard::new(cfg.imu_guard),
             jumped: false,
             last_scan_end_ns: None,
+            last_end: None,
             share_mean: None,
             nis_mean: None,
             low_run: 0,
@@ -622,6 +629,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         self.map.clear();
         self.wait = WaitReason::Collecting { samples: 0, span_s: 0.0 };
         self.last_scan_end_ns = None;
+        self.last_end = None;
         self.share_mean = None;
         self.nis_mean = None;
         self.low_run = 0;
@@ -816,7 +824,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             first = assoc.first_counts();
             measured_n = measured as u32;
             times.association_ns = assoc.elapsed_ns();
-            // Through an IMU gap the bridge does not turn within the scan: the update's motion
+            // Through an IMU gap the bridge holds the last scans' motion: the update's motion
             // from the previous scan end to this one undistorts the scan again, and the update
             // runs again from the same prediction (the LiDAR's own constant-velocity model).
             if let Some(prior) = bridge_prior {
@@ -980,6 +988,19 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             _ => {}
         }
         let pose = PoseEstimate::from_filter(f);
+        // The motion from the last scan end to this one: what an IMU gap is bridged with.
+        let x = f.state();
+        if let Some((t, rot, pos)) = self.last_end.replace((end_ns, x.rot, x.pos))
+            && end_ns > t
+            && (end_ns - t) as f64 * 1e-9 <= LIDAR_GAP_S
+            && reinit.is_none()
+            && update.outcome == UpdateOutcome::Updated
+            && !low
+        {
+            let dt = (end_ns - t) as f64 * 1e-9;
+            let rate = crate::so3::log(&(rot.inverse() * x.rot).to_rotation_matrix().into_inner()) / dt;
+            f.set_bridge_motion(rate, (x.pos - pos) / dt);
+        }
         let mut status = status;
         if lost && ic.restart_after > 0 && self.low_run >= ic.lost_scans.saturating_add(ic.restart_after) {
             // The agreement never came back: start over in a new world frame.

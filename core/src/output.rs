@@ -70,7 +70,7 @@ pub enum ImuOnlyReason {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum BridgeReason {
-    /// No IMU samples for longer than `eskf.bridge_after_s`: constant velocity and attitude.
+    /// No IMU samples for longer than `eskf.bridge_after_s`: the motion the last scans measured, held.
     ImuGap,
     /// No scan for longer than [`crate::odometry::LIDAR_GAP_S`]: the IMU alone.
     LidarGap,
@@ -308,7 +308,7 @@ mod footprint {
     use crate::imu::{ImuInitializer, ImuQueue};
     use crate::undistort::ImuTrajectory;
 
-    /// The fixed memory of the estimation stages (the README states these figures).
+    /// The fixed memory of the estimation stages (docs/estimation.md states these figures).
     #[test]
     fn memory_footprint_is_fixed() {
         let sizes = [

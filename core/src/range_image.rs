@@ -4,8 +4,9 @@
 //! revolution. Each row has its own azimuth for column 0, because beams of one firing are
 //! offset in azimuth (Ouster's per-beam azimuth angles after destaggering, for example).
 //! Columns advance clockwise or counter-clockwise as the sensor spins; either way the column of
-//! an azimuth is computed wrap-safe, so the bin straddling 0/360 degrees is never lost (the
-//! reference implementation drops it, see the developer notes A.3).
+//! an azimuth is computed wrap-safe, so the bin straddling 0/360 degrees is never lost (LOG-LIO's
+//! reference code rounds an azimuth within half a column below 360 degrees to a column past the
+//! last and drops the point, so its column 0 holds only half a bin).
 //!
 //! The decoders build a [`RangeImageLayout`] from the sensor's own calibration, and Ring FALS
 //! builds its lookup table from the same layout, so no recording has to be replayed to make a

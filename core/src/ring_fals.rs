@@ -17,7 +17,7 @@
 //! only needs `b`, a weighted sum of the nine ranges of a 3x3 window. The result points away
 //! from the sensor; it is flipped to point toward it, smoothed by a 5x5 median and normalised.
 //!
-//! ## What loglio does differently from the reference (docs notes A.3-A.7)
+//! ## What loglio does differently from the reference (LOG-LIO's public C++ code)
 //!
 //! - **No recording is needed.** [`RingTable::build`] takes the sensor's beam intrinsics, a
 //!   [`RangeImageLayout`]. For sensors without known intrinsics, [`RingLearner`] learns the
@@ -38,7 +38,7 @@
 //!   incomplete one is solved from the neighbours actually present (its own `M'` and `b'`),
 //!   provided there are at least [`RingFalsConfig::min_points`] points, they are not all on one
 //!   line of the image, and the system is well conditioned. The reference instead treats a
-//!   missing neighbour as a point at infinity, which biases the normal (notes A.7).
+//!   missing neighbour as a point at infinity, which biases the normal toward the missing rays.
 //! - **Every window must fit its plane.** After the solve, the squared range residuals of the
 //!   window's points must stay within a tolerance ([`RingFalsConfig::fit_tolerance_rel`]); a
 //!   window with some points off the plane (a bad return, an occluding edge, a step or crease
@@ -48,11 +48,13 @@
 //! - **Invalid is explicit.** A pixel that cannot give a reliable normal has a zero normal and
 //!   a cleared validity flag, never NaN; its point is kept.
 //! - **The median uses valid pixels only** (per channel, 5x5, columns wrapped, rows cut at the
-//!   image border); the reference lets its `FLT_MAX` sentinels in (notes A.6). It also leaves
+//!   image border); the reference lets its `FLT_MAX` "no data" sentinels into its median, which
+//!   turns some normals near holes into bogus ones such as (1, 0, 0). It also leaves
 //!   out pixels of another surface (the range gate again), so a pole's edge normals are not bent
 //!   toward the wall behind it. A valid pixel with fewer than
 //!   [`RingFalsConfig::median_min_valid`] such pixels in its window keeps its own normal.
-//! - **The 0/360 degree seam is no edge**: columns wrap (notes A.3).
+//! - **The 0/360 degree seam is no edge**: columns wrap (the reference mirrors its windows at the
+//!   seam instead, and drops the returns just below 360 degrees).
 //! - Zero, too short, too long and non-finite ranges are filtered. When several points hit a
 //!   pixel the nearest wins (deterministic for any point order) and the others are counted.
 //!

@@ -17,7 +17,7 @@
 //! ## Why the planarity default is 0.6, not the paper's 1.0
 //! `rho = 2 (λ2 - λ1) / (λ1 + λ2 + λ3)` is at most 1 for a covariance (λ1 ≥ 0 and λ2 ≤ λ3), and
 //! equals 1 only for a perfectly flat, perfectly round patch, so the paper's `rho > 1.0` is never
-//! met (reference notes B.2/I.2). The reference's configs use 0.6, and so does
+//! met (nor is the reference code's own default, 1.0). The reference's configs use 0.6, and so does
 //! [`SurfelCriteria::DEFAULT`]. For a flat patch (`λ1 ≈ 0`) `rho > 0.6` means `λ2 / λ3 > 3/7`,
 //! i.e. the patch's in-plane extents differ by less than a factor `sqrt(7/3) ≈ 1.53`: it keeps a
 //! plane cut through a voxel and rejects a strip (a single scan ring across the voxel, an edge).

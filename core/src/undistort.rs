@@ -175,7 +175,7 @@ impl<const N: usize> ImuTrajectory<N> {
     /// A trajectory of two knots: this one's first and the state `x` at `t_ns` (e.g. the
     /// updated scan end). Between them the pose moves at the constant rate and on the Hermite
     /// curve of those two states: the motion a scan update found, in place of what was
-    /// recorded (through an IMU gap, a bridge that does not turn).
+    /// recorded (through an IMU gap, a bridge that holds the last scans' motion).
     pub fn span_to(&self, t_ns: u64, x: &State) -> ImuTrajectory<2> {
         let mut out = ImuTrajectory::<2>::new();
         out.start_ns = self.start_ns;

@@ -1,6 +1,6 @@
 //! The map: a fixed pool of voxels, each keeping the distribution of the points that fell into
-//! it, found through an open-addressing hash index (paper sections III-C, IV-D; reference notes
-//! B). Memory is the caller's and bounded; nothing here allocates, grows or panics.
+//! it, found through an open-addressing hash index (paper sections III-C, IV-D). Memory is the
+//! caller's and bounded; nothing here allocates, grows or panics.
 //!
 //! ## Storage
 //! The caller provides the voxel pool (`&mut [Voxel]`, [`Voxel::EMPTY`] is all-zero bytes so a
@@ -15,8 +15,9 @@
 //! [`VoxelHandle`] is a pool position: valid until the next call that mutates the map.
 //!
 //! ## Per voxel
-//! - the true point count (separate from the state: the reference's `-9999` "converged" marker
-//!   corrupted merged surfels, reference notes C.2);
+//! - the true point count (separate from the state: the reference marks a converged voxel with a
+//!   count of `-9999` and then weighs it as 9999 points in a merged surfel, whose normal turns
+//!   toward the world origin);
 //! - `Σ d` and `Σ d dᵀ` in `f32` with `d = p - c`, `c` the voxel centre. Offsets are at most half a
 //!   voxel, so the sums stay small and Eq. (4) does not cancel catastrophically anywhere in the
 //!   world (a test shows world-frame `f32` sums failing 10 km out where these pass);
@@ -33,7 +34,7 @@
 //!   distribution is fixed (an `O(1)` compare per point); the distribution does not;
 //! - the state ([`VoxelState`]) and the stamp of the last scan that touched it (LRU).
 //!
-//! ## The state machine (paper section IV-A; reference notes B.2)
+//! ## The state machine (paper section IV-A)
 //! `Accumulating` voxels add every point to their sums. The distribution is evaluated every
 //! `eta` points (and at `saturate_at`): the voxel becomes `Converged` when it is a surfel
 //! ([`SurfelCriteria`]: `rho > 0.6`, `gamma > 100` by default) **and** its mean ring normal agrees

@@ -1,6 +1,6 @@
 //! loglio-firmware-sim: a deterministic simulated world, vehicle motion and sensors (Velodyne,
-//! Ouster, an IMU board) that emit the real wire formats with exact ground truth, and (later)
-//! the core built as Cortex-M firmware.
+//! Ouster, an IMU board) that emit the real wire formats with exact ground truth, and the core
+//! built as Cortex-M firmware (`bin/loglio-fw.rs`, fed by [`replay`]).
 //!
 //! Modules that would run on a device (the IMU chip model and board firmware, the packet
 //! emitters, trajectories, randomness) are `no_std` and allocation-free; the world, the ray

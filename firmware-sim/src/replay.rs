@@ -68,7 +68,7 @@ pub const TAG_SCAN: u8 = 0x02;
 pub const FW_ROWS: usize = 16;
 /// Range-image columns of the firmware configuration: Ouster OS1-16 in its 512 x 10 mode (8,192
 /// points per scan). The 1024 x 10 mode also runs (and fits the RAM with `FW_COLS = 1024`) but
-/// needs 1.4 times the instructions per scan (README, "Firmware").
+/// needs 1.4 times the instructions per scan (the 512 x 10 budget: docs/firmware.md).
 pub const FW_COLS: usize = 512;
 /// Points per scan the firmware keeps (a full 16 x 512 frame).
 pub const FW_POINTS: usize = FW_ROWS * FW_COLS;

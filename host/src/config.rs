@@ -12,7 +12,7 @@
 //! `loglio config --preset NAME` prints [`template`]: every key with a comment saying what it
 //! is, its unit and its range, set to the preset's value; it parses back to [`Config::preset`].
 //!
-//! # How the lead maps this onto the core (when the pipeline lands)
+//! # How this maps onto the core (`run::engine::odometry_config`)
 //!
 //! [`Config`] is a plain host struct on purpose; the core's config structs are built from it:
 //!
@@ -242,7 +242,7 @@ pub enum KnnSearch {
     #[default]
     Exact,
     /// The point's 2x2x2 octant block first, the rest only when it holds too few: faster,
-    /// approximate (see the README before using it).
+    /// approximate (see docs/estimation.md, "Block k-NN", before using it).
     Block,
 }
 
@@ -599,13 +599,13 @@ static SPECS: &[Spec] = &[
         "mapping.map_capacity",
         Kind::Int { min: 1024, max: 100_000_000 },
         "voxels",
-        "Most voxels the map holds; the pool is allocated once at start-up (memory = capacity x bytes per voxel, see the README).",
+        "Most voxels the map holds; the pool is allocated once at start-up (memory = capacity x bytes per voxel, see docs/voxel-map.md).",
     ),
     spec(
         "mapping.max_points",
         Kind::Int { min: 0, max: 10_000_000 },
         "points",
-        "Measurement budget: at most this many downsampled points per scan are associated and measured, evenly spread over the scan (0 = all). The map still receives every point. Trades accuracy for time on slow computers (see the README).",
+        "Measurement budget: at most this many downsampled points per scan are associated and measured, evenly spread over the scan (0 = all). The map still receives every point. Trades accuracy for time on slow computers (see docs/estimation.md).",
     ),
     spec(
         "mapping.association",
@@ -617,7 +617,7 @@ static SPECS: &[Spec] = &[
         "mapping.knn_search",
         Kind::Enum(&["exact", "block"]),
         "",
-        "exact = the k nearest map points within the 27 voxels around each point; block = the point's 2x2x2 octant block first (0.9x the association's time, same errors on well-structured scenes, but worse along a featureless corridor: see the README).",
+        "exact = the k nearest map points within the 27 voxels around each point; block = the point's 2x2x2 octant block first (0.9x the association's time, same errors on well-structured scenes, but worse along a featureless corridor: see docs/estimation.md).",
     ),
     spec(
         "filter.max_iterations",

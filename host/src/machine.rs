@@ -1,6 +1,6 @@
 //! What a benchmark ran on: the processor's name and the vector extensions of the build.
-//! Figures are only comparable on the same processor (the project's machine changed from an
-//! AMD EPYC to an Intel Xeon between two sessions, and the times grew 1.4-2.8x, unevenly), so
+//! Figures are only comparable on the same processor (on 2026-11-26 the same code took 1.4-2.8x
+//! as long on an Intel Xeon as on the project's AMD EPYC, unevenly across stages), so
 //! `loglio bench` and the criterion benches print both. No dependencies beyond std: the core's
 //! benches include this file by path.
 

@@ -630,7 +630,7 @@ fn latency_figures(line: &str) -> ([f64; 2], [f64; 2]) {
 /// (pymavlink), `--foxglove` (no client), `--mcap`. No scan dropped, no sink losing anything,
 /// the trajectory whole, and the latency from a scan's last packet to its pose on the wire
 /// measured and printed beside the processing time of the same scans. Only a generous sanity
-/// bound is asserted on it (the README's performance log carries the figures).
+/// bound is asserted on it (docs/performance-log.md carries the figures).
 #[test]
 fn live_with_every_output_drops_nothing_and_reports_the_wire_latency() {
     let test = "live_with_every_output_drops_nothing_and_reports_the_wire_latency";

@@ -16,7 +16,7 @@ end, so every peer's stamp finds its exact truth; --t-max-diff 2 ms (the truth a
 200 Hz IMU sample, so a stamp elsewhere is still paired within 2.5 ms) and the largest
 pairing gap is reported.
 
-Writes RESULTS/summary.json, RESULTS/summary.csv and RESULTS/summary.md (the README table).
+Writes RESULTS/summary.json, RESULTS/summary.csv and RESULTS/summary.md (the peers table of docs/figures.md).
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
 //! Filter runs over whole sequences (IMU at 200 Hz, scans at 10 Hz against known planes): the
-//! corridor drive of issue 7's "Faults", and the extrinsic becoming observable through motion.
+//! a drive down a featureless corridor (the axis degenerate), and the extrinsic becoming
+//! observable through motion.
 extern crate std;
 
 use std::vec::Vec;

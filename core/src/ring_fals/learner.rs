@@ -64,8 +64,8 @@ pub struct LearnedRow {
 /// two numbers per row. The learner therefore keeps running sums per row (elevation, and the
 /// circular mean of azimuth minus column angle) over every observed point: a few hundred bytes
 /// instead of a table per pixel, no holes where a pixel was never hit (the reference leaves
-/// those with a zero matrix, notes A.4), and the table is then built from the learned layout
-/// exactly as from a calibration.
+/// those with a zero matrix, so their normals come out NaN), and the table is then built from
+/// the learned layout exactly as from a calibration.
 #[derive(Clone, Debug, PartialEq)]
 pub struct RingLearner {
     rows: u16,

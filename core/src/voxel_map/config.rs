@@ -3,7 +3,7 @@
 
 use crate::surfel::SurfelCriteria;
 
-/// Large-surfel settings (paper section IV-B3; reference notes C.2).
+/// Large-surfel settings (paper section IV-B3; the thresholds are the reference code's).
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct LargeSurfelConfig {

@@ -24,7 +24,7 @@
 fn main() {
     eprintln!(
         "loglio-fw is Cortex-M firmware: cargo build -p loglio-firmware-sim --bin loglio-fw \
-         --profile firmware --target thumbv7em-none-eabihf (see the README's Firmware section)"
+         --profile firmware --target thumbv7em-none-eabihf (see docs/firmware.md)"
     );
     std::process::exit(2);
 }

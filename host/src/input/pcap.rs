@@ -14,7 +14,7 @@
 //!   after it within 16 MiB are errors.
 //! - Frames that are not IPv4/UDP, or whose headers are malformed, are skipped and counted.
 //!
-//! A whole replay: pcap -> Velodyne decoder -> scan assembler (the same as in the README):
+//! A whole replay: pcap -> Velodyne decoder -> scan assembler (the same as in docs/sensors.md):
 //!
 //! ```no_run
 //! use loglio_core::scan::ScanPoint;

@@ -49,7 +49,7 @@ impl fmt::Display for ScanStatus {
     }
 }
 
-/// One row of the per-scan CSV (a plain host struct; the lead fills it from the core).
+/// One row of the per-scan CSV (a plain host struct; `sink::files` fills it from the core's result).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ScanRecord {
     /// Scan number, from 0.
