@@ -179,13 +179,16 @@ pub trait Engine {
     fn filter(&self) -> Option<loglio_core::eskf::Eskf>;
     /// Appends the last scan's points (undistorted, downsampled) in the world frame.
     fn scan_cloud(&self, out: &mut Vec<[f32; 3]>);
-    /// Re-initialisations so far.
+    /// Jumps of the estimate so far: re-initialisations and re-localisations (MAVLink's
+    /// `reset_counter`).
     fn resets(&self) -> u32;
     /// Integrates the queued IMU samples up to `until_ns` without a scan (a LiDAR gap; see
     /// [`Odometry::propagate_imu`]).
     fn propagate_imu(&mut self, until_ns: u64) -> u32;
     /// What the core's IMU outlier guard dropped and flagged.
     fn imu_guard_stats(&self) -> loglio_core::imu_guard::ImuGuardStats;
+    /// Re-localisations in the map that moved the prediction (after LiDAR gaps, while lost).
+    fn relocalisations(&self) -> u32;
 }
 
 struct CoreEngine<'a, const PIX: usize, const PTS: usize, const DS: usize> {
@@ -225,13 +228,17 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> Engine for CoreEngine<
         }));
     }
     fn resets(&self) -> u32 {
-        self.odo.stats().reinitialisations
+        let s = self.odo.stats();
+        s.reinitialisations.saturating_add(s.relocalisations)
     }
     fn propagate_imu(&mut self, until_ns: u64) -> u32 {
         self.odo.propagate_imu(until_ns)
     }
     fn imu_guard_stats(&self) -> loglio_core::imu_guard::ImuGuardStats {
         self.odo.imu_guard_stats()
+    }
+    fn relocalisations(&self) -> u32 {
+        self.odo.stats().relocalisations
     }
 }
 

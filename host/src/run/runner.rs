@@ -93,6 +93,8 @@ pub struct FaultCounts {
     pub imu_stamp_jumps: u64,
     /// The core's IMU outlier guard.
     pub imu_guard: loglio_core::imu_guard::ImuGuardStats,
+    /// Re-localisations in the map that moved the prediction (after LiDAR gaps, while lost).
+    pub relocalisations: u32,
 }
 
 impl FaultCounts {
@@ -118,6 +120,12 @@ impl FaultCounts {
         if g.saturated > 0 {
             w.push(format!("{} IMU samples at the sensor's full scale: the IMU saturated", g.saturated));
         }
+        if self.relocalisations > 0 {
+            w.push(format!(
+                "re-localised in the map {} times (the prediction was off after a LiDAR gap or while lost)",
+                self.relocalisations
+            ));
+        }
         w
     }
 
@@ -140,6 +148,9 @@ impl FaultCounts {
         }
         if g.saturated > 0 {
             p.push(format!("{} saturated IMU samples", g.saturated));
+        }
+        if self.relocalisations > 0 {
+            p.push(format!("{} re-localisations", self.relocalisations));
         }
         p.join(", ")
     }
@@ -555,6 +566,7 @@ impl<'e> Runner<'e> {
         }
         self.process_ready(true, None)?;
         self.stats.faults.imu_guard = self.engine.imu_guard_stats();
+        self.stats.faults.relocalisations = self.engine.relocalisations();
         for w in self.stats.faults.warnings() {
             crate::diag::warn(w);
         }

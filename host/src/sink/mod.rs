@@ -137,7 +137,8 @@ pub struct PoseSample {
     pub velocity_covariance: [[f64; 3]; 3],
     /// Health.
     pub status: LiveStatus,
-    /// Re-initialisations so far (each starts a new world frame).
+    /// Jumps of the estimate so far: re-initialisations (each starts a new world frame) and
+    /// re-localisations in the map (the position moved to where the scan fits).
     pub resets: u32,
 }
 
