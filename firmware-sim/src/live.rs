@@ -17,7 +17,7 @@ use rustix::pty::OpenptFlags;
 use rustix::termios::OptionalActions;
 
 use crate::scenario::Scenario;
-use crate::stream::{Wire, WireStream};
+use crate::stream::{Wire, WireEvent, WireStream};
 
 /// A pseudo-terminal pair: the simulator writes the master; the host opens the slave's path.
 #[derive(Debug)]
@@ -108,6 +108,18 @@ pub struct LiveStats {
 /// Runs a scenario live. `on_ready` is called with the pseudo-terminal path before the first
 /// byte is sent.
 pub fn run(sc: &Scenario, cfg: &LiveConfig, on_ready: impl FnOnce(&Pty)) -> anyhow::Result<LiveStats> {
+    run_events(WireStream::new(sc), sc.start_ns(), cfg, on_ready)
+}
+
+/// Sends any wire stream live (e.g. a scenario's through `fault::FaultInjector`), paced from
+/// `t0_ns`. An event stamped more than a second after the one before it (a wrong stamp, not a
+/// pause: a real pause leaves no events) goes out at once instead of holding the stream back.
+pub fn run_events(
+    events: impl Iterator<Item = WireEvent>,
+    t0_ns: u64,
+    cfg: &LiveConfig,
+    on_ready: impl FnOnce(&Pty),
+) -> anyhow::Result<LiveStats> {
     let pty = Pty::open()?;
     if let Some(link) = &cfg.pty_link {
         let _ = std::fs::remove_file(link);
@@ -117,10 +129,13 @@ pub fn run(sc: &Scenario, cfg: &LiveConfig, on_ready: impl FnOnce(&Pty)) -> anyh
     on_ready(&pty);
     let mut stats = LiveStats::default();
     let t0_wall = Instant::now();
-    let t0_sim = sc.start_ns();
-    for ev in WireStream::new(sc) {
+    let mut clock = t0_ns;
+    for ev in events {
+        if ev.t_ns <= clock.saturating_add(1_000_000_000) {
+            clock = clock.max(ev.t_ns);
+        }
         if cfg.rate > 0.0 {
-            let due = Duration::from_secs_f64((ev.t_ns - t0_sim) as f64 * 1e-9 / cfg.rate);
+            let due = Duration::from_secs_f64(clock.saturating_sub(t0_ns) as f64 * 1e-9 / cfg.rate);
             let now = t0_wall.elapsed();
             if due > now {
                 std::thread::sleep(due - now);

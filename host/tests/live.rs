@@ -735,3 +735,92 @@ fn live_with_every_output_drops_nothing_and_reports_the_wire_latency() {
     println!("live all outputs, summary:\n{text}");
     let _ = std::fs::remove_dir_all(&run.dir);
 }
+
+/// The fault injector around the live sources: the simulator's UDP packets and serial IMU
+/// frames pass `loglio_firmware_sim::fault::FaultInjector` on their way to `loglio live`
+/// (a LiDAR outage, an IMU spike, a packet stamped a minute late, another Ouster model's
+/// packets on the port, an IMU pause, flipped bits). The run must go on through all of them,
+/// name each in a warning, flag the scans after the outage, and keep the clean run's bound on
+/// the ATE.
+#[test]
+fn live_survives_the_fault_injector() {
+    use loglio_firmware_sim::fault::{Fault, FaultInjector, ImuSensor, foreign_scenario};
+    use loglio_firmware_sim::stream::{Wire, WireStream};
+    let Some(run) = SimRun::start("live_survives_the_fault_injector", "faults", 12.0) else {
+        return;
+    };
+    let (sc, dir, out) = (&run.sc, &run.dir, run.dir.join("out"));
+    let faults = [
+        Fault::LidarGap { from_s: 4.0, to_s: 5.5 },
+        Fault::ImuSpike { at_s: 6.5, sensor: ImuSensor::Acc, value: 1000.0 },
+        Fault::LidarStamp { at_s: 7.0, shift_s: 60.0 },
+        Fault::Foreign { from_s: 8.0, to_s: 9.0 },
+        Fault::ImuGap { from_s: 9.5, to_s: 10.0 },
+        Fault::FlipBits { from_s: 10.5, to_s: 11.0, rate: 1e-4 },
+    ];
+    let fs = foreign_scenario(sc, 8.0, 9.0).unwrap();
+    let foreign: Vec<_> = WireStream::new(&fs).filter(|e| matches!(e.wire, Wire::Udp { .. })).collect();
+    let events = FaultInjector::new(WireStream::new(sc), sc.start_ns(), 0x11FE, &faults)
+        .with_foreign(foreign.into_iter())
+        .events();
+    let cfg = LiveConfig {
+        host: std::net::Ipv4Addr::LOCALHOST,
+        rate: 1.0,
+        pty_link: None,
+        port_offset: run.offset,
+    };
+    let mut child = None;
+    loglio_firmware_sim::live::run_events(events, sc.start_ns(), &cfg, |pty| {
+        let pty = pty.path.to_str().unwrap();
+        child = Some(run.spawn_live(&[
+            "--imu-serial",
+            pty,
+            "--gt",
+            &run.path("gt.tum"),
+            "--out",
+            out.to_str().unwrap(),
+        ]))
+    })
+    .unwrap();
+    let child = child.unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    child.interrupt();
+    let (status, text, err) = child.finish();
+    assert!(status.success(), "{status}: {err:?}\n{text}");
+    assert!(!err.iter().any(|l| l.contains("panicked") || l.contains("error:")), "{err:?}");
+    let said = |words: &[&str]| {
+        err.iter().chain(text.lines().map(str::to_string).collect::<Vec<_>>().iter()).any(|l| {
+            let l = l.to_lowercase();
+            l.contains("warning") && words.iter().any(|w| l.contains(w))
+        })
+    };
+    for (fault, words) in [
+        ("LiDAR gap", &["lidar gap", "no lidar", "lidar paused"][..]),
+        ("IMU spike", &["outlier", "spike", "full scale"][..]),
+        ("wrong packet stamp", &["stamp"][..]),
+        ("foreign packets", &["foreign", "other sensor", "model", "layout"][..]),
+        ("IMU gap", &["imu gap"][..]),
+    ] {
+        assert!(said(words), "no warning names the {fault}:\n{err:#?}\n{text}");
+    }
+    let (poses, scans, tracked) = check_outputs(&out);
+    assert!(tracked >= 60, "{tracked} of {scans} scans updated by the LiDAR: {text}");
+    // The first scan after the outage says so.
+    let csv = std::fs::read_to_string(out.join("scans.csv")).unwrap();
+    assert!(csv.contains(",bridged,"), "no scan flagged after the LiDAR gap: {text}");
+    // The IMU carried the state through the 1.5 s outage: no re-initialisation (before
+    // 2026-11-27 the runner dropped the samples over a second old and the filter stepped over
+    // the pause: ATE 0.060 m, rotation 8.4 deg); one gap said (a flipped bit in a point time
+    // once made a second one).
+    assert!(!csv.contains(",re-initialising,"), "re-initialised: {text}");
+    assert!(text.contains("faults: 1 LiDAR gaps"), "{text}");
+    let gt = eval::read_trajectory(&dir.join("gt.tum"), Format::Tum, None).unwrap();
+    let est = eval::read_trajectory(&out.join("trajectory.tum"), Format::Tum, None).unwrap();
+    let r = eval::evaluate(&gt, &est, &EvalOptions::default()).unwrap();
+    assert_eq!(r.matched, poses, "every pose matched a ground-truth stamp");
+    // 0.009 m measured (2026-11-27); the clean live run's bound is 0.10 m (timing on a loaded
+    // machine).
+    assert!(r.ape_trans.rmse <= 0.03, "ATE {} m: {text}", r.ape_trans.rmse);
+    println!("live with faults: ATE {:.4} m, {scans} scans\n{text}\n{}", r.ape_trans.rmse, err.join("\n"));
+    let _ = std::fs::remove_dir_all(dir);
+}

@@ -58,7 +58,7 @@ pub struct RunStats {
     pub imu_in: u64,
     /// IMU samples the core refused (out of order, duplicate, non-finite).
     pub imu_dropped: u64,
-    /// IMU samples discarded because they were more than a second older than the next scan.
+    /// IMU samples discarded because they were more than a second older than the first scan.
     pub imu_stale: u64,
     /// Scans processed before the IMU reached their end (the IMU stream lagged or ended).
     pub scans_without_imu: u64,
@@ -91,6 +91,8 @@ pub struct FaultCounts {
     pub imu_gap_max_s: f64,
     /// IMU samples stamped far after their neighbours, dropped.
     pub imu_stamp_jumps: u64,
+    /// Scans stamped far after their neighbours (not confirmed by the next), dropped.
+    pub scan_stamp_jumps: u64,
     /// The core's IMU outlier guard.
     pub imu_guard: loglio_core::imu_guard::ImuGuardStats,
     /// Re-localisations in the map that moved the prediction (after LiDAR gaps, while lost).
@@ -115,6 +117,12 @@ impl FaultCounts {
             w.push(format!(
                 "{} IMU samples with a stamp far after their neighbours were dropped",
                 g.stamp_jumps
+            ));
+        }
+        if self.scan_stamp_jumps > 0 {
+            w.push(format!(
+                "{} LiDAR scans with a stamp far after their neighbours were dropped",
+                self.scan_stamp_jumps
             ));
         }
         if g.saturated > 0 {
@@ -142,6 +150,9 @@ impl FaultCounts {
         let stamps = self.imu_stamp_jumps + u64::from(g.stamp_jumps);
         if stamps > 0 {
             p.push(format!("{stamps} IMU samples with wrong stamps dropped"));
+        }
+        if self.scan_stamp_jumps > 0 {
+            p.push(format!("{} scans with wrong stamps dropped", self.scan_stamp_jumps));
         }
         if g.beyond_full_scale + g.spikes > 0 {
             p.push(format!("{} IMU outliers dropped", g.beyond_full_scale + g.spikes));
@@ -241,8 +252,10 @@ pub struct Runner<'e> {
     origin: Instant,
     /// An IMU sample stamped far after the last one, held until the next confirms it.
     held_far: Option<ImuSample>,
-    /// The last scan's end (LiDAR gaps).
-    last_scan_end_ns: Option<u64>,
+    /// A scan far after the latest, held until the next confirms it.
+    held_scan: Option<(OwnedScan, u64)>,
+    /// The latest scan start (LiDAR gaps).
+    last_scan_start_ns: Option<u64>,
 }
 
 impl fmt::Debug for Runner<'_> {
@@ -272,7 +285,8 @@ impl<'e> Runner<'e> {
             map_sent_ns: None,
             origin: Instant::now(),
             held_far: None,
-            last_scan_end_ns: None,
+            held_scan: None,
+            last_scan_start_ns: None,
         }
     }
 
@@ -453,13 +467,41 @@ impl<'e> Runner<'e> {
         self.process_ready(false, None)
     }
 
-    /// Takes one scan.
+    /// Takes one scan. A scan starting more than [`LIDAR_GAP_NS`] after the latest start is
+    /// held until the next scan confirms it (a real pause: it starts later still) or comes
+    /// before it (a wrong stamp, e.g. one cloud's `header.stamp` a minute late: dropped and
+    /// counted), as IMU samples are.
     pub fn scan(&mut self, scan: OwnedScan, arrival: u64) -> Result<(), PipelineError> {
-        let end = scan.end_ns();
-        if let Some(last) = self.last_scan_end_ns
-            && end > last
+        if let Some((h, ha)) = self.held_scan.take() {
+            if scan.start_ns < h.start_ns {
+                let f = &mut self.stats.faults;
+                f.scan_stamp_jumps += 1;
+                if f.scan_stamp_jumps <= 3 {
+                    crate::diag::warn(format!(
+                        "a LiDAR scan stamped {:.3} s after the scans around it was dropped (a wrong stamp; counted)",
+                        h.start_ns.saturating_sub(self.last_scan_start_ns.unwrap_or(h.start_ns)) as f64
+                            * 1e-9
+                    ));
+                }
+            } else {
+                self.accept_scan(h, ha)?;
+            }
+        }
+        if self.last_scan_start_ns.is_some_and(|t| scan.start_ns > t.saturating_add(LIDAR_GAP_NS)) {
+            self.held_scan = Some((scan, arrival));
+            return Ok(());
+        }
+        self.accept_scan(scan, arrival)
+    }
+
+    fn accept_scan(&mut self, scan: OwnedScan, arrival: u64) -> Result<(), PipelineError> {
+        // A point time past a second into the scan is damage (a flipped bit), not a pause.
+        let end = scan.end_ns().min(scan.start_ns.saturating_add(1_000_000_000));
+        // Gaps from start to start: the starts are packet stamps the stream checked.
+        if let Some(last) = self.last_scan_start_ns
+            && scan.start_ns > last
         {
-            let gap_ns = end - last;
+            let gap_ns = scan.start_ns - last;
             if gap_ns > LIDAR_GAP_NS {
                 let f = &mut self.stats.faults;
                 f.lidar_gaps += 1;
@@ -472,8 +514,9 @@ impl<'e> Runner<'e> {
                 }
             }
         }
-        self.last_scan_end_ns = Some(self.last_scan_end_ns.map_or(end, |t| t.max(end)));
-        widen(&mut self.stats.lidar_span, scan.end_ns());
+        self.last_scan_start_ns =
+            Some(self.last_scan_start_ns.map_or(scan.start_ns, |t| t.max(scan.start_ns)));
+        widen(&mut self.stats.lidar_span, end);
         self.scans.push_back((scan, arrival));
         self.process_ready(false, None)
     }
@@ -505,18 +548,25 @@ impl<'e> Runner<'e> {
     fn process(&mut self, scan: OwnedScan, arrival: u64) -> Result<(), PipelineError> {
         let end = scan.end_ns();
         let stale_before = scan.start_ns.saturating_sub(1_000_000_000);
+        // After the first scan, samples that old are the IMU through a LiDAR pause: integrated
+        // without a scan (dropping them made the filter step over the pause: a re-initialising
+        // scan after gaps of 1-2 s). Before it, they are the IMU's head start: dropped.
+        let tracking = self.stats.status.iter().any(|&n| n > 0);
         while let Some(s) = self.imu.front() {
             if s.t_ns > end {
                 break;
             }
             let s = *s;
             self.imu.pop_front();
-            if s.t_ns < stale_before {
+            if s.t_ns < stale_before && !tracking {
                 self.stats.imu_stale += 1;
                 continue;
             }
             if !matches!(self.engine.push_imu(s), ImuPush::Accepted | ImuPush::Held) {
                 self.stats.imu_dropped += 1;
+            }
+            if s.t_ns < stale_before {
+                self.engine.propagate_imu(s.t_ns);
             }
         }
         if scan.points.len() > self.engine.max_points() {
@@ -563,6 +613,9 @@ impl<'e> Runner<'e> {
     pub fn finish(mut self) -> Result<(RunStats, Finished), PipelineError> {
         if let Some(h) = self.held_far.take() {
             self.accept_imu(h)?;
+        }
+        if let Some((h, ha)) = self.held_scan.take() {
+            self.accept_scan(h, ha)?;
         }
         self.process_ready(true, None)?;
         self.stats.faults.imu_guard = self.engine.imu_guard_stats();
