@@ -61,12 +61,15 @@
 // `!(a <= b)` deliberately rejects NaN.
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Vector3};
+
+type M3 = Matrix3<f64>;
 
 use crate::downsample::normal_is_valid;
 use crate::eskf::{InfoAccumulator, Measurements, PointToPlane, State};
 use crate::odometry::{AssociationMode, Clock};
 use crate::output::AssociationCounts;
+use crate::parallel::{self, Parallel};
 use crate::scan::ScanPoint;
 use crate::surfel::{self, PLANE_LANES, SurfelReject};
 use crate::voxel_map::{
@@ -542,6 +545,8 @@ pub struct ScanAssociation<'a, 'm, C: Clock> {
     searches: u32,
     clock: &'a mut C,
     elapsed_ns: u64,
+    /// The caller's threads and one k-NN scratch per extra thread ([`Self::with_parallel`]).
+    parallel: Option<(&'a dyn Parallel, &'a mut [KnnScratch])>,
 }
 
 impl<C: Clock> core::fmt::Debug for ScanAssociation<'_, '_, C> {
@@ -587,7 +592,15 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
             searches: 0,
             clock,
             elapsed_ns: 0,
+            parallel: None,
         }
+    }
+
+    /// Splits each search over `parallel`'s threads (at most one more than `scratch` holds);
+    /// the correspondences and counts are the same as without.
+    pub fn with_parallel(mut self, parallel: &'a dyn Parallel, scratch: &'a mut [KnnScratch]) -> Self {
+        self.parallel = Some((parallel, scratch));
+        self
     }
 
     /// The counts of the last search.
@@ -627,88 +640,54 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
     }
 
     fn search(&mut self, x: &State) {
-        let h = PointToPlane::new(x);
         let r = x.rot.to_rotation_matrix().into_inner();
-        let r_wl = r * x.ext_rot.to_rotation_matrix().into_inner();
-        let origin = to32(&(r * x.ext_pos + x.pos));
-        let query = KnnQuery::new(usize::from(self.cfg.k).min(KNN_MAX), self.cfg.max_dist)
-            .with_reach(self.cfg.knn_reach);
-        let assoc = Associator::new(self.map, self.cfg, self.mode, origin);
-        let mut counts = AssociationCounts::default();
+        let ctx = SearchCtx {
+            h: PointToPlane::new(x),
+            r_wl: r * x.ext_rot.to_rotation_matrix().into_inner(),
+            query: KnnQuery::new(usize::from(self.cfg.k).min(KNN_MAX), self.cfg.max_dist)
+                .with_reach(self.cfg.knn_reach),
+            assoc: Associator::new(self.map, self.cfg, self.mode, to32(&(r * x.ext_pos + x.pos))),
+            map: self.map,
+            mode: self.mode,
+            plane_max_dist: self.cfg.plane_max_dist,
+        };
         let n = self.points.len();
-        let mut start = 0;
-        let mut fits = [(0usize, PlaneFit::EMPTY); KNN_CHUNK];
-        let mut larges = [(0usize, PlaneFit::EMPTY, LargeMerge::EMPTY); KNN_CHUNK];
-        while start < n {
-            let len = (n - start).min(KNN_CHUNK);
-            for i in 0..len {
-                let [px, py, pz] = self.points[start + i].xyz;
-                self.queries[i] = to32(&h.to_world(&V3::new(f64::from(px), f64::from(py), f64::from(pz))));
-            }
-            self.map.knn_many(&self.queries[..len], &query, &mut self.nbrs[..len]);
-            let (mut nfit, mut nlarge) = (0, 0);
-            for i in 0..len {
-                let j = start + i;
-                let p = &self.points[j];
-                let nl = self.normals[j];
-                let n_w = if self.mode != AssociationMode::Plain && normal_is_valid(&nl) {
-                    Some(to32(&(r_wl * V3::new(f64::from(nl[0]), f64::from(nl[1]), f64::from(nl[2])))))
-                } else {
-                    None
-                };
-                let res = match assoc.head(self.queries[i], n_w, p.range(), &self.nbrs[i]) {
-                    Ok(Head::Plane(f)) => {
-                        // Later, with the chunk's other plane fits.
-                        fits[nfit] = (j, f);
-                        nfit += 1;
-                        continue;
-                    }
-                    Ok(Head::Large(m, f)) => {
-                        // Later, with the chunk's other large surfels.
-                        larges[nlarge] = (j, f, m);
-                        nlarge += 1;
-                        continue;
-                    }
-                    Ok(Head::Done(c)) => Ok(c),
-                    Err(e) => Err(e),
-                };
-                self.corr[j] = count(&mut counts, res);
-            }
-            // The large surfels' eigen-analyses, PLANE_LANES at a time (the same results as
-            // one at a time); those without a surfel go on to the small surfel and the fits.
-            for group in larges[..nlarge].chunks(PLANE_LANES) {
-                let mut covs = [[0.0f64; 6]; PLANE_LANES];
-                for (c, (_, _, m)) in covs.iter_mut().zip(group) {
-                    *c = m.covariance();
+        let width = match &self.parallel {
+            Some((p, scratch)) => p.width().min(scratch.len() + 1),
+            None => 1,
+        };
+        let counts = if width <= 1 || n < 2 * KNN_CHUNK {
+            search_range(&ctx, self.points, self.normals, &mut self.corr[..n], self.queries, self.nbrs)
+        } else {
+            // Independent pieces on the caller's threads, each into its own slots; the counts
+            // are summed in piece order (integers: the same for any width).
+            let Some((par, scratch)) = &mut self.parallel else { unreachable!("width > 1") };
+            let ends = parallel::split(n, width, KNN_CHUNK);
+            let mut parts = [AssociationCounts::default(); parallel::MAX_WIDTH];
+            {
+                let mut corr = &mut self.corr[..n];
+                let mut scratch = core::iter::once((&mut *self.queries, &mut *self.nbrs))
+                    .chain(scratch.iter_mut().map(|s| (&mut s.queries, &mut s.nbrs)));
+                let (points, normals, ctx) = (self.points, self.normals, &ctx);
+                let mut closures = heapless::Vec::<_, { parallel::MAX_WIDTH }>::new();
+                let mut start = 0;
+                for (&end, out) in ends.iter().zip(parts.iter_mut()) {
+                    let (c, rest) = core::mem::take(&mut corr).split_at_mut(end - start);
+                    corr = rest;
+                    let Some((q, nb)) = scratch.next() else { break };
+                    let (pts, nrm) = (&points[start..end], &normals[start..end]);
+                    // Cannot fail: at most MAX_WIDTH pieces.
+                    let _ = closures.push(move || *out = search_range(ctx, pts, nrm, c, q, nb));
+                    start = end;
                 }
-                let shapes = surfel::eigen_normals_lanes(&covs, group.len());
-                for ((j, f, m), (values, normal)) in group.iter().zip(shapes) {
-                    match assoc.large_or_next(self.map.large_surfel_finish(m, values, normal), *f) {
-                        Ok(Next::Plane(f)) => {
-                            fits[nfit] = (*j, f);
-                            nfit += 1;
-                        }
-                        Ok(Next::Done(c)) => self.corr[*j] = count(&mut counts, Ok(c)),
-                        Err(e) => self.corr[*j] = count(&mut counts, Err(e)),
-                    }
+                let mut jobs = heapless::Vec::<parallel::Job<'_>, { parallel::MAX_WIDTH }>::new();
+                for c in closures.iter_mut() {
+                    let _ = jobs.push(c);
                 }
+                par.run(&mut jobs);
             }
-            // The plane fits, PLANE_LANES at a time (their chains of square roots and
-            // divisions overlap); the same results as one at a time.
-            for group in fits[..nfit].chunks(PLANE_LANES) {
-                let mut pts = [[[0.0f32; 3]; KNN_MAX]; PLANE_LANES];
-                let mut lens = [0usize; PLANE_LANES];
-                for (l, (_, f)) in group.iter().enumerate() {
-                    pts[l] = f.pts;
-                    lens[l] = f.len;
-                }
-                let planes = surfel::fit_plane_lanes(&pts, lens, self.cfg.plane_max_dist);
-                for ((j, f), fit) in group.iter().zip(planes) {
-                    self.corr[*j] = count(&mut counts, assoc.tail(f, fit));
-                }
-            }
-            start += len;
-        }
+            parts.iter().fold(AssociationCounts::default(), |a, b| a.plus(b))
+        };
         self.counts = counts;
         if self.first.is_none() {
             self.first = Some(counts);
@@ -716,6 +695,128 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
         self.searched = Some(*x);
         self.searches += 1;
     }
+}
+
+/// What a search needs at one state, shared by the pieces.
+struct SearchCtx<'a, 'm> {
+    h: PointToPlane,
+    r_wl: M3,
+    query: KnnQuery,
+    assoc: Associator<'a, 'm>,
+    map: &'a VoxelMap<'m>,
+    mode: AssociationMode,
+    plane_max_dist: f32,
+}
+
+/// The k-NN scratch of one piece of a search run in parallel (the first piece uses the
+/// association's own): caller-owned, one per extra thread.
+#[derive(Clone, Copy, Debug)]
+pub struct KnnScratch {
+    /// Query points of a chunk.
+    pub queries: [[f32; 3]; KNN_CHUNK],
+    /// Their neighbours.
+    pub nbrs: [Neighbours; KNN_CHUNK],
+}
+
+impl KnnScratch {
+    /// Empty scratch.
+    pub const fn new() -> Self {
+        Self { queries: [[0.0; 3]; KNN_CHUNK], nbrs: [Neighbours::new(); KNN_CHUNK] }
+    }
+}
+
+impl Default for KnnScratch {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// Associates `points` (with `normals`) into `corr` (the same length), [`KNN_CHUNK`] at a time.
+fn search_range(
+    ctx: &SearchCtx<'_, '_>,
+    points: &[ScanPoint],
+    normals: &[[f32; 3]],
+    corr: &mut [Correspondence],
+    queries: &mut [[f32; 3]; KNN_CHUNK],
+    nbrs: &mut [Neighbours; KNN_CHUNK],
+) -> AssociationCounts {
+    let assoc = &ctx.assoc;
+    let mut counts = AssociationCounts::default();
+    let n = points.len().min(normals.len()).min(corr.len());
+    let mut start = 0;
+    let mut fits = [(0usize, PlaneFit::EMPTY); KNN_CHUNK];
+    let mut larges = [(0usize, PlaneFit::EMPTY, LargeMerge::EMPTY); KNN_CHUNK];
+    while start < n {
+        let len = (n - start).min(KNN_CHUNK);
+        for i in 0..len {
+            let [px, py, pz] = points[start + i].xyz;
+            queries[i] = to32(&ctx.h.to_world(&V3::new(f64::from(px), f64::from(py), f64::from(pz))));
+        }
+        ctx.map.knn_many(&queries[..len], &ctx.query, &mut nbrs[..len]);
+        let (mut nfit, mut nlarge) = (0, 0);
+        for i in 0..len {
+            let j = start + i;
+            let p = &points[j];
+            let nl = normals[j];
+            let n_w = if ctx.mode != AssociationMode::Plain && normal_is_valid(&nl) {
+                Some(to32(&(ctx.r_wl * V3::new(f64::from(nl[0]), f64::from(nl[1]), f64::from(nl[2])))))
+            } else {
+                None
+            };
+            let res = match assoc.head(queries[i], n_w, p.range(), &nbrs[i]) {
+                Ok(Head::Plane(f)) => {
+                    // Later, with the chunk's other plane fits.
+                    fits[nfit] = (j, f);
+                    nfit += 1;
+                    continue;
+                }
+                Ok(Head::Large(m, f)) => {
+                    // Later, with the chunk's other large surfels.
+                    larges[nlarge] = (j, f, m);
+                    nlarge += 1;
+                    continue;
+                }
+                Ok(Head::Done(c)) => Ok(c),
+                Err(e) => Err(e),
+            };
+            corr[j] = count(&mut counts, res);
+        }
+        // The large surfels' eigen-analyses, PLANE_LANES at a time (the same results as
+        // one at a time); those without a surfel go on to the small surfel and the fits.
+        for group in larges[..nlarge].chunks(PLANE_LANES) {
+            let mut covs = [[0.0f64; 6]; PLANE_LANES];
+            for (c, (_, _, m)) in covs.iter_mut().zip(group) {
+                *c = m.covariance();
+            }
+            let shapes = surfel::eigen_normals_lanes(&covs, group.len());
+            for ((j, f, m), (values, normal)) in group.iter().zip(shapes) {
+                match assoc.large_or_next(ctx.map.large_surfel_finish(m, values, normal), *f) {
+                    Ok(Next::Plane(f)) => {
+                        fits[nfit] = (*j, f);
+                        nfit += 1;
+                    }
+                    Ok(Next::Done(c)) => corr[*j] = count(&mut counts, Ok(c)),
+                    Err(e) => corr[*j] = count(&mut counts, Err(e)),
+                }
+            }
+        }
+        // The plane fits, PLANE_LANES at a time (their chains of square roots and
+        // divisions overlap); the same results as one at a time.
+        for group in fits[..nfit].chunks(PLANE_LANES) {
+            let mut pts = [[[0.0f32; 3]; KNN_MAX]; PLANE_LANES];
+            let mut lens = [0usize; PLANE_LANES];
+            for (l, (_, f)) in group.iter().enumerate() {
+                pts[l] = f.pts;
+                lens[l] = f.len;
+            }
+            let planes = surfel::fit_plane_lanes(&pts, lens, ctx.plane_max_dist);
+            for ((j, f), fit) in group.iter().zip(planes) {
+                corr[*j] = count(&mut counts, assoc.tail(f, fit));
+            }
+        }
+        start += len;
+    }
+    counts
 }
 
 /// Counts a point's association and gives its correspondence ([`Correspondence::NONE`] if

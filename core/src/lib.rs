@@ -36,6 +36,7 @@ pub mod imu_guard;
 pub mod math;
 pub mod odometry;
 pub mod output;
+pub mod parallel;
 pub mod range_image;
 pub mod relocalise;
 pub mod ring_fals;

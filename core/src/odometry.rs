@@ -70,7 +70,7 @@
 
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 
-use crate::association::{AssociationConfig, Correspondence, KNN_CHUNK, ScanAssociation};
+use crate::association::{AssociationConfig, Correspondence, KNN_CHUNK, KnnScratch, ScanAssociation};
 use crate::downsample::{DownsampleConfig, INVALID_NORMAL, VoxelDownsampler, normal_is_valid};
 use crate::eskf::{Eskf, EskfConfig, Predicted, PropagationFlags, UpdateOutcome, UpdateResult, idx};
 use crate::imu::{
@@ -81,6 +81,7 @@ use crate::output::{
     AssociationCounts, BridgeReason, ImuOnlyReason, Integrity, PoseEstimate, ReinitReason, ScanResult,
     StageTimes, Status,
 };
+use crate::parallel::Parallel;
 use crate::range_image::RangeImageLayout;
 use crate::relocalise::{self, Relocalisation, RelocaliseConfig};
 use crate::ring_fals::{PointNormal, RingFals, RingFalsConfig, RingTable, TableError, storage_pixels};
@@ -441,6 +442,8 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     last_end: Option<(u64, UnitQuaternion<f64>, Vector3<f64>)>,
     /// The last re-localisation search (whether or not it moved the prediction).
     last_relocalisation: Option<Relocalisation>,
+    /// The caller's threads and their k-NN scratch ([`Odometry::set_parallel`]).
+    parallel: Option<(&'a dyn Parallel, &'a mut [KnnScratch])>,
     /// Running means of the agreeing scans' shares of matching points and innovations.
     share_mean: Option<f32>,
     nis_mean: Option<f32>,
@@ -508,6 +511,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             last_scan_end_ns: None,
             last_end: None,
             last_relocalisation: None,
+            parallel: None,
             share_mean: None,
             nis_mean: None,
             low_run: 0,
@@ -598,6 +602,14 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             }
         }
         n
+    }
+
+    /// Splits the association's searches over the caller's threads (`parallel`, with one
+    /// k-NN scratch per thread beyond the first): the results are bit-identical to one
+    /// thread's, so this is a speed setting only. Without it everything runs on the calling
+    /// thread.
+    pub fn set_parallel(&mut self, parallel: &'a dyn Parallel, scratch: &'a mut [KnnScratch]) {
+        self.parallel = Some((parallel, scratch));
     }
 
     /// The last re-localisation search ([`crate::relocalise`]), whether or not it moved the
@@ -789,7 +801,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         let after_long_gap = rc.after_gap_s > 0.0 && gap_s > rc.after_gap_s;
         if after_long_gap && reinit.is_none() {
             let a = rc.dead_reckoning_acc_std;
-            f.widen_position((0.5 * a * gap_s * gap_s).powi(2));
+            let sd = 0.5 * a * gap_s * gap_s;
+            f.widen_position(sd * sd);
         }
         if m > 0 {
             // Cannot fail: the trajectory holds the end knot and the slices have equal lengths.
@@ -841,7 +854,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 let t_wl = r * x.ext_pos + x.pos;
                 let p = f.covariance();
                 let var = (0..3).map(|k| p[(idx::POS + k, idx::POS + k)]).fold(0.0f64, f64::max);
-                let window = (3.0 * var.sqrt()) as f32;
+                let window = (3.0 * crate::math::sqrt(var)) as f32;
                 let window = window.max(2.0 * self.cfg.map.voxel_size);
                 let found = relocalise::search(&rc, &self.map, &st.points[..measured], &r_wl, &t_wl, window);
                 if found.moved {
@@ -866,6 +879,9 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 &mut st.neighbours,
                 clock,
             );
+            if let Some((p, scratch)) = self.parallel.as_mut() {
+                assoc = assoc.with_parallel(*p, scratch);
+            }
             let bridge_prior = bridged.then(|| f.clone());
             update = f.update(&mut assoc);
             counts = assoc.counts();
@@ -905,6 +921,9 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                         &mut st.neighbours,
                         clock,
                     );
+                    if let Some((p, scratch)) = self.parallel.as_mut() {
+                        assoc = assoc.with_parallel(*p, scratch);
+                    }
                     update = f.update(&mut assoc);
                     counts = assoc.counts();
                     times.association_ns = times.association_ns.saturating_add(assoc.elapsed_ns());

@@ -217,6 +217,20 @@ pub struct AssociationCounts {
 }
 
 impl AssociationCounts {
+    /// The counts of two sets of points together.
+    pub fn plus(&self, o: &AssociationCounts) -> AssociationCounts {
+        AssociationCounts {
+            large_surfel: self.large_surfel + o.large_surfel,
+            small_surfel: self.small_surfel + o.small_surfel,
+            plane: self.plane + o.plane,
+            rejected_visibility: self.rejected_visibility + o.rejected_visibility,
+            rejected_consistency: self.rejected_consistency + o.rejected_consistency,
+            rejected_residual: self.rejected_residual + o.rejected_residual,
+            no_neighbours: self.no_neighbours + o.no_neighbours,
+            no_plane: self.no_plane + o.no_plane,
+        }
+    }
+
     /// Accepted residuals.
     pub fn accepted(&self) -> u32 {
         self.large_surfel + self.small_surfel + self.plane

@@ -33,6 +33,7 @@
 //! | `mapping.association` | the association mode: `full` (LOG-LIO), `plane-only` (LOG-C), `plain` (FAST-LIO2-like) |
 //! | `mapping.knn_search` | the association's k-NN: `exact` within the 27 voxels around a point, or `block` (its octant block first: `KnnReach`) |
 //! | `filter.max_iterations` | the iterated ESKF's maximum number of passes per scan |
+//! | `compute.threads` | the association's threads ([`loglio_core::parallel`]; 0: the available cores) |
 //! | `imu.source`, `imu.serial_device`, `imu.baud`, `imu.csv_path`, `network.*` | the host's inputs (`serial.rs`, `imu_csv.rs`, `udp.rs`) |
 
 use std::fmt;
@@ -395,6 +396,27 @@ pub struct FilterConfig {
     pub max_iterations: u32,
 }
 
+/// `[compute]`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ComputeConfig {
+    /// Threads for the association's searches; 0: the available cores, at most
+    /// [`loglio_core::parallel::MAX_WIDTH`]. The results do not depend on it.
+    #[serde(default)]
+    pub threads: u32,
+}
+
+impl ComputeConfig {
+    /// The threads to use: the setting, or the available cores, within 1..=MAX_WIDTH.
+    pub fn resolved_threads(&self) -> usize {
+        let n = match self.threads {
+            0 => std::thread::available_parallelism().map_or(1, |n| n.get()),
+            n => n as usize,
+        };
+        n.clamp(1, loglio_core::parallel::MAX_WIDTH)
+    }
+}
+
 /// The whole configuration.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -415,6 +437,9 @@ pub struct Config {
     pub mapping: MappingConfig,
     /// `[filter]`.
     pub filter: FilterConfig,
+    /// `[compute]`.
+    #[serde(default)]
+    pub compute: ComputeConfig,
 }
 
 /// What a key holds, for checking and for the template's comments.
@@ -625,9 +650,15 @@ static SPECS: &[Spec] = &[
         "passes",
         "Most iterated-update passes per scan.",
     ),
+    spec(
+        "compute.threads",
+        Kind::Int { min: 0, max: 8 },
+        "threads",
+        "Threads for the association (0 = the available cores, at most 8); the results are the same for any number.",
+    ),
 ];
 
-const SECTIONS: [(&str, &str); 7] = [
+const SECTIONS: [(&str, &str); 8] = [
     ("sensor", "The LiDAR."),
     ("network", "Live UDP input."),
     ("imu", "The IMU: source and noise model."),
@@ -635,6 +666,7 @@ const SECTIONS: [(&str, &str); 7] = [
     ("time", "Clocks and time offsets."),
     ("mapping", "The voxel map and data association."),
     ("filter", "The iterated error-state Kalman filter."),
+    ("compute", "How the work uses this computer."),
 ];
 
 fn find_spec(key: &str) -> Option<&'static Spec> {
@@ -814,6 +846,7 @@ impl Config {
                 knn_search: KnnSearch::Exact,
             },
             filter: FilterConfig { max_iterations: 4 },
+            compute: ComputeConfig::default(),
         }
     }
 
@@ -1196,7 +1229,7 @@ mod tests {
         );
         assert_eq!(
             err("preset = \"vlp16\"\n[maping]\nvoxel_size = 0.4\n"),
-            "config: unknown key maping (top-level keys: preset, sensor, network, imu, extrinsics, time, mapping, filter)"
+            "config: unknown key maping (top-level keys: preset, sensor, network, imu, extrinsics, time, mapping, filter, compute)"
         );
         assert_eq!(
             err("preset = \"vlp64\"\n"),

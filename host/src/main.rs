@@ -268,6 +268,10 @@ struct BenchArgs {
     /// The association's k-NN (`mapping.knn_search`), in both modes.
     #[arg(long, value_enum, default_value = "exact")]
     knn_search: KnnArg,
+    /// Threads for the association (`compute.threads`), in both modes; 0 = the available
+    /// cores (at most 8).
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    threads: usize,
     /// Simulated scenario: vehicle, handheld, corridor, drone, rotation (default: vehicle for
     /// Velodyne presets, handheld for Ouster).
     #[arg(long, value_name = "NAME")]
@@ -568,6 +572,7 @@ fn bench_cmd(a: BenchArgs) -> anyhow::Result<()> {
         a.seconds,
         a.max_points,
         a.knn_search.host(),
+        a.threads,
         !a.json,
     )?;
     print(&if a.json { r.to_json() } else { r.to_text() })

@@ -51,6 +51,8 @@ pub struct BenchReport {
     pub max_points: u64,
     /// The k-NN both modes ran with.
     pub knn_search: KnnSearch,
+    /// Threads of the association, both modes (`--threads`).
+    pub threads: usize,
     /// Simulated seconds.
     pub seconds: f64,
     /// Points per scan (mean).
@@ -70,7 +72,7 @@ fn time_mode(
     sc: &loglio_firmware_sim::scenario::Scenario,
     preset: Preset,
     mode: AssociationMode,
-    (max_points, knn_search): (u64, KnnSearch),
+    (max_points, knn_search, threads): (u64, KnnSearch, usize),
     scan_period_s: f64,
 ) -> Result<ModeTimes, PipelineError> {
     let mut cfg = sim::scenario_config(sc, preset, Some(mode));
@@ -79,8 +81,11 @@ fn time_mode(
     let layout = sc.layout().clone();
     let class = StorageClass::choose(layout.rows(), layout.cols(), cfg.mapping.map_capacity)?;
     let core = engine::odometry_config(&cfg, layout)?;
-    let per_scan =
-        engine::with_engine(&core, class, |engine| -> Result<Vec<(u64, [u64; 6])>, PipelineError> {
+    let per_scan = engine::with_engine(
+        &core,
+        class,
+        threads,
+        |engine| -> Result<Vec<(u64, [u64; 6])>, PipelineError> {
             let mut runner = Runner::new(engine, Outputs::new(OutputOptions::default())?, 0.0);
             let timed = std::rc::Rc::new(std::cell::RefCell::new(Vec::new()));
             let sink = timed.clone();
@@ -109,7 +114,8 @@ fn time_mode(
             runner.process_ready(true, None)?;
             drop(runner);
             Ok(timed.take())
-        })??;
+        },
+    )??;
     let n = per_scan.len().max(1) as f64;
     let mut stages_ms = [0.0; 6];
     for (_, st) in &per_scan {
@@ -144,15 +150,19 @@ enum Event2 {
 
 /// Runs the bench for `preset` over `seconds` of a simulated scenario (`None`: the vehicle
 /// drive for Velodyne presets, the handheld walk for Ouster), both modes with the measurement
-/// budget `max_points` (0: every downsampled point) and the k-NN `knn_search`.
+/// budget `max_points` (0: every downsampled point), the k-NN `knn_search` and `threads`
+/// (0: the available cores) for the association.
+#[allow(clippy::too_many_arguments)]
 pub fn run(
     preset: Preset,
     scenario: Option<ScenarioKind>,
     seconds: f64,
     max_points: u64,
     knn_search: KnnSearch,
+    threads: usize,
     progress: bool,
 ) -> Result<BenchReport, PipelineError> {
+    let threads = crate::config::ComputeConfig { threads: threads as u32 }.resolved_threads();
     let sensor = sim::sensor_of(preset).ok_or_else(|| {
         PipelineError(format!(
             "the simulator has no {preset} model; bench one of vlp16, vlp32c, hdl32e, os1-16, os1-64 (the per-point cost scales with the points per scan)"
@@ -199,7 +209,7 @@ pub fn run(
     bar.finish();
     let generate_s = t0.elapsed().as_secs_f64();
     let scan_period_s = 1.0 / crate::config::Config::preset(preset).sensor.scan_rate_hz;
-    let knn = (max_points, knn_search);
+    let knn = (max_points, knn_search, threads);
     let main = time_mode(&data, &sc, preset, AssociationMode::Full, knn, scan_period_s)?;
     let baseline = time_mode(&data, &sc, preset, AssociationMode::Plain, knn, scan_period_s)?;
     Ok(BenchReport {
@@ -207,6 +217,7 @@ pub fn run(
         scenario: kind.name().into(),
         max_points,
         knn_search,
+        threads,
         seconds,
         points_per_scan: points as f64 / scans.max(1) as f64,
         scan_period_s,
@@ -237,6 +248,7 @@ impl BenchReport {
             "scenario": self.scenario,
             "max_points": self.max_points,
             "knn_search": self.knn_search,
+            "association_threads": self.threads,
             "simulated_seconds": self.seconds,
             "points_per_scan": self.points_per_scan,
             "scan_period_ms": self.scan_period_s * 1e3,
@@ -258,14 +270,15 @@ impl BenchReport {
     /// Human-readable.
     pub fn to_text(&self) -> String {
         let mut s = format!(
-            "bench {}: {} s of the simulated {} scenario, {:.0} points per scan, scan period {:.0} ms ({} {} threads)\n",
+            "bench {}: {} s of the simulated {} scenario, {:.0} points per scan, scan period {:.0} ms ({} {} threads; the association on {})\n",
             self.preset,
             self.seconds,
             self.scenario,
             self.points_per_scan,
             self.scan_period_s * 1e3,
             std::env::consts::ARCH,
-            std::thread::available_parallelism().map_or(1, |n| n.get())
+            std::thread::available_parallelism().map_or(1, |n| n.get()),
+            self.threads,
         );
         s.push_str(&machine::describe());
         s.push('\n');

@@ -658,130 +658,134 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
     let preset = cfg.preset;
     let decode_setup = DecodeSetup { cfg: cfg.clone(), dec, lidar_port, imu_port, hold_for_gps };
 
-    let res = engine::with_engine(&core, class, move |engine| -> Result<_, PipelineError> {
-        let t0 = Instant::now();
-        let counters = Arc::new(Counters::default());
-        let stop_rx = Arc::new(AtomicBool::new(false));
-        let _stop_guard = StopOnDrop(Arc::clone(&stop_rx));
-        let (dg_tx, dg_rx) = mpsc::sync_channel::<Datagram>(DATAGRAM_QUEUE);
-        let (msg_tx, msg_rx) = mpsc::sync_channel::<Msg>(ODOMETRY_QUEUE);
-        let spawn_err = |e: io::Error| PipelineError(format!("cannot start a thread: {e}"));
-        let mut receivers: Vec<JoinHandle<()>> = Vec::new();
-        for (sock, port, lidar) in sockets {
-            let (tx, c, stop) = (dg_tx.clone(), Arc::clone(&counters), Arc::clone(&stop_rx));
-            receivers.push(
-                std::thread::Builder::new()
-                    .name(format!("loglio-udp-{port}"))
-                    .spawn(move || receive(sock, port, lidar, tx, c, stop, t0))
-                    .map_err(spawn_err)?,
-            );
-        }
-        drop(dg_tx);
-        let decoder = {
-            let (tx, c) = (msg_tx.clone(), Arc::clone(&counters));
-            std::thread::Builder::new()
-                .name("loglio-decode".into())
-                .spawn(move || decode(decode_setup, dg_rx, tx, c, t0))
-                .map_err(spawn_err)?
-        };
-        let imu_thread = match serial {
-            Some((port, path)) => {
-                let (tx, c, stop) = (msg_tx.clone(), Arc::clone(&counters), Arc::clone(&stop_rx));
-                Some(
+    let res = engine::with_engine(
+        &core,
+        class,
+        cfg.compute.resolved_threads(),
+        move |engine| -> Result<_, PipelineError> {
+            let t0 = Instant::now();
+            let counters = Arc::new(Counters::default());
+            let stop_rx = Arc::new(AtomicBool::new(false));
+            let _stop_guard = StopOnDrop(Arc::clone(&stop_rx));
+            let (dg_tx, dg_rx) = mpsc::sync_channel::<Datagram>(DATAGRAM_QUEUE);
+            let (msg_tx, msg_rx) = mpsc::sync_channel::<Msg>(ODOMETRY_QUEUE);
+            let spawn_err = |e: io::Error| PipelineError(format!("cannot start a thread: {e}"));
+            let mut receivers: Vec<JoinHandle<()>> = Vec::new();
+            for (sock, port, lidar) in sockets {
+                let (tx, c, stop) = (dg_tx.clone(), Arc::clone(&counters), Arc::clone(&stop_rx));
+                receivers.push(
                     std::thread::Builder::new()
-                        .name("loglio-imu".into())
-                        .spawn(move || read_imu(port, path, tx, c, stop, t0))
+                        .name(format!("loglio-udp-{port}"))
+                        .spawn(move || receive(sock, port, lidar, tx, c, stop, t0))
                         .map_err(spawn_err)?,
-                )
+                );
             }
-            None => None,
-        };
-        drop(msg_tx);
-        eprintln!(
-            "loglio live: listening for {preset} LiDAR packets on UDP {lidar_addr}, {imu_desc}; Ctrl-C to stop"
-        );
-
-        let times = Rc::new(RefCell::new(ScanTimes::default()));
-        let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
-        runner.sinks = opt.setup.sinks.build();
-        runner.set_origin(t0);
-        runner.sinks.set_origin(t0);
-        {
-            let times = Rc::clone(&times);
-            runner.on_scan = Some(Box::new(move |res, _, arrival| {
-                let latency = since(t0).saturating_sub(arrival);
-                let mut t = times.borrow_mut();
-                t.window.push((latency, res.times.total_ns));
-                t.latency_sum_ns += latency;
-                t.latency_max_ns = t.latency_max_ns.max(latency);
-                t.result.record(latency, res.times.total_ns);
-                t.scans += 1;
-            }));
-        }
-        let status = StatusLine::new(opt.status);
-        let limit_ns = opt.seconds.map(|s| (s * 1e9) as u64);
-        let lidar_timeout_ns = (opt.lidar_timeout_s * 1e9) as u64;
-        let imu_timeout_ns = (opt.imu_timeout_s * 1e9) as u64;
-        let wait_ns = IMU_WAIT.as_nanos() as u64;
-        let (mut lidar_stall, mut imu_stall) = (Stall::default(), Stall::default());
-        let mut stopped: Option<(StopReason, u64)> = None;
-        let mut last_status = (0u64, 0u64); // (time, datagrams)
-        let c = &*counters;
-        loop {
-            let timeout =
-                if stopped.is_some() { Duration::from_millis(50) } else { Duration::from_millis(100) };
-            match msg_rx.recv_timeout(timeout) {
-                Ok(Msg::Imu(s)) => runner.imu(s)?,
-                Ok(Msg::Scan { scan, arrival_ns }) => {
-                    c.scans_queued.fetch_sub(1, Relaxed);
-                    runner.scan(scan, arrival_ns)?;
+            drop(dg_tx);
+            let decoder = {
+                let (tx, c) = (msg_tx.clone(), Arc::clone(&counters));
+                std::thread::Builder::new()
+                    .name("loglio-decode".into())
+                    .spawn(move || decode(decode_setup, dg_rx, tx, c, t0))
+                    .map_err(spawn_err)?
+            };
+            let imu_thread = match serial {
+                Some((port, path)) => {
+                    let (tx, c, stop) = (msg_tx.clone(), Arc::clone(&counters), Arc::clone(&stop_rx));
+                    Some(
+                        std::thread::Builder::new()
+                            .name("loglio-imu".into())
+                            .spawn(move || read_imu(port, path, tx, c, stop, t0))
+                            .map_err(spawn_err)?,
+                    )
                 }
-                Err(RecvTimeoutError::Disconnected) => break,
-                Err(RecvTimeoutError::Timeout) => {
-                    if let Some((_, at)) = stopped {
-                        // A FIFO's reader may sit in a blocking read: do not wait for it long.
-                        let imu_done = imu_thread.as_ref().is_none_or(|h| h.is_finished())
-                            || since(t0).saturating_sub(at) > 1_000_000_000;
-                        if decoder.is_finished() && imu_done {
-                            break;
+                None => None,
+            };
+            drop(msg_tx);
+            eprintln!(
+                "loglio live: listening for {preset} LiDAR packets on UDP {lidar_addr}, {imu_desc}; Ctrl-C to stop"
+            );
+
+            let times = Rc::new(RefCell::new(ScanTimes::default()));
+            let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
+            runner.sinks = opt.setup.sinks.build();
+            runner.set_origin(t0);
+            runner.sinks.set_origin(t0);
+            {
+                let times = Rc::clone(&times);
+                runner.on_scan = Some(Box::new(move |res, _, arrival| {
+                    let latency = since(t0).saturating_sub(arrival);
+                    let mut t = times.borrow_mut();
+                    t.window.push((latency, res.times.total_ns));
+                    t.latency_sum_ns += latency;
+                    t.latency_max_ns = t.latency_max_ns.max(latency);
+                    t.result.record(latency, res.times.total_ns);
+                    t.scans += 1;
+                }));
+            }
+            let status = StatusLine::new(opt.status);
+            let limit_ns = opt.seconds.map(|s| (s * 1e9) as u64);
+            let lidar_timeout_ns = (opt.lidar_timeout_s * 1e9) as u64;
+            let imu_timeout_ns = (opt.imu_timeout_s * 1e9) as u64;
+            let wait_ns = IMU_WAIT.as_nanos() as u64;
+            let (mut lidar_stall, mut imu_stall) = (Stall::default(), Stall::default());
+            let mut stopped: Option<(StopReason, u64)> = None;
+            let mut last_status = (0u64, 0u64); // (time, datagrams)
+            let c = &*counters;
+            loop {
+                let timeout =
+                    if stopped.is_some() { Duration::from_millis(50) } else { Duration::from_millis(100) };
+                match msg_rx.recv_timeout(timeout) {
+                    Ok(Msg::Imu(s)) => runner.imu(s)?,
+                    Ok(Msg::Scan { scan, arrival_ns }) => {
+                        c.scans_queued.fetch_sub(1, Relaxed);
+                        runner.scan(scan, arrival_ns)?;
+                    }
+                    Err(RecvTimeoutError::Disconnected) => break,
+                    Err(RecvTimeoutError::Timeout) => {
+                        if let Some((_, at)) = stopped {
+                            // A FIFO's reader may sit in a blocking read: do not wait for it long.
+                            let imu_done = imu_thread.as_ref().is_none_or(|h| h.is_finished())
+                                || since(t0).saturating_sub(at) > 1_000_000_000;
+                            if decoder.is_finished() && imu_done {
+                                break;
+                            }
                         }
                     }
                 }
-            }
-            let now = since(t0);
-            runner.process_ready(false, Some(now.saturating_sub(wait_ns)))?;
-            if stopped.is_none() {
-                let reason = if stop_signal.load(Relaxed) {
-                    Some(StopReason::Signal)
-                } else if limit_ns.is_some_and(|l| now >= l) {
-                    Some(StopReason::Seconds)
-                } else {
-                    None
-                };
-                if let Some(r) = reason {
-                    stop_rx.store(true, Relaxed);
-                    stopped = Some((r, now));
-                    continue;
-                }
-                let last_lidar = c.last_lidar_ns.load(Relaxed);
-                if last_lidar == 0 && now > lidar_timeout_ns {
-                    return Err(PipelineError(format!(
-                        "no LiDAR packets on UDP {lidar_addr} within {} s: is the sensor on, and sending to this computer's address and port {lidar_port} (its destination IP, the firewall)?",
-                        opt.lidar_timeout_s
-                    )));
-                }
-                if last_lidar != 0 && c.lidar_packets.load(Relaxed) == 0 && now > lidar_timeout_ns {
-                    return Err(PipelineError(format!(
-                        "{} datagrams arrived on UDP {lidar_addr} but none is a {preset} data packet: wrong --preset, --metadata or --lidar-port?",
-                        c.lidar_datagrams.load(Relaxed)
-                    )));
-                }
-                lidar_stall.check(now, last_lidar, lidar_timeout_ns, |s| {
-                    format!("no LiDAR packets on UDP {lidar_addr} for {s:.0} s; still listening")
-                });
-                if last_lidar != 0 {
-                    let noise = c.imu_noise_bytes.load(Relaxed);
-                    imu_stall.check(now, c.last_imu_ns.load(Relaxed), imu_timeout_ns, |s| {
+                let now = since(t0);
+                runner.process_ready(false, Some(now.saturating_sub(wait_ns)))?;
+                if stopped.is_none() {
+                    let reason = if stop_signal.load(Relaxed) {
+                        Some(StopReason::Signal)
+                    } else if limit_ns.is_some_and(|l| now >= l) {
+                        Some(StopReason::Seconds)
+                    } else {
+                        None
+                    };
+                    if let Some(r) = reason {
+                        stop_rx.store(true, Relaxed);
+                        stopped = Some((r, now));
+                        continue;
+                    }
+                    let last_lidar = c.last_lidar_ns.load(Relaxed);
+                    if last_lidar == 0 && now > lidar_timeout_ns {
+                        return Err(PipelineError(format!(
+                            "no LiDAR packets on UDP {lidar_addr} within {} s: is the sensor on, and sending to this computer's address and port {lidar_port} (its destination IP, the firewall)?",
+                            opt.lidar_timeout_s
+                        )));
+                    }
+                    if last_lidar != 0 && c.lidar_packets.load(Relaxed) == 0 && now > lidar_timeout_ns {
+                        return Err(PipelineError(format!(
+                            "{} datagrams arrived on UDP {lidar_addr} but none is a {preset} data packet: wrong --preset, --metadata or --lidar-port?",
+                            c.lidar_datagrams.load(Relaxed)
+                        )));
+                    }
+                    lidar_stall.check(now, last_lidar, lidar_timeout_ns, |s| {
+                        format!("no LiDAR packets on UDP {lidar_addr} for {s:.0} s; still listening")
+                    });
+                    if last_lidar != 0 {
+                        let noise = c.imu_noise_bytes.load(Relaxed);
+                        imu_stall.check(now, c.last_imu_ns.load(Relaxed), imu_timeout_ns, |s| {
                         if c.imu_samples.load(Relaxed) == 0 && noise > 0 {
                             format!(
                                 "{noise} bytes from {imu_source_name} in {s:.0} s but no IMU frame decodes: wrong --baud, or not loglio's IMU board?"
@@ -793,67 +797,72 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                             )
                         }
                     });
+                    }
+                }
+                if now.saturating_sub(last_status.0) >= 1_000_000_000 {
+                    let dt = (now - last_status.0) as f64 * 1e-9;
+                    let datagrams = c.datagrams.load(Relaxed);
+                    let line = {
+                        let mut t = times.borrow_mut();
+                        let n = t.window.len();
+                        let mut line = status_line(
+                            n as f64 / dt,
+                            (datagrams - last_status.1) as f64 / dt,
+                            &t.window,
+                            scan_period_s,
+                            &snapshot(c, &runner.stats, &t),
+                        );
+                        // "live: <status and pose>; <rates, latency, drops>": the status first.
+                        let rest = line.strip_prefix("live: ").unwrap_or(&line).to_string();
+                        line = format!("live: {}; {rest}", pose_phrase(runner.latest.as_ref()));
+                        if !runner.sinks.is_empty() {
+                            line.push_str(&format!("; outputs: {}", runner.sinks.status_phrase()));
+                        }
+                        t.window.clear();
+                        line
+                    };
+                    status.show(line);
+                    last_status = (now, datagrams);
                 }
             }
-            if now.saturating_sub(last_status.0) >= 1_000_000_000 {
-                let dt = (now - last_status.0) as f64 * 1e-9;
-                let datagrams = c.datagrams.load(Relaxed);
-                let line = {
-                    let mut t = times.borrow_mut();
-                    let n = t.window.len();
-                    let mut line = status_line(
-                        n as f64 / dt,
-                        (datagrams - last_status.1) as f64 / dt,
-                        &t.window,
-                        scan_period_s,
-                        &snapshot(c, &runner.stats, &t),
-                    );
-                    // "live: <status and pose>; <rates, latency, drops>": the status first.
-                    let rest = line.strip_prefix("live: ").unwrap_or(&line).to_string();
-                    line = format!("live: {}; {rest}", pose_phrase(runner.latest.as_ref()));
-                    if !runner.sinks.is_empty() {
-                        line.push_str(&format!("; outputs: {}", runner.sinks.status_phrase()));
-                    }
-                    t.window.clear();
-                    line
-                };
-                status.show(line);
-                last_status = (now, datagrams);
+            drop(status);
+            for h in receivers {
+                let _ = h.join();
             }
-        }
-        drop(status);
-        for h in receivers {
-            let _ = h.join();
-        }
-        let _ = decoder.join();
-        let stopped_by = stopped.map_or(StopReason::Signal, |(r, _)| r);
-        runner.process_ready(true, None)?;
-        let counts = snapshot(c, &runner.stats, &times.borrow());
-        if counts.lidar_packets == 0 {
-            return Err(PipelineError(format!(
-                "no LiDAR packets arrived on UDP {lidar_addr} during the run ({} datagrams)",
-                counts.datagrams
-            )));
-        }
-        if runner.stats.imu_in == 0 {
-            return Err(PipelineError(format!(
-                "no IMU data arrived from {imu_source_name} during the run ({} LiDAR packets, {} scans): check the device{}",
-                counts.lidar_packets,
-                runner.stats.scans,
-                if imu == LiveImu::OusterPackets { "'s IMU port" } else { ", its --baud and the IMU board" }
-            )));
-        }
-        if runner.stats.scans == 0 {
-            return Err(PipelineError(format!(
-                "no complete LiDAR scan in {:.1} s ({} packets decoded)",
-                since(t0) as f64 * 1e-9,
-                counts.lidar_packets
-            )));
-        }
-        let (stats, finished) = runner.finish()?;
-        let result_latency = std::mem::take(&mut times.borrow_mut().result);
-        Ok((stats, finished, counts, stopped_by, result_latency))
-    })??;
+            let _ = decoder.join();
+            let stopped_by = stopped.map_or(StopReason::Signal, |(r, _)| r);
+            runner.process_ready(true, None)?;
+            let counts = snapshot(c, &runner.stats, &times.borrow());
+            if counts.lidar_packets == 0 {
+                return Err(PipelineError(format!(
+                    "no LiDAR packets arrived on UDP {lidar_addr} during the run ({} datagrams)",
+                    counts.datagrams
+                )));
+            }
+            if runner.stats.imu_in == 0 {
+                return Err(PipelineError(format!(
+                    "no IMU data arrived from {imu_source_name} during the run ({} LiDAR packets, {} scans): check the device{}",
+                    counts.lidar_packets,
+                    runner.stats.scans,
+                    if imu == LiveImu::OusterPackets {
+                        "'s IMU port"
+                    } else {
+                        ", its --baud and the IMU board"
+                    }
+                )));
+            }
+            if runner.stats.scans == 0 {
+                return Err(PipelineError(format!(
+                    "no complete LiDAR scan in {:.1} s ({} packets decoded)",
+                    since(t0) as f64 * 1e-9,
+                    counts.lidar_packets
+                )));
+            }
+            let (stats, finished) = runner.finish()?;
+            let result_latency = std::mem::take(&mut times.borrow_mut().result);
+            Ok((stats, finished, counts, stopped_by, result_latency))
+        },
+    )??;
     let (stats, finished, counts, stopped_by, result_latency) = res;
     Ok(LiveReport {
         stats,

@@ -25,7 +25,7 @@
 
 use std::time::Instant;
 
-use loglio_core::association::AssociationConfig;
+use loglio_core::association::{AssociationConfig, KnnScratch};
 use loglio_core::downsample::DownsampleConfig;
 use loglio_core::eskf::EskfConfig;
 use loglio_core::imu::{ImuInitConfig, ImuNoise, ImuPush, ImuSample};
@@ -33,6 +33,7 @@ use loglio_core::odometry::{
     AssociationMode as CoreMode, Clock, Odometry, OdometryConfig, OdometryError, OdometryStorage,
 };
 use loglio_core::output::ScanResult;
+use loglio_core::parallel::{Job, Parallel};
 use loglio_core::range_image::{MAX_COLS, MAX_ROWS, RangeImageLayout};
 use loglio_core::ring_fals::storage_pixels;
 use loglio_core::scan::ScanView;
@@ -335,13 +336,52 @@ pub fn boxed_storage<T: Send + 'static>(make: fn() -> T) -> Result<Box<T>, Pipel
 
 fn run_class<const PIX: usize, const PTS: usize, const DS: usize, const V: usize, const I: usize, R>(
     cfg: &OdometryConfig,
+    threads: usize,
     f: impl FnOnce(&mut dyn Engine) -> R,
 ) -> Result<R, PipelineError> {
     let mut storage = boxed_storage(OdometryStorage::<PIX, PTS, DS, V, I>::new)?;
     let bytes = OdometryStorage::<PIX, PTS, DS, V, I>::bytes();
-    let odo = storage.odometry(cfg).map_err(odometry_error)?;
+    let pool = ScopedThreads::new(threads);
+    let mut scratch = vec![KnnScratch::new(); pool.width().saturating_sub(1)];
+    let mut odo = storage.odometry(cfg).map_err(odometry_error)?;
+    if pool.width() > 1 {
+        odo.set_parallel(&pool, &mut scratch);
+    }
     let mut engine = CoreEngine { odo, bytes };
     Ok(f(&mut engine))
+}
+
+/// The core's parallel work ([`loglio_core::parallel`]) on scoped threads: the first job on
+/// the calling thread, each other on a thread of its own for the call (spawning costs tens of
+/// microseconds a thread, against milliseconds of search).
+#[derive(Clone, Copy, Debug)]
+pub struct ScopedThreads {
+    width: usize,
+}
+
+impl ScopedThreads {
+    /// Up to `width` jobs at once (1..=[`loglio_core::parallel::MAX_WIDTH`]).
+    pub fn new(width: usize) -> Self {
+        Self { width: width.clamp(1, loglio_core::parallel::MAX_WIDTH) }
+    }
+}
+
+impl Parallel for ScopedThreads {
+    fn width(&self) -> usize {
+        self.width
+    }
+    fn run(&self, jobs: &mut [Job<'_>]) {
+        match jobs {
+            [] => {}
+            [only] => only(),
+            [first, rest @ ..] => std::thread::scope(|s| {
+                for j in rest.iter_mut() {
+                    s.spawn(j);
+                }
+                first();
+            }),
+        }
+    }
 }
 
 fn odometry_error(e: OdometryError) -> PipelineError {
@@ -353,16 +393,18 @@ fn odometry_error(e: OdometryError) -> PipelineError {
 pub fn with_engine<R>(
     cfg: &OdometryConfig,
     class: StorageClass,
+    threads: usize,
     f: impl FnOnce(&mut dyn Engine) -> R,
 ) -> Result<R, PipelineError> {
+    let t = threads;
     match class {
-        StorageClass::Small => run_class::<SMALL_PIX, SMALL_PTS, SMALL_DS, POOL, { 2 * POOL }, R>(cfg, f),
+        StorageClass::Small => run_class::<SMALL_PIX, SMALL_PTS, SMALL_DS, POOL, { 2 * POOL }, R>(cfg, t, f),
         StorageClass::SmallBigMap => {
-            run_class::<SMALL_PIX, SMALL_PTS, SMALL_DS, BIG_POOL, { 2 * BIG_POOL }, R>(cfg, f)
+            run_class::<SMALL_PIX, SMALL_PTS, SMALL_DS, BIG_POOL, { 2 * BIG_POOL }, R>(cfg, t, f)
         }
-        StorageClass::Large => run_class::<LARGE_PIX, LARGE_PTS, LARGE_DS, POOL, { 2 * POOL }, R>(cfg, f),
+        StorageClass::Large => run_class::<LARGE_PIX, LARGE_PTS, LARGE_DS, POOL, { 2 * POOL }, R>(cfg, t, f),
         StorageClass::LargeBigMap => {
-            run_class::<LARGE_PIX, LARGE_PTS, LARGE_DS, BIG_POOL, { 2 * BIG_POOL }, R>(cfg, f)
+            run_class::<LARGE_PIX, LARGE_PTS, LARGE_DS, BIG_POOL, { 2 * BIG_POOL }, R>(cfg, t, f)
         }
     }
 }

@@ -125,7 +125,9 @@ pub fn drive(
     let core = engine::odometry_config(cfg, layout)?;
     let outputs = Outputs::new(opts.outputs)?;
     let RunOptions { sinks, stop, cpu_clock, before_finish, .. } = opts;
-    engine::with_engine(&core, class, |engine| {
+    // Timed by the thread's CPU time, the other threads' share would go unseen: one thread.
+    let threads = if cpu_clock { 1 } else { cfg.compute.resolved_threads() };
+    engine::with_engine(&core, class, threads, |engine| {
         let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
         runner.sinks = sinks;
         if cpu_clock {

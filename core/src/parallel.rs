@@ -1,0 +1,94 @@
+//! Work in independent ranges, run by the caller's threads.
+//!
+//! The core owns no threads and allocates nothing: where a stage splits into independent
+//! pieces (the association's search, point by point), it builds one job per piece over
+//! disjoint slices and hands them to a [`Parallel`] the caller supplies (the host's thread pool;
+//! [`Sequential`] runs them one after another). Each piece writes only its own slots and the
+//! results are combined in piece order, so the output is bit-identical for any width.
+
+/// One job: runs once, on any thread.
+pub type Job<'a> = &'a mut (dyn FnMut() + Send);
+
+/// Runs independent jobs, e.g. on a pool of threads.
+pub trait Parallel: Sync {
+    /// How many jobs it runs at once; the core splits work into at most this many pieces
+    /// (1: no split).
+    fn width(&self) -> usize;
+    /// Runs every job exactly once and returns when all have finished.
+    fn run(&self, jobs: &mut [Job<'_>]);
+}
+
+/// Runs the jobs one after another on the calling thread.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Sequential;
+
+impl Parallel for Sequential {
+    fn width(&self) -> usize {
+        1
+    }
+    fn run(&self, jobs: &mut [Job<'_>]) {
+        for j in jobs.iter_mut() {
+            j();
+        }
+    }
+}
+
+/// The most pieces a stage is split into.
+pub const MAX_WIDTH: usize = 8;
+
+/// `n` items in `pieces` contiguous ranges whose starts are multiples of `align` (so that the
+/// pieces' inner chunking matches the sequential one), the first ones longer; empty ranges are
+/// left out. Returns the ends of the ranges.
+pub fn split(n: usize, pieces: usize, align: usize) -> heapless::Vec<usize, MAX_WIDTH> {
+    let mut ends = heapless::Vec::new();
+    let align = align.max(1);
+    let blocks = n.div_ceil(align);
+    let pieces = pieces.clamp(1, MAX_WIDTH).min(blocks.max(1));
+    let mut done = 0;
+    for p in 0..pieces {
+        let take = blocks / pieces + usize::from(p < blocks % pieces);
+        done = (done + take * align).min(n);
+        if ends.last() != Some(&done) {
+            // Cannot fail: at most MAX_WIDTH pieces.
+            let _ = ends.push(done);
+        }
+    }
+    ends
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn splits_cover_everything_on_aligned_starts() {
+        for n in [0usize, 1, 63, 64, 65, 500, 4096, 10_000] {
+            for pieces in 1..=MAX_WIDTH + 2 {
+                let ends = split(n, pieces, 64);
+                assert!(ends.len() <= pieces.min(MAX_WIDTH), "{n} {pieces} {ends:?}");
+                assert_eq!(ends.last().copied().unwrap_or(0), n, "{n} {pieces} {ends:?}");
+                let mut start = 0;
+                for &e in &ends {
+                    assert!(e > start || n == 0, "{n} {pieces} {ends:?}");
+                    assert_eq!(start % 64, 0, "{n} {pieces} {ends:?}");
+                    start = e;
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn sequential_runs_each_job_once() {
+        let mut hits = [0u32; 3];
+        {
+            let (a, rest) = hits.split_at_mut(1);
+            let (b, c) = rest.split_at_mut(1);
+            let mut ja = || a[0] += 1;
+            let mut jb = || b[0] += 1;
+            let mut jc = || c[0] += 1;
+            let mut jobs: [Job<'_>; 3] = [&mut ja, &mut jb, &mut jc];
+            Sequential.run(&mut jobs);
+        }
+        assert_eq!(hits, [1, 1, 1]);
+    }
+}
