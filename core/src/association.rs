@@ -63,15 +63,29 @@
 
 use nalgebra::Vector3;
 
+use crate::clock::Clock;
 use crate::downsample::normal_is_valid;
 use crate::eskf::{InfoAccumulator, Measurements, PointToPlane, State};
-use crate::odometry::{AssociationMode, Clock};
 use crate::output::AssociationCounts;
 use crate::scan::ScanPoint;
 use crate::surfel::{self, PLANE_LANES, SurfelReject};
 use crate::voxel_map::{
     KNN_MAX, KnnQuery, KnnReach, LargeMerge, LargeSurfel, Neighbours, VoxelHandle, VoxelMap,
 };
+
+/// Which association the update uses (the paper's ablation).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum AssociationMode {
+    /// LOG-LIO: visibility and consistency checks, then large surfel, small surfel,
+    /// point-to-plane.
+    #[default]
+    Full,
+    /// The paper's LOG-C: the checks and point-to-plane only (no surfels).
+    PlaneOnly,
+    /// No normals and no checks: point-to-plane as FAST-LIO2 does it.
+    Plain,
+}
 
 type V3 = Vector3<f64>;
 

@@ -22,6 +22,7 @@
 //! | the per-scan pipeline | [`odometry`] |
 //! | IMU outliers (beyond full scale, spikes, wrong stamps) | [`imu_guard`] |
 //! | re-localisation in the map after a LiDAR gap or when lost | [`relocalise`] |
+//! | the caller's clock for stage timing | [`clock`] |
 #![no_std]
 #![cfg_attr(not(test), forbid(unsafe_code))]
 
@@ -29,6 +30,7 @@
 mod fmt;
 
 pub mod association;
+pub mod clock;
 pub mod downsample;
 pub mod eskf;
 pub mod imu;
