@@ -355,7 +355,7 @@ impl Scenario {
     /// `None` for an Ouster scenario. For decoder round-trip tests.
     pub fn velodyne_packet(&self, k: u64) -> Option<(Vec<u8>, Vec<crate::lidar::velodyne::TruthPoint>)> {
         match &self.firmware {
-            Firmware::Velodyne(v) => Some(crate::stream::velodyne_packet(v, k, &mut self.echo_source())),
+            Firmware::Velodyne(v) => Some(crate::packet::velodyne_packet(v, k, &mut self.echo_source())),
             Firmware::Ouster(_) => None,
         }
     }
@@ -364,7 +364,7 @@ impl Scenario {
     /// Velodyne scenario.
     pub fn ouster_packet(&self, k: u64) -> Option<(Vec<u8>, Vec<crate::lidar::ouster::OusterTruth>)> {
         match &self.firmware {
-            Firmware::Ouster(o) => Some(crate::stream::ouster_packet(o, k, &mut self.echo_source())),
+            Firmware::Ouster(o) => Some(crate::packet::ouster_packet(o, k, &mut self.echo_source())),
             Firmware::Velodyne(_) => None,
         }
     }
