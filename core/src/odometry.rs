@@ -779,7 +779,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         let after_long_gap = rc.after_gap_s > 0.0 && gap_s > rc.after_gap_s;
         if after_long_gap && reinit.is_none() {
             let a = rc.dead_reckoning_acc_std;
-            f.widen_position((0.5 * a * gap_s * gap_s).powi(2));
+            let d = 0.5 * a * gap_s * gap_s;
+            f.widen_position(d * d);
         }
         if m > 0 {
             // Cannot fail: the trajectory holds the end knot and the slices have equal lengths.
@@ -831,7 +832,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 let t_wl = r * x.ext_pos + x.pos;
                 let p = f.covariance();
                 let var = (0..3).map(|k| p[(idx::POS + k, idx::POS + k)]).fold(0.0f64, f64::max);
-                let window = (3.0 * var.sqrt()) as f32;
+                let window = (3.0 * crate::math::sqrt(var)) as f32;
                 let window = window.max(2.0 * self.cfg.map.voxel_size);
                 let found = relocalise::search(&rc, &self.map, &st.points[..measured], &r_wl, &t_wl, window);
                 if found.moved {

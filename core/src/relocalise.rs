@@ -155,7 +155,7 @@ pub fn search(
     // Coarse: a grid of the voxel size over the window, coarser where the window needs more
     // than `max_steps` of them (z: one step each way, where the window allows).
     let step = voxel.max(window / cfg.max_steps.max(1) as f32);
-    let steps = ((window / step).ceil() as i32).clamp(0, cfg.max_steps as i32);
+    let steps = (libm::ceilf(window / step) as i32).clamp(0, cfg.max_steps as i32);
     let zsteps = i32::from(window >= step);
     let mut best = (sample.occupancy(map, &zero), zero);
     out.candidates = 1;
