@@ -30,7 +30,7 @@ use loglio_core::range_image::RangeImageLayout;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
 use crate::imu_board::{BoardConfig, Discard, ImuBoard};
-use crate::imu_chip::{I2C_ADDRESS, Icm42688, ImuNoise, MockI2c};
+use crate::imu_chip::{ChipNoise, I2C_ADDRESS, Icm42688, MockI2c};
 use crate::lidar::ouster::{Ouster, OusterConfig};
 use crate::lidar::scanner::{DirectScanner, Firmware, SimScan, WorldEchoes};
 use crate::lidar::velodyne::{Velodyne, VelodyneConfig};
@@ -147,7 +147,7 @@ pub struct ScenarioConfig {
     /// Pose of the LiDAR (its output frame) in the IMU frame.
     pub extrinsic: Isometry3<f64>,
     /// IMU noise figures.
-    pub imu_noise: ImuNoise,
+    pub imu_noise: ChipNoise,
     /// IMU board settings (full scales, rate).
     pub imu_board: BoardConfig,
     /// Time of the first IMU sample after t = 0, ns (so samples do not coincide with firings).
@@ -167,7 +167,7 @@ impl ScenarioConfig {
             start_unix_ns: DEFAULT_START_UNIX_NS,
             lidar: LidarConfig::default_for(sensor),
             extrinsic: default_extrinsic(),
-            imu_noise: ImuNoise::icm42688p(),
+            imu_noise: ChipNoise::icm42688p(),
             imu_board: BoardConfig::default(),
             imu_phase_ns: 1_250_000,
             threads: std::thread::available_parallelism().map_or(1, |n| n.get().min(4)),
