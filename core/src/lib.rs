@@ -26,6 +26,10 @@
 #![no_std]
 #![cfg_attr(not(test), forbid(unsafe_code))]
 
+// clap's derive names `::std` paths.
+#[cfg(feature = "clap")]
+extern crate std;
+
 #[macro_use]
 mod fmt;
 

@@ -9,7 +9,7 @@ use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKind};
 use nalgebra::Isometry3;
 
-use crate::config::{AssociationMode, Config, KnnSearch, Preset};
+use crate::config::{AssociationMode, Config, KnnReach, Preset};
 use crate::error::PipelineError;
 use crate::eval::{self, Trajectory};
 use crate::output::Progress;
@@ -34,7 +34,7 @@ pub struct SimOptions {
     /// Measurement budget (`mapping.max_points`; 0: every downsampled point).
     pub max_points: u64,
     /// The association's k-NN (`mapping.knn_search`).
-    pub knn_search: KnnSearch,
+    pub knn_search: KnnReach,
     /// Output directory (`None`: write nothing).
     pub out: Option<PathBuf>,
     /// Show a progress bar (on a terminal).
@@ -313,10 +313,9 @@ mod tests {
         let err = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nmax_points = -1\n").unwrap_err();
         assert!(err.0.contains("mapping.max_points"), "{}", err.0);
         // The exact k-NN unless asked for; `mapping.knn_search` reaches the association.
-        use loglio_core::voxel_map::KnnReach;
-        assert_eq!(core.association.knn_reach, KnnReach::Neighbourhood);
+        assert_eq!(core.association.knn_reach, KnnReach::Exact);
         let file = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nknn_search = \"block\"\n").unwrap();
-        assert_eq!(file.mapping.knn_search, KnnSearch::Block);
+        assert_eq!(file.mapping.knn_search, KnnReach::Block);
         let core = crate::run::engine::odometry_config(&file, sc.layout().clone()).unwrap();
         assert_eq!(core.association.knn_reach, KnnReach::Block);
         let err = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nknn_search = \"kd\"\n").unwrap_err();
