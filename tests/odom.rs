@@ -5,7 +5,6 @@
 
 use std::time::Instant;
 
-use loglio_core::imu::ImuNoise;
 use loglio_core::odometry::{AssociationMode, Clock, Odometry, OdometryConfig};
 use loglio_core::output::{ScanResult, Status};
 use loglio_core::scan::ScanView;
@@ -23,13 +22,7 @@ pub fn config_for(sc: &Scenario, mode: AssociationMode) -> OdometryConfig {
     };
     let e = sc.extrinsic();
     let mut cfg = base.with_extrinsic(e.rotation, e.translation.vector).with_mode(mode);
-    let n = sc.config().imu_noise;
-    cfg.eskf.noise = ImuNoise {
-        gyro: n.gyro_density,
-        acc: n.accel_density,
-        gyro_bias_walk: n.gyro_bias_walk,
-        acc_bias_walk: n.accel_bias_walk,
-    };
+    cfg.eskf.noise = sc.config().imu_noise.density;
     cfg
 }
 

@@ -32,7 +32,7 @@ use loglio_core::scan_assembly::{AssemblerConfig, PacketMeta, RawPoint, ScanAsse
 use loglio_core::sensor::imu_frame::FrameDecoder;
 use loglio_core::sensor::ouster as core_ouster;
 use loglio_core::sensor::velodyne::{Config, Decoder, Model};
-use loglio_firmware_sim::imu_chip::{ImuNoise, accel_lsb, gyro_lsb};
+use loglio_firmware_sim::imu_chip::{ChipNoise, accel_lsb, gyro_lsb};
 use loglio_firmware_sim::lidar::ouster::{IMU_IN_SENSOR, LidarMode, Ouster, OusterTruth, Profile};
 use loglio_firmware_sim::lidar::scanner::{Firmware, velodyne_rows};
 use loglio_firmware_sim::lidar::velodyne::{TruthPoint, Velodyne, wrap360};
@@ -429,7 +429,7 @@ fn imu_serial_frames_round_trip_through_the_core_frame_decoder() {
     // 2 s at rest, then 4 s of fast handheld rotation.
     let mut c = ScenarioConfig::new(ScenarioKind::FastRotation, SensorModel::Vlp16, 3);
     c.duration_s = 6.0;
-    c.imu_noise = ImuNoise::none();
+    c.imu_noise = ChipNoise::none();
     let sc = Scenario::from_config(c).unwrap();
     let mut stream = ImuStream::new(&sc, Vec::<u8>::new());
     let sent: Vec<_> = stream.by_ref().collect();
@@ -489,7 +489,7 @@ fn imu_serial_frames_round_trip_through_the_core_frame_decoder() {
 fn ouster_imu_packets_round_trip_through_the_core_decoder() {
     let mut c = ScenarioConfig::new(ScenarioKind::FastRotation, SensorModel::Os1_16, 4);
     c.duration_s = 2.6;
-    c.imu_noise = ImuNoise::none();
+    c.imu_noise = ChipNoise::none();
     if let LidarConfig::Ouster(o) = &mut c.lidar {
         o.mode = LidarMode::M512x10;
     }

@@ -6,7 +6,7 @@ use std::collections::HashMap;
 use std::path::PathBuf;
 
 use loglio_core::range_image::RangeImageLayout;
-use loglio_firmware_sim::imu_chip::ImuNoise;
+use loglio_firmware_sim::imu_chip::ChipNoise;
 use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::lidar::ouster::{self, LidarMode, Profile};
 use loglio_firmware_sim::lidar::scanner::Firmware;
@@ -407,7 +407,7 @@ fn noise_free_imu_integrates_back_to_the_trajectory() {
 /// The board's samples of a vehicle scenario as a zero-order-hold function of time.
 fn held_samples(
     seed: u64,
-    noise: ImuNoise,
+    noise: ChipNoise,
     t_end: f64,
 ) -> (Scenario, impl Fn(f64) -> (Vector3<f64>, Vector3<f64>)) {
     let mut c = ScenarioConfig::new(ScenarioKind::Vehicle, SensorModel::Vlp16, seed);
@@ -433,16 +433,16 @@ fn noisy_imu_drifts_within_the_datasheet_bound() {
     // the runs is the noise's doing and must stay within 5 sigma of what the figures imply:
     // attitude sigma^2 = (b_g T)^2 + N_g^2 T + s_g^2 T^3 / 3 per axis; velocity: the
     // accelerometer's equivalent terms plus gravity acting through the tilt error.
-    let n = ImuNoise::icm42688p();
+    let n = ChipNoise::icm42688p();
     let (t, dt) = (4.0, 0.005);
     let var_th = (n.gyro_bias_init * t).powi(2)
-        + n.gyro_density.powi(2) * t
-        + n.gyro_bias_walk.powi(2) * t.powi(3) / 3.0;
+        + n.density.gyro.powi(2) * t
+        + n.density.gyro_bias_walk.powi(2) * t.powi(3) / 3.0;
     let var_v = (n.accel_bias_init * t).powi(2)
-        + n.accel_density.powi(2) * t
-        + n.accel_bias_walk.powi(2) * t.powi(3) / 3.0
+        + n.density.acc.powi(2) * t
+        + n.density.acc_bias_walk.powi(2) * t.powi(3) / 3.0
         + GRAVITY.powi(2)
-            * ((n.gyro_bias_init * t * t / 2.0).powi(2) + n.gyro_density.powi(2) * t.powi(3) / 3.0);
+            * ((n.gyro_bias_init * t * t / 2.0).powi(2) + n.density.gyro.powi(2) * t.powi(3) / 3.0);
     // Quantisation differs between the runs: +-0.5 LSB per sample, at most 1 LSB * T.
     let (qg, qa) = (500.0f64.to_radians() / 32768.0, 4.0 * GRAVITY / 32768.0);
     let (bound_th, bound_v) =
@@ -450,7 +450,7 @@ fn noisy_imu_drifts_within_the_datasheet_bound() {
     let mut max_ratio: f64 = 0.0;
     for seed in 0..6u64 {
         let (sc, noisy) = held_samples(100 + seed, n, t);
-        let (_, clean) = held_samples(100 + seed, ImuNoise::none(), t);
+        let (_, clean) = held_samples(100 + seed, ChipNoise::none(), t);
         let k0 = sc.trajectory().eval(0.0);
         let (qn, vn, _) = strapdown(&k0, t, dt, noisy);
         let (qc, vc, _) = strapdown(&k0, t, dt, clean);

@@ -65,9 +65,9 @@ use nalgebra::{Matrix3, Vector3};
 
 type M3 = Matrix3<f64>;
 
+use crate::clock::Clock;
 use crate::downsample::normal_is_valid;
 use crate::eskf::{InfoAccumulator, Measurements, PointToPlane, State};
-use crate::odometry::{AssociationMode, Clock};
 use crate::output::AssociationCounts;
 use crate::parallel::{self, Parallel};
 use crate::scan::ScanPoint;
@@ -75,6 +75,30 @@ use crate::surfel::{self, PLANE_LANES, SurfelReject};
 use crate::voxel_map::{
     KNN_MAX, KnnQuery, KnnReach, LargeMerge, LargeSurfel, Neighbours, VoxelHandle, VoxelMap,
 };
+
+/// Which association the update uses (the paper's ablation). The one definition: the host's
+/// config key `mapping.association` and its `--mode` take it as is (`full`, `plane-only`,
+/// `plain`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
+pub enum AssociationMode {
+    /// LOG-LIO: visibility and consistency checks, then large surfel, small surfel,
+    /// point-to-plane.
+    #[default]
+    #[cfg_attr(
+        feature = "clap",
+        value(help = "LOG-LIO: surfels and point-to-plane behind the normal checks")
+    )]
+    Full,
+    /// The paper's LOG-C: the checks and point-to-plane only (no surfels).
+    #[cfg_attr(feature = "clap", value(help = "LOG-C: point-to-plane behind the normal checks"))]
+    PlaneOnly,
+    /// No normals and no checks: point-to-plane as FAST-LIO2 does it.
+    #[cfg_attr(feature = "clap", value(help = "FAST-LIO2-like point-to-plane, no normals"))]
+    Plain,
+}
 
 type V3 = Vector3<f64>;
 
@@ -123,7 +147,7 @@ pub struct AssociationConfig {
     pub research_pos: f64,
     /// ... or its rotation by more than this, rad.
     pub research_rot: f64,
-    /// Which map voxels the k-NN searches. Default [`KnnReach::Neighbourhood`] (exact within
+    /// Which map voxels the k-NN searches. Default [`KnnReach::Exact`] (exact within
     /// the 27 around the point). [`KnnReach::Block`] takes 0.9x the association's time on the
     /// simulated VLP-32C drive with the same errors on well-posed scenes, but its more local
     /// neighbours let the scans drag the vehicle along a featureless corridor's axis (26.9 m
@@ -148,7 +172,7 @@ impl AssociationConfig {
         max_points: 0,
         research_pos: 0.05,
         research_rot: 0.005,
-        knn_reach: KnnReach::Neighbourhood,
+        knn_reach: KnnReach::Exact,
     };
 
     /// Whether every setting is usable (the name of the first that is not).

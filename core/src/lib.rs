@@ -22,13 +22,19 @@
 //! | the per-scan pipeline | [`odometry`] |
 //! | IMU outliers (beyond full scale, spikes, wrong stamps) | [`imu_guard`] |
 //! | re-localisation in the map after a LiDAR gap or when lost | [`relocalise`] |
+//! | the caller's clock for stage timing | [`clock`] |
 #![no_std]
 #![cfg_attr(not(test), forbid(unsafe_code))]
+
+// clap's derive names `::std` paths.
+#[cfg(feature = "clap")]
+extern crate std;
 
 #[macro_use]
 mod fmt;
 
 pub mod association;
+pub mod clock;
 pub mod downsample;
 pub mod eskf;
 pub mod imu;

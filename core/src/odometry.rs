@@ -70,6 +70,10 @@
 
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
 
+// Re-exported: the odometry's paths to these stay valid.
+pub use crate::association::AssociationMode;
+pub use crate::clock::{Clock, NoClock};
+
 use crate::association::{AssociationConfig, Correspondence, KNN_CHUNK, KnnScratch, ScanAssociation};
 use crate::downsample::{DownsampleConfig, INVALID_NORMAL, VoxelDownsampler, normal_is_valid};
 use crate::eskf::{Eskf, EskfConfig, Predicted, PropagationFlags, UpdateOutcome, UpdateResult, idx};
@@ -165,20 +169,6 @@ impl IntegrityConfig {
         restart_after: 50,
         relocalise: RelocaliseConfig::DEFAULT,
     };
-}
-
-/// Which association the update uses (the paper's ablation).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub enum AssociationMode {
-    /// LOG-LIO: visibility and consistency checks, then large surfel, small surfel,
-    /// point-to-plane.
-    #[default]
-    Full,
-    /// The paper's LOG-C: the checks and point-to-plane only (no surfels).
-    PlaneOnly,
-    /// No normals and no checks: point-to-plane as FAST-LIO2 does it.
-    Plain,
 }
 
 /// Everything the pipeline needs to know. Presets for the two paper setups:
@@ -801,8 +791,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         let after_long_gap = rc.after_gap_s > 0.0 && gap_s > rc.after_gap_s;
         if after_long_gap && reinit.is_none() {
             let a = rc.dead_reckoning_acc_std;
-            let sd = 0.5 * a * gap_s * gap_s;
-            f.widen_position(sd * sd);
+            let d = 0.5 * a * gap_s * gap_s;
+            f.widen_position(d * d);
         }
         if m > 0 {
             // Cannot fail: the trajectory holds the end knot and the slices have equal lengths.
@@ -1130,22 +1120,6 @@ fn reseed_after_jump(f: &mut Eskf, before_ns: u64) {
         p[(idx::ROT + k, idx::ROT + k)] += s.rough_tilt * s.rough_tilt;
     }
     *f = Eskf::from_state(cfg, x, p, f.time_ns(), f.held_sample().copied(), f.acc_scale());
-}
-
-/// A monotonic clock the caller lends for stage timing (the core has none).
-pub trait Clock {
-    /// Now, nanoseconds (any origin).
-    fn now_ns(&mut self) -> u64;
-}
-
-/// A clock that always reads 0 (no timing).
-#[derive(Clone, Copy, Debug, Default)]
-pub struct NoClock;
-
-impl Clock for NoClock {
-    fn now_ns(&mut self) -> u64 {
-        0
-    }
 }
 
 #[cfg(test)]

@@ -183,12 +183,12 @@ mod tests {
     use loglio_core::sensor::imu_frame::FrameDecoder;
 
     use super::*;
-    use crate::imu_chip::{I2C_ADDRESS, Icm42688, ImuNoise, MockI2c};
+    use crate::imu_chip::{ChipNoise, I2C_ADDRESS, Icm42688, MockI2c};
 
     #[test]
     fn frames_round_trip_through_the_core_decoder() {
         let mut board = ImuBoard::new(
-            MockI2c::new(Icm42688::new(ImuNoise::icm42688p(), 3), I2C_ADDRESS),
+            MockI2c::new(Icm42688::new(ChipNoise::icm42688p(), 3), I2C_ADDRESS),
             Vec::new(),
             I2C_ADDRESS,
         );
@@ -229,7 +229,7 @@ mod tests {
     #[test]
     fn wrong_chip_is_reported() {
         let mut board =
-            ImuBoard::new(MockI2c::new(Icm42688::new(ImuNoise::none(), 3), 0x69), Vec::new(), I2C_ADDRESS);
+            ImuBoard::new(MockI2c::new(Icm42688::new(ChipNoise::none(), 3), 0x69), Vec::new(), I2C_ADDRESS);
         assert!(matches!(board.init(BoardConfig::default()), Err(BoardError::Bus(_))));
     }
 }

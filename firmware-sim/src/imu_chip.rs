@@ -31,6 +31,7 @@
 //! read -32768.
 
 use embedded_hal::i2c::{ErrorKind, ErrorType, I2c, NoAcknowledgeSource, Operation, SevenBitAddress};
+use loglio_core::imu::ImuNoise;
 
 use crate::rng::SplitMix64;
 
@@ -64,33 +65,30 @@ pub const WHO_AM_I: u8 = 0x47;
 /// `INT_STATUS` data-ready bit.
 pub const DATA_RDY: u8 = 1 << 3;
 
-/// Noise and bias figures of an IMU, SI units.
+/// The chip's noise: its densities (the figures the filter models, so one type for both) and
+/// its turn-on biases, drawn once per seed.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct ImuNoise {
-    /// Gyroscope white-noise density, rad/s/sqrt(Hz).
-    pub gyro_density: f64,
-    /// Accelerometer white-noise density, m/s^2/sqrt(Hz).
-    pub accel_density: f64,
-    /// Gyroscope bias random walk, rad/s^2/sqrt(Hz).
-    pub gyro_bias_walk: f64,
-    /// Accelerometer bias random walk, m/s^3/sqrt(Hz).
-    pub accel_bias_walk: f64,
+pub struct ChipNoise {
+    /// White noise and bias random walk densities, SI units.
+    pub density: ImuNoise,
     /// Standard deviation of the turn-on gyroscope bias, rad/s.
     pub gyro_bias_init: f64,
     /// Standard deviation of the turn-on accelerometer bias, m/s^2.
     pub accel_bias_init: f64,
 }
 
-impl ImuNoise {
+impl ChipNoise {
     /// The ICM-42688-P figures (see the module documentation).
     pub const fn icm42688p() -> Self {
         const DEG: f64 = core::f64::consts::PI / 180.0;
         const G: f64 = 9.80665;
         Self {
-            gyro_density: 0.0028 * DEG,
-            accel_density: 70e-6 * G,
-            gyro_bias_walk: 0.005 * DEG / 10.0,
-            accel_bias_walk: 0.15e-3 * G / 10.0,
+            density: ImuNoise {
+                gyro: 0.0028 * DEG,
+                acc: 70e-6 * G,
+                gyro_bias_walk: 0.005 * DEG / 10.0,
+                acc_bias_walk: 0.15e-3 * G / 10.0,
+            },
             gyro_bias_init: 0.1 * DEG,
             accel_bias_init: 5e-3 * G,
         }
@@ -99,10 +97,7 @@ impl ImuNoise {
     /// A perfect IMU (quantisation remains).
     pub const fn none() -> Self {
         Self {
-            gyro_density: 0.0,
-            accel_density: 0.0,
-            gyro_bias_walk: 0.0,
-            accel_bias_walk: 0.0,
+            density: ImuNoise { gyro: 0.0, acc: 0.0, gyro_bias_walk: 0.0, acc_bias_walk: 0.0 },
             gyro_bias_init: 0.0,
             accel_bias_init: 0.0,
         }
@@ -182,7 +177,7 @@ pub fn accel_lsb(fs_code: u8) -> f64 {
 pub struct Icm42688 {
     regs: [u8; 128],
     ptr: u8,
-    noise: ImuNoise,
+    noise: ChipNoise,
     rng: SplitMix64,
     gyro_bias: [f64; 3],
     accel_bias: [f64; 3],
@@ -192,7 +187,7 @@ pub struct Icm42688 {
 
 impl Icm42688 {
     /// A chip after power-on, with turn-on biases drawn from `seed`.
-    pub fn new(noise: ImuNoise, seed: u64) -> Self {
+    pub fn new(noise: ChipNoise, seed: u64) -> Self {
         let mut rng = SplitMix64::new(seed, 0x01C4_2688);
         let gyro_bias = core::array::from_fn(|_| rng.gauss() * noise.gyro_bias_init);
         let accel_bias = core::array::from_fn(|_| rng.gauss() * noise.accel_bias_init);
@@ -249,10 +244,10 @@ impl Icm42688 {
         let mut g = [i16::MIN; 3];
         let mut a = [i16::MIN; 3];
         for i in 0..3 {
-            self.gyro_bias[i] += n.gyro_bias_walk / sq * self.rng.gauss();
-            self.accel_bias[i] += n.accel_bias_walk / sq * self.rng.gauss();
-            let gm = gyro[i] + self.gyro_bias[i] + n.gyro_density * sq * self.rng.gauss();
-            let am = accel[i] + self.accel_bias[i] + n.accel_density * sq * self.rng.gauss();
+            self.gyro_bias[i] += n.density.gyro_bias_walk / sq * self.rng.gauss();
+            self.accel_bias[i] += n.density.acc_bias_walk / sq * self.rng.gauss();
+            let gm = gyro[i] + self.gyro_bias[i] + n.density.gyro * sq * self.rng.gauss();
+            let am = accel[i] + self.accel_bias[i] + n.density.acc * sq * self.rng.gauss();
             if gyro_on {
                 g[i] = quantise(gm / glsb);
             }
@@ -390,7 +385,7 @@ mod tests {
 
     #[test]
     fn registers_identity_config_and_burst() {
-        let mut bus = MockI2c::new(Icm42688::new(ImuNoise::none(), 1), I2C_ADDRESS);
+        let mut bus = MockI2c::new(Icm42688::new(ChipNoise::none(), 1), I2C_ADDRESS);
         let mut id = [0u8];
         bus.write_read(I2C_ADDRESS, &[reg::WHO_AM_I], &mut id).unwrap();
         assert_eq!(id[0], WHO_AM_I);
@@ -426,7 +421,7 @@ mod tests {
 
     #[test]
     fn white_noise_and_bias_walk_have_datasheet_statistics() {
-        let noise = ImuNoise { gyro_bias_init: 0.0, accel_bias_init: 0.0, ..ImuNoise::icm42688p() };
+        let noise = ChipNoise { gyro_bias_init: 0.0, accel_bias_init: 0.0, ..ChipNoise::icm42688p() };
         let mut chip = Icm42688::new(noise, 9);
         chip.write_reg(reg::GYRO_CONFIG0, (GyroFs::Dps250 as u8) << 5 | Odr::Hz200 as u8);
         chip.write_reg(reg::ACCEL_CONFIG0, (AccelFs::G2 as u8) << 5 | Odr::Hz200 as u8);
@@ -440,8 +435,8 @@ mod tests {
         }
         // Expected sigma: density * sqrt(200 Hz) (bias walk adds < 1 % over 100 s); quantisation
         // adds lsb^2/12.
-        let eg = noise.gyro_density.powi(2) * 200.0 + chip.gyro_lsb().powi(2) / 12.0;
-        let ea = noise.accel_density.powi(2) * 200.0 + chip.accel_lsb().powi(2) / 12.0;
+        let eg = noise.density.gyro.powi(2) * 200.0 + chip.gyro_lsb().powi(2) / 12.0;
+        let ea = noise.density.acc.powi(2) * 200.0 + chip.accel_lsb().powi(2) / 12.0;
         assert!((sg / n as f64 / eg - 1.0).abs() < 0.06, "{} vs {eg}", sg / n as f64);
         assert!((sa / n as f64 / ea - 1.0).abs() < 0.06, "{} vs {ea}", sa / n as f64);
         // Bias random walk: after 100 s the bias spread over many chips is sigma_bw * 10 s^0.5.
@@ -455,7 +450,7 @@ mod tests {
             }
             s2 += c.biases().0[2].powi(2);
         }
-        let expect = noise.gyro_bias_walk.powi(2) * 100.0;
+        let expect = noise.density.gyro_bias_walk.powi(2) * 100.0;
         assert!((s2 / chips as f64 / expect - 1.0).abs() < 0.35, "{} vs {expect}", s2 / chips as f64);
     }
 }

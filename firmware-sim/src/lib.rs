@@ -18,6 +18,8 @@ pub mod lidar;
 #[cfg(not(target_os = "none"))]
 pub mod live;
 #[cfg(not(target_os = "none"))]
+mod packet;
+#[cfg(not(target_os = "none"))]
 pub mod pcap_out;
 #[cfg(not(target_os = "none"))]
 pub mod raycast;

@@ -1,7 +1,9 @@
 //! A classic libpcap writer (microsecond timestamps, Ethernet link type) that wraps UDP
 //! payloads in Ethernet II / IPv4 / UDP headers with valid checksums, as a capture on the
 //! sensor's network would show them. Datagrams are written unfragmented (as captured on a
-//! loopback or jumbo-frame interface; Ouster packets exceed a 1500-byte MTU).
+//! loopback or jumbo-frame interface; Ouster packets exceed a 1500-byte MTU), or as IPv4
+//! fragments with [`PcapWriter::write_udp_fragments`]. The one pcap writer of the workspace: the
+//! host's reader tests write their captures with it too.
 
 use std::io::{self, Write};
 
@@ -63,6 +65,49 @@ fn fold(mut sum: u32) -> u16 {
     !(sum as u16)
 }
 
+/// A UDP datagram (header with its checksum over the pseudo-header, then `payload`).
+fn udp_datagram(ep: &Endpoint, src_port: u16, dst_port: u16, payload: &[u8]) -> Vec<u8> {
+    let udp_len = 8 + payload.len();
+    let mut u = Vec::with_capacity(udp_len);
+    u.extend_from_slice(&src_port.to_be_bytes());
+    u.extend_from_slice(&dst_port.to_be_bytes());
+    u.extend_from_slice(&(udp_len as u16).to_be_bytes());
+    u.extend_from_slice(&[0, 0]);
+    u.extend_from_slice(payload);
+    let mut pseudo = [0u8; 12];
+    pseudo[..4].copy_from_slice(&ep.src_ip);
+    pseudo[4..8].copy_from_slice(&ep.dst_ip);
+    pseudo[9] = 17;
+    pseudo[10..12].copy_from_slice(&(udp_len as u16).to_be_bytes());
+    let cs = fold(ones_complement_sum(ones_complement_sum(0, &pseudo), &u));
+    // 0 means "no checksum": a computed 0 is sent as 0xFFFF.
+    let cs = if cs == 0 { 0xFFFF } else { cs };
+    u[6..8].copy_from_slice(&cs.to_be_bytes());
+    u
+}
+
+/// An Ethernet II broadcast frame with an IPv4 header (protocol UDP; `flags`: the flags and
+/// fragment offset field) around `body`.
+fn ipv4_frame(ep: &Endpoint, id: u16, flags: u16, body: &[u8]) -> Vec<u8> {
+    let ip_len = 20 + body.len();
+    let mut f = Vec::with_capacity(14 + ip_len);
+    f.extend_from_slice(&[0xFF; 6]);
+    f.extend_from_slice(&ep.src_mac);
+    f.extend_from_slice(&0x0800u16.to_be_bytes());
+    let ip0 = f.len();
+    f.extend_from_slice(&[0x45, 0x00]);
+    f.extend_from_slice(&(ip_len as u16).to_be_bytes());
+    f.extend_from_slice(&id.to_be_bytes());
+    f.extend_from_slice(&flags.to_be_bytes());
+    f.extend_from_slice(&[64, 17, 0, 0]);
+    f.extend_from_slice(&ep.src_ip);
+    f.extend_from_slice(&ep.dst_ip);
+    let cs = fold(ones_complement_sum(0, &f[ip0..ip0 + 20]));
+    f[ip0 + 10..ip0 + 12].copy_from_slice(&cs.to_be_bytes());
+    f.extend_from_slice(body);
+    f
+}
+
 impl<W: Write> PcapWriter<W> {
     /// Writes the global header.
     pub fn new(mut out: W) -> io::Result<Self> {
@@ -76,40 +121,17 @@ impl<W: Write> PcapWriter<W> {
         Ok(Self { out, ip_id: 0, records: 0 })
     }
 
-    /// The Ethernet frame of a UDP datagram.
+    /// The Ethernet frame of a UDP datagram (unfragmented, "don't fragment" set).
     pub fn frame(&mut self, ep: &Endpoint, src_port: u16, dst_port: u16, payload: &[u8]) -> Vec<u8> {
-        let udp_len = 8 + payload.len();
-        let ip_len = 20 + udp_len;
-        let mut f = Vec::with_capacity(14 + ip_len);
-        f.extend_from_slice(&[0xFF; 6]);
-        f.extend_from_slice(&ep.src_mac);
-        f.extend_from_slice(&0x0800u16.to_be_bytes());
-        let ip0 = f.len();
-        f.extend_from_slice(&[0x45, 0x00]);
-        f.extend_from_slice(&(ip_len as u16).to_be_bytes());
-        f.extend_from_slice(&self.ip_id.to_be_bytes());
+        let udp = udp_datagram(ep, src_port, dst_port, payload);
+        let id = self.next_ip_id();
+        ipv4_frame(ep, id, 0x4000, &udp)
+    }
+
+    fn next_ip_id(&mut self) -> u16 {
+        let id = self.ip_id;
         self.ip_id = self.ip_id.wrapping_add(1);
-        f.extend_from_slice(&[0x40, 0x00, 64, 17, 0, 0]);
-        f.extend_from_slice(&ep.src_ip);
-        f.extend_from_slice(&ep.dst_ip);
-        let cs = fold(ones_complement_sum(0, &f[ip0..ip0 + 20]));
-        f[ip0 + 10..ip0 + 12].copy_from_slice(&cs.to_be_bytes());
-        let udp0 = f.len();
-        f.extend_from_slice(&src_port.to_be_bytes());
-        f.extend_from_slice(&dst_port.to_be_bytes());
-        f.extend_from_slice(&(udp_len as u16).to_be_bytes());
-        f.extend_from_slice(&[0, 0]);
-        f.extend_from_slice(payload);
-        // UDP checksum over the pseudo-header, header and payload (0 is sent as 0xFFFF).
-        let mut pseudo = [0u8; 12];
-        pseudo[..4].copy_from_slice(&ep.src_ip);
-        pseudo[4..8].copy_from_slice(&ep.dst_ip);
-        pseudo[9] = 17;
-        pseudo[10..12].copy_from_slice(&(udp_len as u16).to_be_bytes());
-        let cs = fold(ones_complement_sum(ones_complement_sum(0, &pseudo), &f[udp0..]));
-        let cs = if cs == 0 { 0xFFFF } else { cs };
-        f[udp0 + 6..udp0 + 8].copy_from_slice(&cs.to_be_bytes());
-        f
+        id
     }
 
     /// Writes one UDP datagram captured at `t_ns` (Unix ns).
@@ -122,11 +144,42 @@ impl<W: Write> PcapWriter<W> {
         payload: &[u8],
     ) -> io::Result<()> {
         let frame = self.frame(ep, src_port, dst_port, payload);
+        self.write_frame(t_ns, &frame)
+    }
+
+    /// Writes one UDP datagram as IPv4 fragments of at most `mtu` bytes of IP packet each, as a
+    /// standard-MTU network delivers an Ouster packet (the reader's reassembly is tested on these).
+    pub fn write_udp_fragments(
+        &mut self,
+        t_ns: u64,
+        ep: &Endpoint,
+        (src_port, dst_port): (u16, u16),
+        payload: &[u8],
+        mtu: usize,
+    ) -> io::Result<()> {
+        let udp = udp_datagram(ep, src_port, dst_port, payload);
+        let id = self.next_ip_id();
+        let max_body = (mtu.saturating_sub(20) / 8 * 8).max(8);
+        let mut off = 0;
+        loop {
+            let end = (off + max_body).min(udp.len());
+            let more = end < udp.len();
+            let flags = (off / 8) as u16 | if more { 0x2000 } else { 0 };
+            self.write_frame(t_ns, &ipv4_frame(ep, id, flags, &udp[off..end]))?;
+            if !more {
+                return Ok(());
+            }
+            off = end;
+        }
+    }
+
+    /// Writes one record holding `frame` (any bytes) as captured at `t_ns` (Unix ns).
+    pub fn write_frame(&mut self, t_ns: u64, frame: &[u8]) -> io::Result<()> {
         self.out.write_all(&((t_ns / 1_000_000_000) as u32).to_le_bytes())?;
         self.out.write_all(&(((t_ns / 1_000) % 1_000_000) as u32).to_le_bytes())?;
         self.out.write_all(&(frame.len() as u32).to_le_bytes())?;
         self.out.write_all(&(frame.len() as u32).to_le_bytes())?;
-        self.out.write_all(&frame)?;
+        self.out.write_all(frame)?;
         self.records += 1;
         Ok(())
     }

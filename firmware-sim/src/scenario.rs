@@ -30,7 +30,7 @@ use loglio_core::range_image::RangeImageLayout;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
 use crate::imu_board::{BoardConfig, Discard, ImuBoard};
-use crate::imu_chip::{I2C_ADDRESS, Icm42688, ImuNoise, MockI2c};
+use crate::imu_chip::{ChipNoise, I2C_ADDRESS, Icm42688, MockI2c};
 use crate::lidar::ouster::{Ouster, OusterConfig};
 use crate::lidar::scanner::{DirectScanner, Firmware, SimScan, WorldEchoes};
 use crate::lidar::velodyne::{Velodyne, VelodyneConfig};
@@ -147,7 +147,7 @@ pub struct ScenarioConfig {
     /// Pose of the LiDAR (its output frame) in the IMU frame.
     pub extrinsic: Isometry3<f64>,
     /// IMU noise figures.
-    pub imu_noise: ImuNoise,
+    pub imu_noise: ChipNoise,
     /// IMU board settings (full scales, rate).
     pub imu_board: BoardConfig,
     /// Time of the first IMU sample after t = 0, ns (so samples do not coincide with firings).
@@ -167,7 +167,7 @@ impl ScenarioConfig {
             start_unix_ns: DEFAULT_START_UNIX_NS,
             lidar: LidarConfig::default_for(sensor),
             extrinsic: default_extrinsic(),
-            imu_noise: ImuNoise::icm42688p(),
+            imu_noise: ChipNoise::icm42688p(),
             imu_board: BoardConfig::default(),
             imu_phase_ns: 1_250_000,
             threads: std::thread::available_parallelism().map_or(1, |n| n.get().min(4)),
@@ -355,7 +355,7 @@ impl Scenario {
     /// `None` for an Ouster scenario. For decoder round-trip tests.
     pub fn velodyne_packet(&self, k: u64) -> Option<(Vec<u8>, Vec<crate::lidar::velodyne::TruthPoint>)> {
         match &self.firmware {
-            Firmware::Velodyne(v) => Some(crate::stream::velodyne_packet(v, k, &mut self.echo_source())),
+            Firmware::Velodyne(v) => Some(crate::packet::velodyne_packet(v, k, &mut self.echo_source())),
             Firmware::Ouster(_) => None,
         }
     }
@@ -364,7 +364,7 @@ impl Scenario {
     /// Velodyne scenario.
     pub fn ouster_packet(&self, k: u64) -> Option<(Vec<u8>, Vec<crate::lidar::ouster::OusterTruth>)> {
         match &self.firmware {
-            Firmware::Ouster(o) => Some(crate::stream::ouster_packet(o, k, &mut self.echo_source())),
+            Firmware::Ouster(o) => Some(crate::packet::ouster_packet(o, k, &mut self.echo_source())),
             Firmware::Velodyne(_) => None,
         }
     }

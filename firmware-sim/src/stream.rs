@@ -11,10 +11,11 @@ use loglio_core::sensor::imu_frame::ImuFrame;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 
 use crate::imu_chip::{AccelFs, GyroFs, Icm42688, Odr, reg};
-use crate::lidar::EchoSource;
-use crate::lidar::ouster::{self, IMU_IN_SENSOR, Ouster, OusterTruth};
+use crate::lidar::ouster::{self, IMU_IN_SENSOR};
 use crate::lidar::scanner::{Firmware, WorldEchoes};
-use crate::lidar::velodyne::{self, DATA_PER_POSITION, TruthPoint, Velodyne};
+use crate::lidar::velodyne::{self, DATA_PER_POSITION, Velodyne};
+// Re-exported: `stream::velodyne_packet` and `stream::ouster_packet` stay valid.
+pub use crate::packet::{ouster_packet, velodyne_packet};
 use crate::scenario::{ImuStream, Scenario};
 use crate::trajectory::GRAVITY;
 
@@ -190,24 +191,6 @@ impl<'a> WireStream<'a> {
         let bytes = core::mem::take(self.imu.serial());
         Some(WireEvent { t_ns: t, wire: Wire::Serial(bytes) })
     }
-}
-
-/// Encodes Velodyne data packet `k` with its ground truth (every non-zero data point).
-pub fn velodyne_packet<S: EchoSource>(v: &Velodyne, k: u64, src: &mut S) -> (Vec<u8>, Vec<TruthPoint>) {
-    let mut buf = [0u8; velodyne::DATA_PACKET_LEN];
-    let mut truth = [TruthPoint::default(); velodyne::POINTS_PER_PACKET];
-    let n = v.data_packet(k, src, &mut buf, &mut truth);
-    (buf.to_vec(), truth[..n].to_vec())
-}
-
-/// Encodes Ouster lidar packet `k` with its ground truth (every non-zero pixel).
-pub fn ouster_packet<S: EchoSource>(o: &Ouster, k: u64, src: &mut S) -> (Vec<u8>, Vec<OusterTruth>) {
-    let mut buf = vec![0u8; o.packet_len()];
-    let mut truth = vec![OusterTruth::default(); ouster::COLUMNS_PER_PACKET * o.beams()];
-    // The buffers are sized for this packet: the encoder cannot refuse them.
-    let n = o.lidar_packet(k, src, &mut buf, &mut truth).unwrap_or(0);
-    truth.truncate(n);
-    (buf, truth)
 }
 
 impl Iterator for WireStream<'_> {

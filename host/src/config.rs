@@ -223,29 +223,10 @@ pub enum LidarTimeSource {
     Capture,
 }
 
-/// Data association mode (the paper's ablations).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum AssociationMode {
-    /// LOG-LIO: large surfel, small surfel, point-to-plane, behind visibility and consistency checks.
-    Full,
-    /// LOG-C: plane association with the normal checks, no surfel hierarchy.
-    PlaneOnly,
-    /// No normals and no checks: FAST-LIO2-like point-to-plane.
-    Plain,
-}
-
-/// Which map voxels the association's nearest-neighbour search covers.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum KnnSearch {
-    /// The exact k nearest within the 27 voxels around the point.
-    #[default]
-    Exact,
-    /// The point's 2x2x2 octant block first, the rest only when it holds too few: faster,
-    /// approximate (see docs/estimation.md, "Block k-NN", before using it).
-    Block,
-}
+// The core's settings, with the spellings users type (`full`, `plane-only`, `plain`; `exact`,
+// `block`): one definition each.
+pub use loglio_core::association::AssociationMode;
+pub use loglio_core::voxel_map::KnnReach;
 
 /// `[sensor]`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -385,7 +366,7 @@ pub struct MappingConfig {
     pub association: AssociationMode,
     /// Nearest-neighbour search of the association.
     #[serde(default)]
-    pub knn_search: KnnSearch,
+    pub knn_search: KnnReach,
 }
 
 /// `[filter]`.
@@ -843,7 +824,7 @@ impl Config {
                 map_capacity: 1_000_000,
                 max_points: 0,
                 association: AssociationMode::Full,
-                knn_search: KnnSearch::Exact,
+                knn_search: KnnReach::Exact,
             },
             filter: FilterConfig { max_iterations: 4 },
             compute: ComputeConfig::default(),

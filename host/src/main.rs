@@ -11,7 +11,9 @@ use std::process::ExitCode;
 
 use anyhow::{Context, bail};
 use clap::{Args, Parser, Subcommand, ValueEnum};
-use loglio_host::config::{Config, Preset};
+#[cfg(feature = "sim")]
+use loglio_host::config::KnnReach;
+use loglio_host::config::{AssociationMode, Config, Preset};
 use loglio_host::diag::one_line;
 use loglio_host::eval::{self, Alignment, DeltaUnit, EvalOptions, Format};
 use loglio_host::output;
@@ -60,47 +62,6 @@ enum Command {
     Demo(DemoArgs),
 }
 
-#[derive(Debug, Clone, Copy, ValueEnum)]
-enum ModeArg {
-    /// LOG-LIO: surfels and point-to-plane behind the normal checks.
-    Full,
-    /// LOG-C: point-to-plane behind the normal checks.
-    PlaneOnly,
-    /// FAST-LIO2-like point-to-plane, no normals.
-    Plain,
-}
-
-#[cfg(feature = "sim")]
-/// `mapping.knn_search`.
-#[derive(Debug, Clone, Copy, ValueEnum)]
-enum KnnArg {
-    /// The exact k nearest within the 27 voxels around each point.
-    Exact,
-    /// The point's 2x2x2 octant block first: faster, approximate.
-    Block,
-}
-
-#[cfg(feature = "sim")]
-impl KnnArg {
-    fn host(self) -> loglio_host::config::KnnSearch {
-        match self {
-            KnnArg::Exact => loglio_host::config::KnnSearch::Exact,
-            KnnArg::Block => loglio_host::config::KnnSearch::Block,
-        }
-    }
-}
-
-impl ModeArg {
-    fn host(self) -> loglio_host::config::AssociationMode {
-        use loglio_host::config::AssociationMode as M;
-        match self {
-            ModeArg::Full => M::Full,
-            ModeArg::PlaneOnly => M::PlaneOnly,
-            ModeArg::Plain => M::Plain,
-        }
-    }
-}
-
 #[cfg(feature = "sim")]
 #[derive(Debug, Args)]
 struct SimArgs {
@@ -118,14 +79,14 @@ struct SimArgs {
     seconds: Option<f64>,
     /// Association mode.
     #[arg(long, value_enum)]
-    mode: Option<ModeArg>,
+    mode: Option<AssociationMode>,
     /// Measurement budget (`mapping.max_points`): at most N downsampled points measured per
     /// scan; 0 = all.
     #[arg(long, default_value_t = 0, value_name = "N")]
     max_points: u64,
     /// The association's k-NN (`mapping.knn_search`).
     #[arg(long, value_enum, default_value = "exact")]
-    knn_search: KnnArg,
+    knn_search: KnnReach,
     /// Output directory (trajectory, ground truth, map, per-scan CSV, plots); nothing is written
     /// without it.
     #[arg(long, value_name = "DIR")]
@@ -152,7 +113,7 @@ struct RunArgs {
     preset: Option<String>,
     /// Association mode (overrides the configuration's).
     #[arg(long, value_enum)]
-    mode: Option<ModeArg>,
+    mode: Option<AssociationMode>,
     /// Ouster metadata JSON (overrides sensor.ouster_metadata).
     #[arg(long, value_name = "FILE")]
     metadata: Option<PathBuf>,
@@ -177,7 +138,7 @@ impl RunArgs {
         loglio_host::run::setup::RunSetup {
             config: self.config.clone(),
             preset: self.preset.clone(),
-            mode: self.mode.map(ModeArg::host),
+            mode: self.mode,
             metadata: self.metadata.clone(),
             calibration: self.calibration.clone(),
             out: Some(self.out.clone()),
@@ -267,7 +228,7 @@ struct BenchArgs {
     max_points: u64,
     /// The association's k-NN (`mapping.knn_search`), in both modes.
     #[arg(long, value_enum, default_value = "exact")]
-    knn_search: KnnArg,
+    knn_search: KnnReach,
     /// Threads for the association (`compute.threads`), in both modes; 0 = the available
     /// cores (at most 8).
     #[arg(long, default_value_t = 0, value_name = "N")]
@@ -571,7 +532,7 @@ fn bench_cmd(a: BenchArgs) -> anyhow::Result<()> {
         scenario,
         a.seconds,
         a.max_points,
-        a.knn_search.host(),
+        a.knn_search,
         a.threads,
         !a.json,
     )?;
@@ -634,9 +595,9 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
         sensor,
         seed: a.seed,
         duration_s: a.seconds,
-        mode: a.mode.map(ModeArg::host),
+        mode: a.mode,
         max_points: a.max_points,
-        knn_search: a.knn_search.host(),
+        knn_search: a.knn_search,
         out: a.out,
         progress: !a.realtime,
         realtime: a.realtime.then_some(a.rate),
@@ -663,7 +624,7 @@ fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
         duration_s: Some(a.seconds),
         mode: None,
         max_points: 0,
-        knn_search: loglio_host::config::KnnSearch::Exact,
+        knn_search: KnnReach::Exact,
         out: Some(a.out),
         progress: !a.realtime,
         realtime: a.realtime.then_some(a.rate),

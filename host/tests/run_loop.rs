@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::scenario::{Event as SimEvent, ScenarioKind};
 use loglio_host::cmd::sim::{self, SimOptions};
-use loglio_host::config::KnnSearch;
+use loglio_host::config::KnnReach;
 use loglio_host::eval::{Format, read_trajectory};
 use loglio_host::run::runner::OwnedScan;
 use loglio_host::run::{self, Event, RunOptions};
@@ -31,7 +31,7 @@ fn handheld(seconds: f64) -> SimOptions {
         duration_s: Some(seconds),
         mode: None,
         max_points: 0,
-        knn_search: KnnSearch::Exact,
+        knn_search: KnnReach::Exact,
         out: None,
         progress: false,
         realtime: None,

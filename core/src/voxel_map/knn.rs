@@ -6,22 +6,28 @@ use super::voxel::{rep, rep_d2, rep_normal};
 use super::{KNN_MAX, NO_HINT, OCTANTS, VoxelHandle, VoxelMap, prefetch};
 use crate::surfel::{self, SurfelReject};
 
-/// Which voxels a k-NN query searches.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// Which voxels a k-NN query searches. The one definition: the host's config key
+/// `mapping.knn_search` and its `--knn-search` take it as is (`exact`, `block`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum KnnReach {
     /// The query's voxel and its 26 neighbours: the exact k-NN within them (see
     /// [`VoxelMap::knn`]).
-    Neighbourhood,
+    #[default]
+    #[cfg_attr(feature = "clap", value(help = "The exact k nearest within the 27 voxels around each point"))]
+    Exact,
     /// The query's octant block first: its voxel and the 7 on its side of each face (the 2x2x2
     /// voxels around the query's nearest voxel corner). Every point within half a voxel of the
     /// query lies there. If the block holds `k` points within `max_dist`, they are the answer
     /// (the exact k-NN of the block); else the other 19 voxels are searched as for
-    /// `Neighbourhood`. An approximation in the spirit of Faster-LIO's iVox: a neighbour it
+    /// `Exact`. An approximation in the spirit of Faster-LIO's iVox: a neighbour it
     /// misses is at least half a voxel away, outside the block, and the plane then fitted is
     /// more local. On the simulated VLP-32C vehicle drive it skips 5.2 of the 12.8 boxes a
     /// query visits, and the association takes 0.9x the time (but see
     /// `AssociationConfig::knn_reach` for where it is worse).
+    #[cfg_attr(feature = "clap", value(help = "The point's 2x2x2 octant block first: faster, approximate"))]
     Block,
 }
 
@@ -36,14 +42,14 @@ pub struct KnnQuery {
     /// Take at most one point (its nearest representative) per voxel, so the k results name k
     /// distinct voxels, as the reference's ikd-tree (one point per voxel) gives. Default false.
     pub one_per_voxel: bool,
-    /// Which voxels are searched. Default [`KnnReach::Neighbourhood`] (exact).
+    /// Which voxels are searched. Default [`KnnReach::Exact`] (exact).
     pub reach: KnnReach,
 }
 
 impl KnnQuery {
     /// `k` neighbours within `max_dist`, any number per voxel, exact within the 27 voxels.
     pub const fn new(k: usize, max_dist: f32) -> Self {
-        Self { k, max_dist, one_per_voxel: false, reach: KnnReach::Neighbourhood }
+        Self { k, max_dist, one_per_voxel: false, reach: KnnReach::Exact }
     }
 
     /// The same query with another reach.

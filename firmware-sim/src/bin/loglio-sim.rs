@@ -158,7 +158,7 @@ impl ScenarioArgs {
             cfg.imu_board.odr = Odr::from_hz(hz).with_context(|| format!("unsupported IMU rate {hz} Hz"))?;
         }
         if self.no_imu_noise {
-            cfg.imu_noise = loglio_firmware_sim::imu_chip::ImuNoise::none();
+            cfg.imu_noise = loglio_firmware_sim::imu_chip::ChipNoise::none();
         }
         cfg.threads = if self.threads == 0 {
             std::thread::available_parallelism().map_or(1, |n| n.get())

@@ -14,7 +14,7 @@ use loglio_firmware_sim::scenario::{Event, ScenarioKind};
 use serde_json::json;
 
 use crate::cmd::sim::{self, SimOptions};
-use crate::config::{AssociationMode, KnnSearch, Preset};
+use crate::config::{AssociationMode, KnnReach, Preset};
 use crate::error::PipelineError;
 use crate::machine;
 use crate::output::Progress;
@@ -50,7 +50,7 @@ pub struct BenchReport {
     /// The measurement budget both modes ran with (0: none).
     pub max_points: u64,
     /// The k-NN both modes ran with.
-    pub knn_search: KnnSearch,
+    pub knn_search: KnnReach,
     /// Threads of the association, both modes (`--threads`).
     pub threads: usize,
     /// Simulated seconds.
@@ -72,7 +72,7 @@ fn time_mode(
     sc: &loglio_firmware_sim::scenario::Scenario,
     preset: Preset,
     mode: AssociationMode,
-    (max_points, knn_search, threads): (u64, KnnSearch, usize),
+    (max_points, knn_search, threads): (u64, KnnReach, usize),
     scan_period_s: f64,
 ) -> Result<ModeTimes, PipelineError> {
     let mut cfg = sim::scenario_config(sc, preset, Some(mode));
@@ -158,7 +158,7 @@ pub fn run(
     scenario: Option<ScenarioKind>,
     seconds: f64,
     max_points: u64,
-    knn_search: KnnSearch,
+    knn_search: KnnReach,
     threads: usize,
     progress: bool,
 ) -> Result<BenchReport, PipelineError> {
@@ -285,7 +285,7 @@ impl BenchReport {
         if self.max_points > 0 {
             s.push_str(&format!("measurement budget: at most {} points per scan\n", self.max_points));
         }
-        if self.knn_search == KnnSearch::Block {
+        if self.knn_search == KnnReach::Block {
             s.push_str("k-NN: the octant block first (--knn-search block)\n");
         }
         s.push_str(&format!("{:<12} {:>10} {:>10}\n", "stage [ms]", self.main.mode, self.baseline.mode));

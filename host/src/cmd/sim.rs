@@ -9,7 +9,7 @@ use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKind};
 use nalgebra::Isometry3;
 
-use crate::config::{AssociationMode, Config, KnnSearch, Preset};
+use crate::config::{AssociationMode, Config, KnnReach, Preset};
 use crate::error::PipelineError;
 use crate::eval::{self, Trajectory};
 use crate::output::Progress;
@@ -34,7 +34,7 @@ pub struct SimOptions {
     /// Measurement budget (`mapping.max_points`; 0: every downsampled point).
     pub max_points: u64,
     /// The association's k-NN (`mapping.knn_search`).
-    pub knn_search: KnnSearch,
+    pub knn_search: KnnReach,
     /// Output directory (`None`: write nothing).
     pub out: Option<PathBuf>,
     /// Show a progress bar (on a terminal).
@@ -104,11 +104,11 @@ pub fn scenario_config(sc: &Scenario, preset: Preset, mode: Option<AssociationMo
     cfg.extrinsics.rotation_rpy_deg = None;
     cfg.extrinsics.rotation_quat_wxyz = Some([q.w, q.i, q.j, q.k]);
     cfg.sensor.columns = sc.layout().cols() as u32;
-    let n = sc.config().imu_noise;
-    cfg.imu.gyro_noise = n.gyro_density;
-    cfg.imu.acc_noise = n.accel_density;
+    let n = sc.config().imu_noise.density;
+    cfg.imu.gyro_noise = n.gyro;
+    cfg.imu.acc_noise = n.acc;
     cfg.imu.gyro_bias_walk = n.gyro_bias_walk;
-    cfg.imu.acc_bias_walk = n.accel_bias_walk;
+    cfg.imu.acc_bias_walk = n.acc_bias_walk;
     cfg.imu.gravity = loglio_firmware_sim::trajectory::GRAVITY;
     if let Some(m) = mode {
         cfg.mapping.association = m;
@@ -277,6 +277,7 @@ pub fn summary(opt: &SimOptions, r: &SimReport) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use loglio_core::imu::ImuNoise;
 
     /// `loglio sim`, `bench` and `demo` give the odometry what a user gives it for a real rig:
     /// the IMU's own noise densities and gravity (here the simulator's), not the preset's
@@ -285,10 +286,8 @@ mod tests {
     fn scenario_config_takes_the_simulated_imu_noise_and_gravity() {
         let mut c = ScenarioConfig::new(ScenarioKind::Drone, SensorModel::Vlp32c, 3);
         c.duration_s = 1.0;
-        c.imu_noise.gyro_density = 1.25e-3;
-        c.imu_noise.accel_density = 3.5e-2;
-        c.imu_noise.gyro_bias_walk = 2.5e-5;
-        c.imu_noise.accel_bias_walk = 4.5e-4;
+        c.imu_noise.density =
+            ImuNoise { gyro: 1.25e-3, acc: 3.5e-2, gyro_bias_walk: 2.5e-5, acc_bias_walk: 4.5e-4 };
         let sc = Scenario::from_config(c).unwrap();
         let cfg = scenario_config(&sc, Preset::Vlp32c, Some(AssociationMode::Plain));
         assert_eq!(cfg.imu.gyro_noise, 1.25e-3);
@@ -314,10 +313,9 @@ mod tests {
         let err = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nmax_points = -1\n").unwrap_err();
         assert!(err.0.contains("mapping.max_points"), "{}", err.0);
         // The exact k-NN unless asked for; `mapping.knn_search` reaches the association.
-        use loglio_core::voxel_map::KnnReach;
-        assert_eq!(core.association.knn_reach, KnnReach::Neighbourhood);
+        assert_eq!(core.association.knn_reach, KnnReach::Exact);
         let file = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nknn_search = \"block\"\n").unwrap();
-        assert_eq!(file.mapping.knn_search, KnnSearch::Block);
+        assert_eq!(file.mapping.knn_search, KnnReach::Block);
         let core = crate::run::engine::odometry_config(&file, sc.layout().clone()).unwrap();
         assert_eq!(core.association.knn_reach, KnnReach::Block);
         let err = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nknn_search = \"kd\"\n").unwrap_err();

@@ -43,7 +43,7 @@
 //! ```
 
 use std::fs::File;
-use std::io::{self, BufReader, Read, Write};
+use std::io::{self, BufReader, Read};
 use std::net::Ipv4Addr;
 use std::path::Path;
 
@@ -684,124 +684,14 @@ impl<R: Read> PcapReader<R> {
     }
 }
 
-/// Writes classic pcap files (microsecond timestamps, Ethernet/IPv4/UDP frames): for tests,
-/// fuzz seeds and for exporting packets.
-#[derive(Debug)]
-pub struct PcapWriter<W: Write> {
-    w: W,
-    ip_id: u16,
-}
-
-impl<W: Write> PcapWriter<W> {
-    /// Writes the global header (snapshot length 262144, Ethernet).
-    pub fn new(mut w: W) -> io::Result<Self> {
-        let mut h = Vec::with_capacity(24);
-        h.extend_from_slice(&0xA1B2_C3D4u32.to_le_bytes());
-        h.extend_from_slice(&2u16.to_le_bytes());
-        h.extend_from_slice(&4u16.to_le_bytes());
-        h.extend_from_slice(&[0; 8]);
-        h.extend_from_slice(&MAX_RECORD.to_le_bytes());
-        h.extend_from_slice(&linktype::ETHERNET.to_le_bytes());
-        w.write_all(&h)?;
-        Ok(Self { w, ip_id: 1 })
-    }
-
-    /// Writes one record holding `frame` as captured at `ts_ns`.
-    pub fn write_frame(&mut self, ts_ns: u64, frame: &[u8]) -> io::Result<()> {
-        let sec = (ts_ns / 1_000_000_000) as u32;
-        let usec = ((ts_ns % 1_000_000_000) / 1000) as u32;
-        let mut h = Vec::with_capacity(16);
-        h.extend_from_slice(&sec.to_le_bytes());
-        h.extend_from_slice(&usec.to_le_bytes());
-        h.extend_from_slice(&(frame.len() as u32).to_le_bytes());
-        h.extend_from_slice(&(frame.len() as u32).to_le_bytes());
-        self.w.write_all(&h)?;
-        self.w.write_all(frame)
-    }
-
-    /// Writes a UDP datagram as one Ethernet/IPv4/UDP frame, or as IPv4 fragments of at most
-    /// `mtu` bytes of IP packet each when `mtu` is given.
-    pub fn write_udp(
-        &mut self,
-        ts_ns: u64,
-        src: (Ipv4Addr, u16),
-        dst: (Ipv4Addr, u16),
-        payload: &[u8],
-        mtu: Option<usize>,
-    ) -> io::Result<()> {
-        let mut udp = Vec::with_capacity(8 + payload.len());
-        udp.extend_from_slice(&src.1.to_be_bytes());
-        udp.extend_from_slice(&dst.1.to_be_bytes());
-        udp.extend_from_slice(&((8 + payload.len()) as u16).to_be_bytes());
-        udp.extend_from_slice(&[0, 0]);
-        udp.extend_from_slice(payload);
-        let id = self.ip_id;
-        self.ip_id = self.ip_id.wrapping_add(1);
-        let max_body = mtu.map(|m| (m.saturating_sub(20) / 8 * 8).max(8)).unwrap_or(udp.len());
-        let mut off = 0;
-        while off < udp.len() || off == 0 {
-            let end = (off + max_body).min(udp.len());
-            let more = end < udp.len();
-            let frame = ethernet_ipv4(src.0, dst.0, id, off, more, &udp[off..end]);
-            self.write_frame(ts_ns, &frame)?;
-            off = end;
-            if !more {
-                break;
-            }
-        }
-        Ok(())
-    }
-
-    /// Flushes and returns the writer.
-    pub fn finish(mut self) -> io::Result<W> {
-        self.w.flush()?;
-        Ok(self.w)
-    }
-}
-
-/// An Ethernet II frame with an IPv4 header (protocol UDP) around `body`.
-pub fn ethernet_ipv4(
-    src: Ipv4Addr,
-    dst: Ipv4Addr,
-    id: u16,
-    frag_off: usize,
-    more: bool,
-    body: &[u8],
-) -> Vec<u8> {
-    let mut f = Vec::with_capacity(34 + body.len());
-    f.extend_from_slice(&[0xff; 6]);
-    f.extend_from_slice(&[0x60, 0x76, 0x88, 0x00, 0x00, 0x01]);
-    f.extend_from_slice(&0x0800u16.to_be_bytes());
-    let total = (20 + body.len()) as u16;
-    let flags = ((frag_off / 8) as u16) | if more { 0x2000 } else { 0 };
-    let mut ip = [0u8; 20];
-    ip[0] = 0x45;
-    ip[2..4].copy_from_slice(&total.to_be_bytes());
-    ip[4..6].copy_from_slice(&id.to_be_bytes());
-    ip[6..8].copy_from_slice(&flags.to_be_bytes());
-    ip[8] = 64;
-    ip[9] = 17;
-    ip[12..16].copy_from_slice(&src.octets());
-    ip[16..20].copy_from_slice(&dst.octets());
-    let mut sum = 0u32;
-    for c in ip.chunks(2) {
-        sum += u16::from_be_bytes([c[0], c[1]]) as u32;
-    }
-    while sum > 0xFFFF {
-        sum = (sum & 0xFFFF) + (sum >> 16);
-    }
-    ip[10..12].copy_from_slice(&(!(sum as u16)).to_be_bytes());
-    f.extend_from_slice(&ip);
-    f.extend_from_slice(body);
-    f
-}
-
 #[cfg(test)]
 mod tests {
+    use loglio_firmware_sim::pcap_out::{Endpoint, PcapWriter};
+
     use super::*;
 
-    const A: Ipv4Addr = Ipv4Addr::new(192, 168, 1, 201);
-    const B: Ipv4Addr = Ipv4Addr::new(255, 255, 255, 255);
+    /// A Velodyne broadcasting.
+    const EP: Endpoint = Endpoint { dst_ip: [255; 4], ..Endpoint::VELODYNE };
 
     fn payload(k: u8, n: usize) -> Vec<u8> {
         (0..n).map(|i| (i as u8).wrapping_mul(7).wrapping_add(k)).collect()
@@ -810,13 +700,11 @@ mod tests {
     fn capture(n: usize, len: usize, mtu: Option<usize>) -> Vec<u8> {
         let mut w = PcapWriter::new(Vec::new()).unwrap();
         for k in 0..n {
-            w.write_udp(
-                1_600_000_000_000_000_000 + k as u64 * 1_000_000,
-                (A, 2368),
-                (B, 2368),
-                &payload(k as u8, len),
-                mtu,
-            )
+            let t = 1_600_000_000_000_000_000 + k as u64 * 1_000_000;
+            match mtu {
+                Some(mtu) => w.write_udp_fragments(t, &EP, (2368, 2368), &payload(k as u8, len), mtu),
+                None => w.write_udp(t, &EP, 2368, 2368, &payload(k as u8, len)),
+            }
             .unwrap();
         }
         w.finish().unwrap()
@@ -849,7 +737,7 @@ mod tests {
     #[test]
     fn missing_fragment_is_reported_and_neighbours_kept() {
         let mut w = PcapWriter::new(Vec::new()).unwrap();
-        w.write_udp(1, (A, 7502), (B, 7502), &payload(0, 4000), Some(1500)).unwrap();
+        w.write_udp_fragments(1, &EP, (7502, 7502), &payload(0, 4000), 1500).unwrap();
         let good = w.finish().unwrap();
         // Keep the global header and all records but the second fragment.
         let mut bytes = good[..24].to_vec();
@@ -864,7 +752,7 @@ mod tests {
             k += 1;
         }
         let mut w = PcapWriter::new(Vec::new()).unwrap();
-        w.write_udp(2, (A, 7502), (B, 7502), &payload(9, 100), None).unwrap();
+        w.write_udp(2, &EP, 7502, 7502, &payload(9, 100)).unwrap();
         bytes.extend_from_slice(&w.finish().unwrap()[24..]);
         let (pk, st) = read_all(&bytes);
         assert_eq!(pk.len(), 1);
@@ -930,11 +818,7 @@ mod tests {
     fn vlan_tags_non_udp_and_garbage_frames() {
         let mut w = PcapWriter::new(Vec::new()).unwrap();
         // A QinQ double-tagged frame.
-        let inner = ethernet_ipv4(A, B, 1, 0, false, &{
-            let mut u = vec![0x09, 0x40, 0x09, 0x40, 0, 12, 0, 0];
-            u.extend_from_slice(&[1, 2, 3, 4]);
-            u
-        });
+        let inner = w.frame(&EP, 2368, 2368, &[1, 2, 3, 4]);
         let mut tagged = inner[..12].to_vec();
         tagged.extend_from_slice(&[0x88, 0xA8, 0x00, 0x05, 0x81, 0x00, 0x00, 0x07]);
         tagged.extend_from_slice(&inner[12..]);
@@ -951,7 +835,7 @@ mod tests {
         long_udp[14 + 20 + 4..14 + 20 + 6].copy_from_slice(&500u16.to_be_bytes());
         w.write_frame(5, &long_udp).unwrap();
         w.write_frame(6, &[1, 2, 3]).unwrap();
-        w.write_udp(7, (A, 2368), (B, 2368), &[9; 10], None).unwrap();
+        w.write_udp(7, &EP, 2368, 2368, &[9; 10]).unwrap();
         let (pk, st) = read_all(&w.finish().unwrap());
         assert_eq!(pk.len(), 2);
         assert_eq!(pk[0].1, [1, 2, 3, 4]);

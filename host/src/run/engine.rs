@@ -29,18 +29,15 @@ use loglio_core::association::{AssociationConfig, KnnScratch};
 use loglio_core::downsample::DownsampleConfig;
 use loglio_core::eskf::EskfConfig;
 use loglio_core::imu::{ImuInitConfig, ImuNoise, ImuPush, ImuSample};
-use loglio_core::odometry::{
-    AssociationMode as CoreMode, Clock, Odometry, OdometryConfig, OdometryError, OdometryStorage,
-};
+use loglio_core::odometry::{Clock, Odometry, OdometryConfig, OdometryError, OdometryStorage};
 use loglio_core::output::ScanResult;
 use loglio_core::parallel::{Job, Parallel};
 use loglio_core::range_image::{MAX_COLS, MAX_ROWS, RangeImageLayout};
 use loglio_core::ring_fals::storage_pixels;
 use loglio_core::scan::ScanView;
-use loglio_core::voxel_map::KnnReach;
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
-use crate::config::{AssociationMode, Config, KnnSearch, SensorFamily};
+use crate::config::{Config, SensorFamily};
 use crate::error::PipelineError;
 use crate::output::MapPoint;
 
@@ -79,15 +76,6 @@ impl Clock for StdClock {
             return (t.tv_sec as u64).saturating_mul(1_000_000_000).saturating_add(t.tv_nsec as u64);
         }
         self.origin.elapsed().as_nanos() as u64
-    }
-}
-
-/// The core association mode of a configuration's `mapping.association`.
-pub fn core_mode(m: AssociationMode) -> CoreMode {
-    match m {
-        AssociationMode::Full => CoreMode::Full,
-        AssociationMode::PlaneOnly => CoreMode::PlaneOnly,
-        AssociationMode::Plain => CoreMode::Plain,
     }
 }
 
@@ -140,7 +128,7 @@ pub fn odometry_config(cfg: &Config, layout: RangeImageLayout) -> Result<Odometr
     let [w, x, y, z] = cfg.extrinsics.quaternion_wxyz();
     let t = cfg.extrinsics.translation();
     Ok(OdometryConfig {
-        mode: core_mode(cfg.mapping.association),
+        mode: cfg.mapping.association,
         downsample: DownsampleConfig { voxel: cfg.mapping.scan_voxel_size as f32, ..base.downsample },
         map,
         eskf,
@@ -151,10 +139,7 @@ pub fn odometry_config(cfg: &Config, layout: RangeImageLayout) -> Result<Odometr
         max_range: cfg.sensor.max_range as f32,
         association: AssociationConfig {
             max_points: u32::try_from(cfg.mapping.max_points).unwrap_or(u32::MAX),
-            knn_reach: match cfg.mapping.knn_search {
-                KnnSearch::Exact => KnnReach::Neighbourhood,
-                KnnSearch::Block => KnnReach::Block,
-            },
+            knn_reach: cfg.mapping.knn_search,
             ..base.association
         },
         ..base

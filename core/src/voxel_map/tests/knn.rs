@@ -75,14 +75,14 @@ fn knn_equals_brute_force_on_random_data() {
     for qi in 0..400 {
         let q = p32([rng.uniform(-1.7, 1.7), rng.uniform(-1.7, 1.7), rng.uniform(-0.2, 2.2)]);
         for (k, max_dist, one, block_only, reach) in [
-            (5, 0.4, false, false, KnnReach::Neighbourhood),
-            (1, 0.4, false, false, KnnReach::Neighbourhood),
-            (8, 0.3, false, false, KnnReach::Neighbourhood),
-            (5, 0.4, true, false, KnnReach::Neighbourhood),
-            (8, 0.25, true, false, KnnReach::Neighbourhood),
+            (5, 0.4, false, false, KnnReach::Exact),
+            (1, 0.4, false, false, KnnReach::Exact),
+            (8, 0.3, false, false, KnnReach::Exact),
+            (5, 0.4, true, false, KnnReach::Exact),
+            (8, 0.25, true, false, KnnReach::Exact),
             // Beyond one voxel: exact within the 27-voxel block.
-            (5, 1.0, false, true, KnnReach::Neighbourhood),
-            (5, 1.0, true, true, KnnReach::Neighbourhood),
+            (5, 1.0, false, true, KnnReach::Exact),
+            (5, 1.0, true, true, KnnReach::Exact),
             // The octant's 8 voxels when they hold k, else the 27.
             (5, 1.0, false, true, KnnReach::Block),
             (5, 1.0, true, true, KnnReach::Block),
@@ -134,7 +134,7 @@ fn knn_equals_brute_force_on_random_data() {
         .collect();
     for query in [
         KnnQuery::new(5, 0.4),
-        KnnQuery { k: 8, max_dist: 1.0, one_per_voxel: true, reach: KnnReach::Neighbourhood },
+        KnnQuery { k: 8, max_dist: 1.0, one_per_voxel: true, reach: KnnReach::Exact },
         KnnQuery::new(5, 1.0).with_reach(KnnReach::Block),
     ] {
         let mut many = vec![Neighbours::new(); queries.len() + 3];

@@ -208,7 +208,7 @@ fn knn_normals_plane_fit_and_large_surfel_work_together() {
     // large surfel.
     plane_grid(&mut map, &mut rng, [5, 0, 0], 3, 3, 25, [0.0, 0.0, 1.0], |_, _| 0.0, 100);
     let q = [2.6, 0.6, 0.21];
-    let query = KnnQuery { k: 5, max_dist: 0.4, one_per_voxel: true, reach: KnnReach::Neighbourhood };
+    let query = KnnQuery { k: 5, max_dist: 0.4, one_per_voxel: true, reach: KnnReach::Exact };
     assert_eq!(map.knn(q, &query, &mut out), 5);
     let ls = map.large_surfel(&out.voxels()[..out.len()]).unwrap();
     assert_eq!((ls.voxels, ls.count), (5, 125));
