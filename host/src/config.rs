@@ -1001,9 +1001,7 @@ impl Config {
         out.push_str(&format!("preset = \"{}\"\n", self.preset));
         for (section, what) in SECTIONS {
             out.push_str(&format!("\n# {what}\n[{section}]\n"));
-            for spec in
-                SPECS.iter().filter(|s| s.key.starts_with(section) && s.key.as_bytes()[section.len()] == b'.')
-            {
+            for spec in section_specs(section) {
                 let key = &spec.key[section.len() + 1..];
                 let range = kind_range_text(spec.kind, spec.unit);
                 let value = table.get(section).and_then(|t| t.get(key));
@@ -1041,6 +1039,83 @@ fn push_comment(out: &mut String, text: &str) {
 /// The commented template of a preset, as printed by `loglio config --preset NAME`.
 pub fn template(preset: Preset) -> String {
     Config::preset(preset).to_commented_toml()
+}
+
+/// The keys of `[section]`, in template order.
+fn section_specs(section: &str) -> impl Iterator<Item = &'static Spec> + '_ {
+    SPECS.iter().filter(move |s| s.key.split_once('.').is_some_and(|(sec, _)| sec == section))
+}
+
+/// A table cell: no line breaks, no column separators.
+fn cell(text: &str) -> String {
+    text.split_whitespace().collect::<Vec<_>>().join(" ").replace('|', "\\|")
+}
+
+/// The defaults of one key over the presets: one value, or each value with its presets.
+fn defaults_text(spec: &Spec, presets: &[(Preset, toml::Table)]) -> String {
+    let (section, key) = spec.key.split_once('.').unwrap_or(("", spec.key));
+    let mut groups: Vec<(Option<String>, Vec<&str>)> = Vec::new();
+    for (p, table) in presets {
+        let v = table.get(section).and_then(|t| t.get(key)).map(value_text);
+        match groups.iter_mut().find(|(g, _)| *g == v) {
+            Some((_, names)) => names.push(p.name()),
+            None => groups.push((v, vec![p.name()])),
+        }
+    }
+    let show = |v: &Option<String>| match (v, spec.example) {
+        (Some(v), _) => format!("`{v}`"),
+        (None, Some(ex)) => format!("unset (e.g. `{ex}`)"),
+        (None, None) => "unset".to_string(),
+    };
+    match groups.as_slice() {
+        [(v, _)] => show(v),
+        _ => groups
+            .iter()
+            .map(|(v, names)| format!("{}: {}", show(v), names.join(", ")))
+            .collect::<Vec<_>>()
+            .join("; "),
+    }
+}
+
+/// The reference of every key as Markdown, rendered from the key table (`SPECS`, `SECTIONS`):
+/// the committed `docs/configuration.md`, printed by `loglio config --reference`.
+pub fn reference_markdown() -> String {
+    let presets: Vec<(Preset, toml::Table)> = Preset::ALL
+        .iter()
+        .map(|&p| (p, toml::Table::try_from(Config::preset(p)).expect("a preset serialises")))
+        .collect();
+    let mut out = String::new();
+    out.push_str(
+        "# Configuration reference\n\n\
+         <!-- Generated from the key table in host/src/config.rs (SPECS, SECTIONS): edit it there and run\n\
+         `loglio config --reference > docs/configuration.md`; a unit test fails while this file differs. -->\n\n\
+         A configuration file is TOML: `preset = \"NAME\"` and any of the keys below, each overriding the\n\
+         preset's value; a key left out takes the preset's value. `loglio config --preset NAME` prints\n\
+         a preset's file with every key commented, `loglio config --check FILE` validates one, and the\n\
+         commands that run the odometry read one with `--config FILE`. Units are metres, seconds and\n\
+         radians unless the key says otherwise; a value outside its range is an error that names the\n\
+         key and the range.\n\n\
+         ## `preset`\n\n\
+         The sensor model (required); it sets the default of every other key.\n\n\
+         | preset | sensor |\n|---|---|\n",
+    );
+    for p in Preset::ALL {
+        out.push_str(&format!("| `{}` | {} |\n", p.name(), cell(p.description())));
+    }
+    for (section, what) in SECTIONS {
+        out.push_str(&format!("\n## `[{section}]`\n\n{what}\n\n"));
+        out.push_str("| key | range | default | meaning |\n|---|---|---|---|\n");
+        for spec in section_specs(section) {
+            out.push_str(&format!(
+                "| `{}` | {} | {} | {} |\n",
+                spec.key,
+                cell(&kind_range_text(spec.kind, spec.unit)),
+                cell(&defaults_text(spec, &presets)),
+                cell(spec.doc)
+            ));
+        }
+    }
+    out
 }
 
 #[cfg(test)]
@@ -1090,6 +1165,26 @@ mod tests {
                     assert!(find_spec(&format!("{section}.{key}")).is_some(), "{section}.{key} has no spec");
                 }
             }
+        }
+    }
+
+    #[test]
+    fn the_reference_page_is_the_generated_one() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/configuration.md");
+        let want = reference_markdown();
+        if std::env::var_os("LOGLIO_BLESS").is_some() {
+            std::fs::write(&path, &want).unwrap();
+            return;
+        }
+        let have = std::fs::read_to_string(&path).unwrap_or_default();
+        if have != want {
+            let line = have.lines().zip(want.lines()).take_while(|(a, b)| a == b).count() + 1;
+            panic!(
+                "docs/configuration.md differs from the reference generated from SPECS and SECTIONS \
+                 (first at line {line}); regenerate it with \
+                 `cargo run -p loglio-host -- config --reference > docs/configuration.md` \
+                 or `LOGLIO_BLESS=1 cargo test -p loglio-host --lib config`"
+            );
         }
     }
 

@@ -283,7 +283,7 @@ struct DemoArgs {
 }
 
 #[derive(Debug, Args)]
-#[command(group = clap::ArgGroup::new("what").required(true).args(["preset", "check", "list"]))]
+#[command(group = clap::ArgGroup::new("what").required(true).args(["preset", "check", "list", "reference"]))]
 struct ConfigArgs {
     /// Print the commented template of this preset (vlp16, vlp32c, hdl32e, os1-16, os1-32,
     /// os1-64, os1-128); it parses back to the preset's values.
@@ -295,6 +295,10 @@ struct ConfigArgs {
     /// List the presets.
     #[arg(long)]
     list: bool,
+    /// Print the reference of every key: range, unit, default per preset and meaning (Markdown,
+    /// as docs/configuration.md).
+    #[arg(long)]
+    reference: bool,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -658,6 +662,9 @@ fn config_cmd(a: ConfigArgs) -> anyhow::Result<()> {
         }
         return print(&s);
     }
+    if a.reference {
+        return print(&loglio_host::config::reference_markdown());
+    }
     if let Some(name) = a.preset {
         let preset: Preset = name.parse().map_err(|e: loglio_host::config::ConfigError| {
             anyhow::anyhow!("{}", e.0.trim_start_matches("config: "))
@@ -670,7 +677,7 @@ fn config_cmd(a: ConfigArgs) -> anyhow::Result<()> {
         eprintln!("{}: valid (preset {})", path.display(), cfg.preset);
         return Ok(());
     }
-    bail!("give --preset NAME, --check FILE or --list")
+    bail!("give --preset NAME, --check FILE, --list or --reference")
 }
 
 fn eval_cmd(a: EvalArgs) -> anyhow::Result<()> {
