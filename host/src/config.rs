@@ -14,27 +14,10 @@
 //!
 //! # How this maps onto the core (`run::engine::odometry_config`)
 //!
-//! [`Config`] is a plain host struct on purpose; the core's config structs are built from it:
-//!
-//! | host key | core |
-//! |---|---|
-//! | `preset`, `sensor.columns` | the [`RangeImageLayout`]: rows and nominal elevations from [`Preset`], or the real beam table from `sensor.calibration` (Velodyne, `velodyne_calib.rs`) / `sensor.ouster_metadata` (`ouster_meta.rs`); Ring FALS builds its table from that layout |
-//! | `sensor.blind`, `sensor.max_range` | the odometry's range gate on incoming points (metres, from the LiDAR origin) |
-//! | `sensor.scan_rate_hz` | scan assembly (expected scan period) and the time-from-azimuth fallback |
-//! | `imu.gyro_noise`, `imu.acc_noise` | ESKF process noise, white noise densities: discrete variance per IMU step of length dt is `density^2 / dt` (rates) or `density^2 * dt` (integrated angle/velocity) |
-//! | `imu.gyro_bias_walk`, `imu.acc_bias_walk` | ESKF bias random walks: variance `density^2 * dt` per step |
-//! | `imu.gravity` | gravity magnitude of the gravity-aligned world frame |
-//! | `extrinsics` | the fixed LiDAR-in-IMU transform: `p_imu = R * p_lidar + t` ([`Extrinsics::rotation_matrix`], [`Extrinsics::translation`]) |
-//! | `time.*` | `time_align.rs`: IMU stamps on the LiDAR clock are `t_imu + lidar_imu_offset`; a scan starts at its stamp plus `scan_stamp_offset`; `lidar_time_source` picks the packet's own time or the capture time |
-//! | `mapping.voxel_size` | the voxel map's voxel edge (the paper's map resolution) |
-//! | `mapping.scan_voxel_size` | the scan downsampling leaf size |
-//! | `mapping.map_capacity` | the voxel pool capacity (the hash index is sized from it) |
-//! | `mapping.max_points` | the association's measurement budget: at most this many downsampled points per scan are measured, evenly spread (0: all); the map still gets every one |
-//! | `mapping.association` | the association mode: `full` (LOG-LIO), `plane-only` (LOG-C), `plain` (FAST-LIO2-like) |
-//! | `mapping.knn_search` | the association's k-NN: `exact` within the 27 voxels around a point, or `block` (its octant block first: `KnnReach`) |
-//! | `filter.max_iterations` | the iterated ESKF's maximum number of passes per scan |
-//! | `compute.threads` | the association's threads ([`loglio_core::parallel`]; 0: the available cores) |
-//! | `imu.source`, `imu.serial_device`, `imu.baud`, `imu.csv_path`, `network.*` | the host's inputs (`serial.rs`, `imu_csv.rs`, `udp.rs`) |
+//! [`Config`] is a plain host struct on purpose; the core's config structs are built from it.
+//! Every key, its range, unit, defaults and where it goes in the core are listed once, in the
+//! key table below (`SPECS`, `SECTIONS`), from which the template, the validation and
+//! `docs/configuration.md` ([`reference_markdown`], `loglio config --reference`) are generated.
 
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -639,15 +622,72 @@ static SPECS: &[Spec] = &[
     ),
 ];
 
-const SECTIONS: [(&str, &str); 8] = [
-    ("sensor", "The LiDAR."),
-    ("network", "Live UDP input."),
-    ("imu", "The IMU: source and noise model."),
-    ("extrinsics", "The LiDAR frame in the IMU frame."),
-    ("time", "Clocks and time offsets."),
-    ("mapping", "The voxel map and data association."),
-    ("filter", "The iterated error-state Kalman filter."),
-    ("compute", "How the work uses this computer."),
+/// One `[section]` of the file.
+struct Section {
+    name: &'static str,
+    /// The template's heading comment.
+    what: &'static str,
+    /// Where its keys go in the code, for the reference page.
+    code: &'static str,
+}
+
+/// Where `preset` goes in the code, for the reference page.
+const PRESET_CODE: &str = "The preset and `sensor.columns` give the range-image layout (`RangeImageLayout`): rows and \
+     nominal elevations from the preset, or the real beam table from `sensor.calibration` (Velodyne, \
+     `velodyne_calib.rs`) or `sensor.ouster_metadata` (`ouster_meta.rs`); Ring FALS builds its table from \
+     that layout.";
+
+/// The sections of the file, in template order.
+const SECTIONS: [Section; 8] = [
+    Section {
+        name: "sensor",
+        what: "The LiDAR.",
+        code: "`blind` and `max_range` are the odometry's range gate on incoming points (metres from the \
+               LiDAR origin); `scan_rate_hz` gives scan assembly its expected scan period and the \
+               time-from-azimuth fallback; `columns`, `calibration` and `ouster_metadata` make the \
+               range-image layout (see `preset`).",
+    },
+    Section { name: "network", what: "Live UDP input.", code: "The host's live input (`udp.rs`)." },
+    Section {
+        name: "imu",
+        what: "The IMU: source and noise model.",
+        code: "`source`, `serial_device`, `baud` and `csv_path` are the host's inputs (`serial.rs`, \
+               `imu_csv.rs`). `gyro_noise` and `acc_noise` are the ESKF's process noise as white noise \
+               densities: the discrete variance per IMU step of length dt is `density^2 / dt` (rates) or \
+               `density^2 * dt` (integrated angle and velocity); the bias walks add the variance \
+               `density^2 * dt` per step; `gravity` is the magnitude of the gravity-aligned world frame.",
+    },
+    Section {
+        name: "extrinsics",
+        what: "The LiDAR frame in the IMU frame.",
+        code: "The fixed LiDAR-in-IMU transform of the odometry, `p_imu = R * p_lidar + t` \
+               (`Extrinsics::rotation_matrix`, `Extrinsics::translation`).",
+    },
+    Section {
+        name: "time",
+        what: "Clocks and time offsets.",
+        code: "`time_align.rs`: IMU stamps on the LiDAR clock are `t_imu + lidar_imu_offset`; a scan starts \
+               at its stamp plus `scan_stamp_offset`; `lidar_time_source` picks the packet's own time or \
+               the capture time.",
+    },
+    Section {
+        name: "mapping",
+        what: "The voxel map and data association.",
+        code: "`voxel_size` is the voxel map's voxel edge (the paper's map resolution), `scan_voxel_size` \
+               the scan downsampling's leaf size, `map_capacity` the voxel pool's capacity (the hash index \
+               is sized from it), `max_points` the association's measurement budget, `association` its \
+               mode (`AssociationMode`) and `knn_search` its k-NN (`KnnReach`).",
+    },
+    Section {
+        name: "filter",
+        what: "The iterated error-state Kalman filter.",
+        code: "The iterated ESKF's maximum number of passes per scan.",
+    },
+    Section {
+        name: "compute",
+        what: "How the work uses this computer.",
+        code: "The association's threads (`loglio_core::parallel`).",
+    },
 ];
 
 fn find_spec(key: &str) -> Option<&'static Spec> {
@@ -869,8 +909,8 @@ impl Config {
             if section == "preset" {
                 continue;
             }
-            if !SECTIONS.iter().any(|(s, _)| s == section) {
-                let known: Vec<&str> = SECTIONS.iter().map(|(s, _)| *s).collect();
+            if !SECTIONS.iter().any(|s| s.name == section) {
+                let known: Vec<&str> = SECTIONS.iter().map(|s| s.name).collect();
                 bail!("unknown key {section} (top-level keys: preset, {})", known.join(", "));
             }
             let toml::Value::Table(entries) = value else {
@@ -999,7 +1039,7 @@ impl Config {
             ),
         );
         out.push_str(&format!("preset = \"{}\"\n", self.preset));
-        for (section, what) in SECTIONS {
+        for Section { name: section, what, .. } in SECTIONS {
             out.push_str(&format!("\n# {what}\n[{section}]\n"));
             for spec in section_specs(section) {
                 let key = &spec.key[section.len() + 1..];
@@ -1102,7 +1142,8 @@ pub fn reference_markdown() -> String {
     for p in Preset::ALL {
         out.push_str(&format!("| `{}` | {} |\n", p.name(), cell(p.description())));
     }
-    for (section, what) in SECTIONS {
+    out.push_str(&format!("\n**In the code.** {}\n", cell(PRESET_CODE)));
+    for Section { name: section, what, code } in SECTIONS {
         out.push_str(&format!("\n## `[{section}]`\n\n{what}\n\n"));
         out.push_str("| key | range | default | meaning |\n|---|---|---|---|\n");
         for spec in section_specs(section) {
@@ -1114,6 +1155,7 @@ pub fn reference_markdown() -> String {
                 cell(spec.doc)
             ));
         }
+        out.push_str(&format!("\n**In the code.** {}\n", cell(code)));
     }
     out
 }

@@ -1,7 +1,7 @@
 //! The configuration onto a running core [`Odometry`]:
 //!
-//! - [`odometry_config`] maps the host configuration onto the core's [`OdometryConfig`] (the
-//!   table in `config.rs`'s module docs).
+//! - [`odometry_config`] maps the host configuration onto the core's [`OdometryConfig`] (key by
+//!   key in docs/configuration.md, generated from `config.rs`'s key table).
 //! - [`with_engine`] allocates the core's storage once, on the heap, sized for the sensor, and
 //!   lends an [`Engine`] (the odometry behind a trait object) to a closure.
 //!
