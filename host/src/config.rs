@@ -1163,6 +1163,7 @@ pub fn reference_markdown() -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::collections::BTreeSet;
 
     fn err(text: &str) -> String {
         Config::from_toml_str(text).unwrap_err().0
@@ -1199,15 +1200,72 @@ mod tests {
             let commented = text.lines().any(|l| l.starts_with(&format!("# {key} = ")));
             assert!(set || commented, "{} missing from the template", spec.key);
         }
-        // And every field the struct has is documented.
-        let table = toml::Table::try_from(Config::preset(Preset::Os1_64)).unwrap();
-        for (section, v) in &table {
-            if let toml::Value::Table(t) = v {
-                for key in t.keys() {
-                    assert!(find_spec(&format!("{section}.{key}")).is_some(), "{section}.{key} has no spec");
+    }
+
+    /// Optional keys that no preset sets, so a serialised preset never has them.
+    const UNSET_IN_EVERY_PRESET: [(&str, &str); 4] = [
+        ("sensor.calibration", "without it the datasheet beam table is used"),
+        ("sensor.ouster_metadata", "without it the nominal Ouster beam table is used"),
+        ("imu.csv_path", "only imu.source = \"csv\" reads it"),
+        ("extrinsics.rotation_quat_wxyz", "the presets give the rotation as rotation_rpy_deg"),
+    ];
+
+    /// The dotted keys of a serialised configuration (arrays are values, not tables).
+    fn dotted_keys(cfg: &Config) -> BTreeSet<String> {
+        fn walk(prefix: &str, table: &toml::Table, out: &mut BTreeSet<String>) {
+            for (k, v) in table {
+                let key = if prefix.is_empty() { k.clone() } else { format!("{prefix}.{k}") };
+                match v {
+                    toml::Value::Table(t) => walk(&key, t, out),
+                    _ => {
+                        out.insert(key);
+                    }
                 }
             }
         }
+        let mut out = BTreeSet::new();
+        walk("", &toml::Table::try_from(cfg).unwrap(), &mut out);
+        out
+    }
+
+    #[test]
+    fn the_structs_and_the_key_table_agree() {
+        let specs: BTreeSet<String> = SPECS.iter().map(|s| s.key.to_string()).collect();
+        assert_eq!(specs.len(), SPECS.len(), "a key is twice in SPECS");
+        let sections: Vec<&str> = SECTIONS.iter().map(|s| s.name).collect();
+        let mut spec_sections: Vec<&str> = SPECS.iter().map(|s| s.key.split_once('.').unwrap().0).collect();
+        spec_sections.dedup();
+        assert_eq!(spec_sections, sections, "SPECS and SECTIONS list the sections in the same order");
+        let mut set_by_presets = specs.clone();
+        for (key, why) in UNSET_IN_EVERY_PRESET {
+            let spec = find_spec(key).unwrap_or_else(|| panic!("{key} is not in SPECS"));
+            assert!(spec.example.is_some(), "{key} is unset in every preset ({why}) but not optional");
+            set_by_presets.remove(key);
+        }
+        let with_preset = |keys: &BTreeSet<String>| {
+            let mut keys = keys.clone();
+            keys.insert("preset".to_string());
+            keys
+        };
+        // Every field of every preset has a spec, and every spec a field.
+        for p in Preset::ALL {
+            assert_eq!(
+                dotted_keys(&Config::preset(p)),
+                with_preset(&set_by_presets),
+                "{p}: the serialised keys (left) against SPECS less UNSET_IN_EVERY_PRESET (right)"
+            );
+        }
+        // The optional keys are fields too: set, they serialise, and then the keys are all of SPECS.
+        let mut cfg = Config::preset(Preset::Vlp16);
+        cfg.sensor.calibration = Some("VLP16.yaml".into());
+        cfg.sensor.ouster_metadata = Some("os1.json".into());
+        cfg.imu.csv_path = Some("imu.csv".into());
+        cfg.extrinsics.rotation_quat_wxyz = Some([1.0, 0.0, 0.0, 0.0]);
+        assert_eq!(
+            dotted_keys(&cfg),
+            with_preset(&specs),
+            "the serialised keys (left) against SPECS (right)"
+        );
     }
 
     #[test]
