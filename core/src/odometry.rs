@@ -796,7 +796,11 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         }
         if m > 0 {
             // Cannot fail: the trajectory holds the end knot and the slices have equal lengths.
-            let _ = st.trajectory.undistort(f.state(), &mut st.points[..m], Some(&mut st.normals3[..m]));
+            let (pts, nrm) = (&mut st.points[..m], Some(&mut st.normals3[..m]));
+            let _ = match &self.parallel {
+                Some((p, _)) => st.trajectory.undistort_with(f.state(), pts, nrm, *p),
+                None => st.trajectory.undistort(f.state(), pts, nrm),
+            };
         }
         let t2 = clock.now_ns();
         times.undistort_ns = t2.saturating_sub(t1);

@@ -30,11 +30,15 @@
 use nalgebra::{Matrix3, Vector3};
 
 use crate::eskf::State;
+use crate::parallel::Parallel;
 use crate::scan::ScanPoint;
 use crate::so3;
 
 type M3 = Matrix3<f64>;
 type V3 = Vector3<f64>;
+
+/// Points per piece of a parallel undistortion (at least; the pieces start on multiples).
+const UNDISTORT_PIECE: usize = 1024;
 
 /// One recorded IMU pose.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -309,6 +313,62 @@ impl<const N: usize> ImuTrajectory<N> {
             g: [nr * f.t_il + f.c0, nrw * f.t_il, nrw2 * f.t_il],
             np,
         })
+    }
+
+    /// [`Self::undistort`] with the points split over `parallel`'s threads: every point and
+    /// normal the same as on one thread (the counts of transforms computed may differ where a
+    /// firing is split between two pieces).
+    pub fn undistort_with(
+        &self,
+        end: &State,
+        points: &mut [ScanPoint],
+        normals: Option<&mut [[f32; 3]]>,
+        parallel: &dyn Parallel,
+    ) -> Result<UndistortStats, UndistortError> {
+        let n = points.len();
+        if parallel.width() <= 1 || n < 2 * UNDISTORT_PIECE {
+            return self.undistort(end, points, normals);
+        }
+        if normals.as_ref().is_some_and(|nr| nr.len() != n) {
+            return Err(UndistortError::LengthMismatch);
+        }
+        let ends = crate::parallel::split(n, parallel.width(), UNDISTORT_PIECE);
+        let mut results = [Ok(UndistortStats::default()); crate::parallel::MAX_WIDTH];
+        {
+            let mut pts = points;
+            let mut nrm = normals;
+            let mut closures = heapless::Vec::<_, { crate::parallel::MAX_WIDTH }>::new();
+            let mut start = 0;
+            for (&e, out) in ends.iter().zip(results.iter_mut()) {
+                let (p, rest) = core::mem::take(&mut pts).split_at_mut(e - start);
+                pts = rest;
+                let piece_normals = match nrm.take() {
+                    Some(all) => {
+                        let (a, b) = all.split_at_mut(e - start);
+                        nrm = Some(b);
+                        Some(a)
+                    }
+                    None => None,
+                };
+                let mut piece_normals = piece_normals;
+                let _ = closures.push(move || *out = self.undistort(end, p, piece_normals.as_deref_mut()));
+                start = e;
+            }
+            let mut jobs = heapless::Vec::<crate::parallel::Job<'_>, { crate::parallel::MAX_WIDTH }>::new();
+            for c in closures.iter_mut() {
+                let _ = jobs.push(c);
+            }
+            parallel.run(&mut jobs);
+        }
+        let mut stats = UndistortStats::default();
+        for r in &results[..ends.len()] {
+            let s = (*r)?;
+            stats.moved += s.moved;
+            stats.extrapolated += s.extrapolated;
+            stats.invalid += s.invalid;
+            stats.transforms += s.transforms;
+        }
+        Ok(stats)
     }
 
     /// Moves `points` (and `normals`, if given: the same length, rotation only; invalid normals,
