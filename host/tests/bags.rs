@@ -525,6 +525,50 @@ fn rosbag2_sqlite_round_trip_across_splits() {
     check_sequence(&run, &exp);
 }
 
+/// rosbag2's message compression (`compression_mode: message`): each row is one zstd frame
+/// (28 b5 2f fd), decompressed as it is read: the same scans and IMU samples as the plain bag,
+/// from the file alone and from its directory with the metadata. A row that does not
+/// decompress is said as such.
+#[test]
+fn rosbag2_sqlite_with_zstd_message_compression_reads_the_messages() {
+    let dir = tmp("db3-zstd-msg");
+    let bagdir = dir.join("run");
+    std::fs::create_dir_all(&bagdir).unwrap();
+    let (msgs, exp) = sequence(Encoding::Cdr, build::VELODYNE);
+    let packed: Vec<_> = msgs
+        .iter()
+        .map(|(t, topic, ty, b)| (*t, *topic, ty.clone(), zstd::encode_all(b.as_slice(), 3).unwrap()))
+        .collect();
+    assert!(packed.iter().all(|m| m.3.starts_with(&[0x28, 0xb5, 0x2f, 0xfd])));
+    assert!(packed.iter().zip(&msgs).all(|(p, m)| p.3 != m.3));
+    let db = bagdir.join("run_0.db3");
+    write_db3(&db, &packed, 1);
+    std::fs::write(
+        bagdir.join("metadata.yaml"),
+        "rosbag2_bagfile_information:\n  compression_format: zstd\n  compression_mode: MESSAGE\n",
+    )
+    .unwrap();
+    for path in [&db, &bagdir] {
+        let run = read_all(path, opts(Preset::Vlp16)).unwrap();
+        assert!(run.warnings.is_empty(), "{:?}", run.warnings);
+        check_sequence(&run, &exp);
+    }
+    // A row with the magic and garbage after it.
+    let mut bad = packed.clone();
+    bad[0].3 = vec![0x28, 0xb5, 0x2f, 0xfd, 1, 2, 3];
+    let bad_db = dir.join("bad.db3");
+    write_db3(&bad_db, &bad, 1);
+    let run = read_all(&bad_db, opts(Preset::Vlp16)).unwrap();
+    let said = format!("{}\n{:?}", run.warnings.join("\n"), run.end);
+    assert!(
+        said.contains(&format!(
+            "{}: this rosbag2 is zstd-compressed (message compression) and message 1 does not decompress: ",
+            bad_db.display()
+        )),
+        "{said}"
+    );
+}
+
 /// Older rosbag2 releases and converted bags have no timestamp index: the reader then sorts the
 /// message ids once instead of sorting the whole table for every page (quadratic: 34.5 s for
 /// 100,000 messages). Same items in the same order, ties in record time by id.
@@ -1091,7 +1135,7 @@ fn not_bags_corrupt_databases_and_compressed_bags_are_one_line_errors() {
     assert_eq!(
         open_err(&z, o()),
         format!(
-            "{}: a zstd-compressed file; decompress it first (zstd -d, or ros2 bag convert)",
+            "{0}: a zstd-compressed file (a rosbag2 .db3.zstd or .mcap.zstd: file compression), which loglio does not read; decompress it first (`zstd -d {0}`, or `ros2 bag convert` on its directory)",
             z.display()
         )
     );
@@ -1106,7 +1150,17 @@ fn not_bags_corrupt_databases_and_compressed_bags_are_one_line_errors() {
     assert_eq!(
         open_err(&cdir, o()),
         format!(
-            "{}: zstd-compressed rosbag2 bags are not read; decompress it first (ros2 bag convert)",
+            "{}: this rosbag2 is zstd-compressed (file compression), which loglio does not read; decompress it first (`ros2 bag convert` to an uncompressed bag, or `zstd -d` on each .zstd file and compression_format: \"\" in metadata.yaml)",
+            cdir.display()
+        )
+    );
+    // Its .db3.zstd file, without the metadata.
+    std::fs::remove_file(cdir.join("metadata.yaml")).unwrap();
+    std::fs::write(cdir.join("c_0.db3.zstd"), [0x28, 0xb5, 0x2f, 0xfd, 0, 0]).unwrap();
+    assert_eq!(
+        open_err(&cdir, o()),
+        format!(
+            "{}: this rosbag2 is zstd-compressed (file compression: c_0.db3.zstd), which loglio does not read; decompress it first (`ros2 bag convert` to an uncompressed bag, or `zstd -d` on each .zstd file)",
             cdir.display()
         )
     );

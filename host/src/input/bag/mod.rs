@@ -432,15 +432,26 @@ fn detect(path: &Path) -> Result<(BagFormat, Vec<PathBuf>), BagError> {
     let meta = std::fs::metadata(path).map_err(|e| BagError(format!("cannot open {name}: {e}")))?;
     if meta.is_dir() {
         let yaml = std::fs::read_to_string(path.join("metadata.yaml")).unwrap_or_default();
-        for line in yaml.lines() {
-            if let Some(v) = line.trim().strip_prefix("compression_format:") {
-                let v = v.trim().trim_matches('"').trim_matches('\'');
-                if !v.is_empty() {
-                    return Err(BagError(format!(
-                        "{name}: {v}-compressed rosbag2 bags are not read; decompress it first (ros2 bag convert)"
-                    )));
+        let value = |key: &str| {
+            yaml.lines().find_map(|l| {
+                let v = l.trim().strip_prefix(key)?.strip_prefix(':')?;
+                Some(v.trim().trim_matches('"').trim_matches('\'').to_string())
+            })
+        };
+        let format = value("compression_format").unwrap_or_default();
+        let mode = value("compression_mode").unwrap_or_default().to_ascii_lowercase();
+        // zstd per message is decompressed as the rows are read; a compressed file is not.
+        if !format.is_empty() && !(format == "zstd" && mode == "message") {
+            let how = if mode == "message" { "message" } else { "file" };
+            return Err(BagError(format!(
+                "{name}: this rosbag2 is {format}-compressed ({how} compression), which loglio does not read; \
+                 decompress it first (`ros2 bag convert` to an uncompressed bag{})",
+                if format == "zstd" {
+                    ", or `zstd -d` on each .zstd file and compression_format: \"\" in metadata.yaml"
+                } else {
+                    ""
                 }
-            }
+            )));
         }
         let mut files: Vec<PathBuf> = std::fs::read_dir(path)
             .map_err(|e| BagError(format!("cannot read {name}: {e}")))?
@@ -455,9 +466,11 @@ fn detect(path: &Path) -> Result<(BagFormat, Vec<PathBuf>), BagError> {
         files.sort_by_key(split_no);
         let db3: Vec<PathBuf> = files.iter().filter(|p| ext(p).ends_with(".db3")).cloned().collect();
         let mcap: Vec<PathBuf> = files.iter().filter(|p| ext(p).ends_with(".mcap")).cloned().collect();
-        if files.iter().any(|p| ext(p).ends_with(".zstd")) {
+        if let Some(z) = files.iter().find(|p| ext(p).ends_with(".zstd")) {
             return Err(BagError(format!(
-                "{name}: zstd-compressed rosbag2 files are not read; decompress it first (ros2 bag convert)"
+                "{name}: this rosbag2 is zstd-compressed (file compression: {}), which loglio does not read; \
+                 decompress it first (`ros2 bag convert` to an uncompressed bag, or `zstd -d` on each .zstd file)",
+                z.file_name().and_then(|n| n.to_str()).unwrap_or("?")
             )));
         }
         return match (db3.is_empty(), mcap.len()) {
@@ -491,9 +504,10 @@ fn detect(path: &Path) -> Result<(BagFormat, Vec<PathBuf>), BagError> {
         Ok((BagFormat::Mcap, vec![path.to_path_buf()]))
     } else if head.starts_with(b"SQLite format 3\0") {
         Ok((BagFormat::Ros2Sqlite, vec![path.to_path_buf()]))
-    } else if head.starts_with(&[0x28, 0xb5, 0x2f, 0xfd]) {
+    } else if head.starts_with(&ros2_sqlite::ZSTD_MAGIC) {
         Err(BagError(format!(
-            "{name}: a zstd-compressed file; decompress it first (zstd -d, or ros2 bag convert)"
+            "{name}: a zstd-compressed file (a rosbag2 .db3.zstd or .mcap.zstd: file compression), which loglio does not read; \
+             decompress it first (`zstd -d {name}`, or `ros2 bag convert` on its directory)"
         )))
     } else if n == 0 {
         Err(BagError(format!("{name}: empty file, not a bag")))
