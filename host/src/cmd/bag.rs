@@ -134,6 +134,7 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
         scans: 0,
         done: false,
     };
+    opt.setup.warn_missing_extrinsic(&cfg);
     let (stop, _signals) = crate::run::Signals::stop_flag();
     let opts = RunOptions {
         outputs: opt.setup.outputs()?,
