@@ -537,7 +537,7 @@ fn rosbag2_sqlite_with_zstd_message_compression_reads_the_messages() {
     let (msgs, exp) = sequence(Encoding::Cdr, build::VELODYNE);
     let packed: Vec<_> = msgs
         .iter()
-        .map(|(t, topic, ty, b)| (*t, *topic, ty.clone(), zstd::encode_all(b.as_slice(), 3).unwrap()))
+        .map(|(t, topic, ty, b)| (*t, *topic, *ty, zstd::encode_all(b.as_slice(), 3).unwrap()))
         .collect();
     assert!(packed.iter().all(|m| m.3.starts_with(&[0x28, 0xb5, 0x2f, 0xfd])));
     assert!(packed.iter().zip(&msgs).all(|(p, m)| p.3 != m.3));

@@ -441,7 +441,8 @@ fn detect(path: &Path) -> Result<(BagFormat, Vec<PathBuf>), BagError> {
         let format = value("compression_format").unwrap_or_default();
         let mode = value("compression_mode").unwrap_or_default().to_ascii_lowercase();
         // zstd per message is decompressed as the rows are read; a compressed file is not.
-        if !format.is_empty() && !(format == "zstd" && mode == "message") {
+        let readable = format.is_empty() || (format == "zstd" && mode == "message");
+        if !readable {
             let how = if mode == "message" { "message" } else { "file" };
             return Err(BagError(format!(
                 "{name}: this rosbag2 is {format}-compressed ({how} compression), which loglio does not read; \
