@@ -525,6 +525,83 @@ fn rosbag2_sqlite_round_trip_across_splits() {
     check_sequence(&run, &exp);
 }
 
+/// `/tf_static` gives the LiDAR frame in the IMU frame: through a common parent (`base_link`),
+/// directly, or inverted; in ROS 1 and CDR bags. p_imu = R * p_lidar + t, values by hand.
+#[test]
+fn static_transforms_give_the_lidar_in_the_imu_frame() {
+    use loglio_host::input::bag::msg::{TF_MESSAGE, Transform, encode_tf};
+    let dir = tmp("tf-static");
+    let tf = |parent: &str, child: &str, t: [f64; 3], q: [f64; 4]| Transform {
+        parent: parent.into(),
+        child: child.into(),
+        translation: t,
+        rotation_xyzw: q,
+    };
+    let s = std::f64::consts::FRAC_1_SQRT_2;
+    let yaw90 = [0.0, 0.0, s, s];
+    let cases = [
+        (
+            "common-parent",
+            vec![
+                tf("base_link", "imu_link", [0.1, 0.0, 0.2], [0.0, 0.0, 0.0, 1.0]),
+                tf("/base_link", "velodyne", [0.3, 0.05, 0.5], yaw90),
+            ],
+            [0.2, 0.05, 0.3],
+        ),
+        ("direct", vec![tf("imu_link", "velodyne", [0.2, 0.05, 0.3], yaw90)], [0.2, 0.05, 0.3]),
+        // velodyne -> imu_link: the IMU at (-0.05, 0.2, -0.3) in the LiDAR frame, yawed -90.
+        (
+            "inverse",
+            vec![tf("velodyne", "imu_link", [-0.05, 0.2, -0.3], [0.0, 0.0, -s, s])],
+            [0.2, 0.05, 0.3],
+        ),
+    ];
+    for (name, transforms, t) in cases {
+        for enc in [Encoding::Ros1, Encoding::Cdr] {
+            let (mut msgs, _) = sequence(enc, build::VELODYNE);
+            msgs.insert(0, (T0, "/tf_static", TF_MESSAGE, encode_tf(&transforms, enc)));
+            let path =
+                dir.join(format!("{name}-{enc:?}.{}", if enc == Encoding::Ros1 { "bag" } else { "mcap" }));
+            if enc == Encoding::Ros1 {
+                write_ros1(&path, &msgs, 4096, ChunkCompression::None);
+            } else {
+                write_mcap(&path, &msgs);
+            }
+            let e = BagReader::static_extrinsic(&path, &opts(Preset::Vlp16)).unwrap().unwrap();
+            assert_eq!((e.lidar_frame.as_str(), e.imu_frame.as_str()), ("velodyne", "imu_link"), "{name}");
+            let got = e.imu_lidar.translation.vector;
+            for k in 0..3 {
+                assert!((got[k] - t[k]).abs() < 1e-12, "{name} {enc:?}: {got:?}");
+            }
+            // R is a yaw of 90 degrees: the LiDAR's x is the IMU's y.
+            let x = e.imu_lidar.rotation * nalgebra::Vector3::x();
+            assert!((x - nalgebra::Vector3::y()).norm() < 1e-12, "{name} {enc:?}: {x:?}");
+            // The run itself reads the bag as before (the /tf_static topic is not a role).
+            let run = read_all(&path, opts(Preset::Vlp16)).unwrap();
+            assert!(run.warnings.is_empty(), "{:?}", run.warnings);
+            assert_eq!(run.items.len(), 63);
+        }
+    }
+    // No /tf_static, or frames it does not connect: none.
+    let (msgs, _) = sequence(Encoding::Ros1, build::VELODYNE);
+    let plain = dir.join("plain.bag");
+    write_ros1(&plain, &msgs, 4096, ChunkCompression::None);
+    assert_eq!(BagReader::static_extrinsic(&plain, &opts(Preset::Vlp16)).unwrap(), None);
+    let mut msgs = msgs;
+    msgs.insert(
+        0,
+        (
+            T0,
+            "/tf_static",
+            TF_MESSAGE,
+            encode_tf(&[tf("map", "velodyne", [1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])], Encoding::Ros1),
+        ),
+    );
+    let apart = dir.join("apart.bag");
+    write_ros1(&apart, &msgs, 4096, ChunkCompression::None);
+    assert_eq!(BagReader::static_extrinsic(&apart, &opts(Preset::Vlp16)).unwrap(), None);
+}
+
 /// rosbag2's message compression (`compression_mode: message`): each row is one zstd frame
 /// (28 b5 2f fd), decompressed as it is read: the same scans and IMU samples as the plain bag,
 /// from the file alone and from its directory with the metadata. A row that does not
