@@ -885,6 +885,17 @@ mod tests {
                 format!("IMU CSV line 1: the header `{header}` is not understood: {why}; {EXPECTED_HEADER}")
             );
         }
+        // The Ouster SDK's IMU CSV (g and deg/s, three clocks): refused, not guessed at.
+        let path =
+            concat!(env!("CARGO_MANIFEST_DIR"), "/../tests/data/ouster-sdk/OS-1-64_1024x10_fw20.imu.csv");
+        let e = load_counted(path).unwrap_err();
+        assert_eq!(e.line, 1);
+        assert_eq!(
+            e.problem,
+            format!(
+                "the header `capture_ts_s,sys_ts_ns,accel_ts_ns,gyro_ts_ns,la_x_g,la_y_g,la_z_g,av_x_dps,av_y_dps,av_z_dps` is not understood: no column for the time, gx, gy, gz, ax, ay, az (not understood: `capture_ts_s`, `sys_ts_ns`, `accel_ts_ns`, `gyro_ts_ns`, `la_x_g`, `la_y_g`, `la_z_g`, `av_x_dps`, `av_y_dps`, `av_z_dps`); {EXPECTED_HEADER}"
+            )
+        );
         // Unix ns under a header without a unit: the refusal says how to name it.
         let text = "t,gx,gy,gz,ax,ay,az\n1700000000123456789,0,0,0,0,0,9.81\n";
         let e = parse_counted(text.as_bytes()).unwrap_err().to_string();
