@@ -336,6 +336,15 @@ fn classify(field: &str) -> Result<Option<Column>, String> {
         (first, last)
     };
     let Some(axis) = ["x", "y", "z"].iter().position(|a| *a == axis) else { return Ok(None) };
+    // Words between the kind and the axis: only those of the known spellings (`a_bias_x` is not
+    // the specific force).
+    if tokens.len() > 2
+        && !tokens[1..tokens.len() - 1].iter().all(|t| {
+            matches!(*t, "velocity" | "vel" | "acceleration" | "accel" | "rs" | "s" | "raw" | "meas")
+        })
+    {
+        return Ok(None);
+    }
     let gyro = matches!(kind, "g" | "gyro" | "gyr" | "w" | "omega" | "angular" | "ang" | "rot");
     let acc = matches!(kind, "a" | "acc" | "accel" | "linear" | "lin");
     if !gyro && !acc {
@@ -869,6 +878,10 @@ mod tests {
                 "no column for the time, gx, gy, gz, ax, ay, az (not understood: `a`, `b`, `c`, `d`, `e`, `f`, `g`)",
             ),
             ("t,gx,gy,gz,ax,ay,q", "no column for az (not understood: `q`)"),
+            (
+                "t,gx,gy,gz,a_bias_x,a_bias_y,a_bias_z",
+                "no column for ax, ay, az (not understood: `a_bias_x`, `a_bias_y`, `a_bias_z`)",
+            ),
             ("t,gx,gy,gx,ax,ay,az", "the column `gx` is named twice"),
             ("t,time,gx,gy,gz,ax,ay,az", "two time columns"),
             ("t [h],gx,gy,gz,ax,ay,az", "the time column `t [h]` names the unit `h`, not s, ms, us or ns"),
