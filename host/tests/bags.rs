@@ -600,6 +600,31 @@ fn static_transforms_give_the_lidar_in_the_imu_frame() {
     let apart = dir.join("apart.bag");
     write_ros1(&apart, &msgs, 4096, ChunkCompression::None);
     assert_eq!(BagReader::static_extrinsic(&apart, &opts(Preset::Vlp16)).unwrap(), None);
+    // /tf_static is latched: reading stops TF_SETTLE messages after the last one once both
+    // frames are known. A connecting transform 900 messages after the first is found; one
+    // 1,200 after is not looked for.
+    assert_eq!(loglio_host::input::bag::TF_SETTLE, 1_000);
+    let link = encode_tf(&[tf("map", "imu_link", [0.0; 3], [0.0, 0.0, 0.0, 1.0])], Encoding::Ros1);
+    for (at, found) in [(900, true), (1_200, false)] {
+        let mut msgs = long_sequence(60);
+        msgs.insert(
+            0,
+            (
+                T0,
+                "/tf_static",
+                TF_MESSAGE,
+                encode_tf(&[tf("map", "velodyne", [1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])], Encoding::Ros1),
+            ),
+        );
+        msgs.insert(at, (msgs[at - 1].0, "/tf_static", TF_MESSAGE, link.clone()));
+        let path = dir.join(format!("late-{at}.bag"));
+        write_ros1(&path, &msgs, 4096, ChunkCompression::None);
+        let e = BagReader::static_extrinsic(&path, &opts(Preset::Vlp16)).unwrap();
+        assert_eq!(e.is_some(), found, "{at}");
+        if let Some(e) = e {
+            assert_eq!(e.imu_lidar.translation.vector, nalgebra::Vector3::new(1.0, 0.0, 0.0));
+        }
+    }
 }
 
 /// rosbag2's message compression (`compression_mode: message`): each row is one zstd frame

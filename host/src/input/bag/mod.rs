@@ -522,6 +522,9 @@ fn detect(path: &Path) -> Result<(BagFormat, Vec<PathBuf>), BagError> {
 
 /// How many messages [`BagReader::static_extrinsic`] reads at most.
 pub const TF_SEARCH_MESSAGES: usize = 100_000;
+/// How many messages after the last `/tf_static` one [`BagReader::static_extrinsic`] reads
+/// once both frames are known and still not connected.
+pub const TF_SETTLE: usize = 1_000;
 
 /// The LiDAR frame in the IMU frame, from the bag's `/tf_static`.
 #[derive(Clone, Debug, PartialEq)]
@@ -727,7 +730,8 @@ impl BagReader {
     /// The LiDAR frame in the IMU frame from the bag's `/tf_static`: the frames are the
     /// `frame_id`s of the first LiDAR and IMU messages, the transform the chain of static
     /// transforms between them (direct, inverse, or through a common parent such as
-    /// `base_link`). Reads until all three are known, at most [`TF_SEARCH_MESSAGES`] messages;
+    /// `base_link`). Reads until all three are known, at most [`TF_SEARCH_MESSAGES`] messages
+    /// ([`TF_SETTLE`] after the last `/tf_static` one once both frames are known);
     /// `None` when the bag has no `/tf_static`, the LiDAR has no header (Ouster packets) or
     /// the frames are not connected.
     pub fn static_extrinsic(path: &Path, opt: &BagOptions) -> Result<Option<StaticExtrinsic>, BagError> {
@@ -765,9 +769,19 @@ impl BagReader {
         let (mut lidar_frame, mut imu_frame) = (None, None);
         let mut parents: std::collections::HashMap<String, (String, nalgebra::Isometry3<f64>)> =
             std::collections::HashMap::new();
+        // /tf_static is latched: recorded once per publisher, at the start. Reading stops
+        // TF_SETTLE messages after the last one once both frames are known.
+        let mut since_tf: Option<usize> = None;
         for _ in 0..TF_SEARCH_MESSAGES {
+            if lidar_frame.is_some() && imu_frame.is_some() && since_tf.is_some_and(|n| n > TF_SETTLE) {
+                break;
+            }
             let Some(ev) = source.next_raw() else { break };
             let RawEvent::Msg(m) = ev? else { continue };
+            since_tf = since_tf.map(|n| n + 1);
+            if m.topic == tf {
+                since_tf = Some(0);
+            }
             let Some(enc) = topics[m.topic].encoding else { continue };
             if m.topic == lidar && lidar_frame.is_none() {
                 lidar_frame = frame(&m.data, enc);
