@@ -111,10 +111,16 @@ fn parse_numbers(
     lineno: usize,
     want: usize,
     what: &str,
+    other: Option<(usize, &str)>,
 ) -> Result<Vec<f64>, EvalError> {
     let fields: Vec<&str> = numbers(line).collect();
     if fields.len() != want {
-        bail!("{name} line {lineno}: expected {want} numbers ({what}), found {}", fields.len());
+        // The count of the other format: say which one it looks like.
+        let hint = match other {
+            Some((n, which)) if n == fields.len() => format!("; this looks like {which}"),
+            _ => String::new(),
+        };
+        bail!("{name} line {lineno}: expected {want} numbers ({what}), found {}{hint}", fields.len());
     }
     fields
         .iter()
@@ -150,7 +156,14 @@ pub fn parse_tum(text: &str, name: &str) -> Result<Trajectory, EvalError> {
         if line.is_empty() || line.starts_with('#') {
             continue;
         }
-        let v = parse_numbers(line, name, i + 1, 8, "t tx ty tz qx qy qz qw")?;
+        let v = parse_numbers(
+            line,
+            name,
+            i + 1,
+            8,
+            "t tx ty tz qx qy qz qw",
+            Some((12, "a KITTI pose file (row-major 3x4 [R|t]): use `--format kitti`")),
+        )?;
         let (x, y, z, w) = (v[4], v[5], v[6], v[7]);
         let n = (x * x + y * y + z * z + w * w).sqrt();
         if (n - 1.0).abs() > 1e-2 {
@@ -180,7 +193,14 @@ pub fn parse_kitti(text: &str, name: &str, times: Option<(&str, &str)>) -> Resul
         if line.is_empty() || line.starts_with('#') {
             continue;
         }
-        let v = parse_numbers(line, name, i + 1, 12, "row-major 3x4 [R|t]")?;
+        let v = parse_numbers(
+            line,
+            name,
+            i + 1,
+            12,
+            "row-major 3x4 [R|t]",
+            Some((8, "a TUM trajectory (t tx ty tz qx qy qz qw): use `--format tum`")),
+        )?;
         let r = Matrix3::new(v[0], v[1], v[2], v[4], v[5], v[6], v[8], v[9], v[10]);
         // As lenient as the TUM quaternion-norm check: the rotation errors and the alignment
         // assume a rotation (a zero or scaled block gave NaN errors, or a panic in the SVD).
@@ -207,7 +227,7 @@ pub fn parse_kitti(text: &str, name: &str, times: Option<(&str, &str)>) -> Resul
                 if line.is_empty() || line.starts_with('#') {
                     continue;
                 }
-                s.push(parse_numbers(line, tname, i + 1, 1, "a time in seconds")?[0]);
+                s.push(parse_numbers(line, tname, i + 1, 1, "a time in seconds", None)?[0]);
                 lines.push(i + 1);
             }
             if s.len() != poses.len() {
@@ -893,6 +913,23 @@ mod tests {
             "est.txt line 2: expected 8 numbers (t tx ty tz qx qy qz qw), found 7"
         );
         assert_eq!(e("# header\n0 1 2 x 0 0 0 1\n"), "est.txt line 2: `x` is not a number");
+        // A KITTI file read as TUM, and a TUM file read as KITTI, say which flag reads them.
+        assert_eq!(
+            e("1 0 0 0.5 0 1 0 0 0 0 1 0\n"),
+            "est.txt line 1: expected 8 numbers (t tx ty tz qx qy qz qw), found 12; this looks like a KITTI pose file (row-major 3x4 [R|t]): use `--format kitti`"
+        );
+        assert_eq!(
+            parse_kitti("0 1 2 3 0 0 0 1\n", "gt.txt", None).unwrap_err().0,
+            "gt.txt line 1: expected 12 numbers (row-major 3x4 [R|t]), found 8; this looks like a TUM trajectory (t tx ty tz qx qy qz qw): use `--format tum`"
+        );
+        assert_eq!(
+            parse_kitti("0 1 2 3 0 0 0\n", "gt.txt", None).unwrap_err().0,
+            "gt.txt line 1: expected 12 numbers (row-major 3x4 [R|t]), found 7"
+        );
+        // The right flag reads the same KITTI line: identity rotation, t = (0.5, 0, 0).
+        let k = parse_kitti("1 0 0 0.5 0 1 0 0 0 0 1 0\n", "est.txt", None).unwrap();
+        assert_eq!(k.poses[0].t, Vector3::new(0.5, 0.0, 0.0));
+        assert_eq!(k.poses[0].r, Matrix3::identity());
         assert_eq!(e("0 1 2 nan 0 0 0 1\n"), "est.txt line 1: `nan` is not a finite number");
         assert_eq!(
             e("1 0 0 0 0 0 0 1\n0.5 0 0 0 0 0 0 1\n"),

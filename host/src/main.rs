@@ -555,9 +555,10 @@ fn bag_cmd(a: BagArgs) -> anyhow::Result<()> {
     };
     let r = loglio_host::cmd::bag::run(&opt)?;
     print(&format!(
-        "{}: {}\n{}\n{}",
+        "{}: {}\n{}{}\n{}",
         opt.bag.display(),
         r.topics,
+        r.extrinsic.as_ref().map_or(String::new(), |e| format!("{e}\n")),
         r.bag_stats,
         loglio_host::run::runner::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
     ))

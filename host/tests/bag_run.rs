@@ -8,7 +8,9 @@ use std::process::Output;
 
 use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKind};
-use loglio_host::input::bag::msg::{Encoding, IMU, Imu, POINTCLOUD2, PointCloud2, PointField, datatype};
+use loglio_host::input::bag::msg::{
+    Encoding, IMU, Imu, POINTCLOUD2, PointCloud2, PointField, TF_MESSAGE, Transform, datatype, encode_tf,
+};
 use loglio_host::input::bag::ros1_writer::Ros1BagWriter;
 
 mod common;
@@ -74,11 +76,29 @@ fn write_sim_bag(dir: &Path, ring_time: bool) {
 }
 
 fn write_sim_bag_with(dir: &Path, ring_time: bool, late: LateStamp) {
+    write_sim_bag_tf(dir, ring_time, late, false);
+}
+
+/// [`write_sim_bag_with`], with the true extrinsic in `/tf_static` (`imu_link` -> `velodyne`)
+/// when `tf`.
+fn write_sim_bag_tf(dir: &Path, ring_time: bool, late: LateStamp, tf: bool) {
     let mut c = ScenarioConfig::new(ScenarioKind::Vehicle, SensorModel::Vlp32c, 2);
     c.duration_s = 4.0;
     let sc = Scenario::from_config(c).unwrap();
     let rows = sc.layout().rows() as u16;
     let mut w = Ros1BagWriter::create(&dir.join("sim.bag")).unwrap();
+    if tf {
+        let e = sc.extrinsic();
+        let q = e.rotation.quaternion();
+        let t = Transform {
+            parent: "imu_link".into(),
+            child: "velodyne".into(),
+            translation: [e.translation.x, e.translation.y, e.translation.z],
+            rotation_xyzw: [q.i, q.j, q.k, q.w],
+        };
+        let conn = w.add_typed_connection("/tf_static", &TF_MESSAGE).unwrap();
+        w.write(conn, sc.start_ns(), &encode_tf(&[t], Encoding::Ros1)).unwrap();
+    }
     let cloud_conn = w.add_typed_connection("/velodyne_points", &POINTCLOUD2).unwrap();
     let imu_conn = w.add_typed_connection("/imu/data", &IMU).unwrap();
     let mut gt = String::new();
@@ -143,6 +163,43 @@ fn run_bag(dir: &Path, extra: &[&str]) -> Output {
     args.extend(extra.iter().map(|s| s.to_string()));
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
     loglio(&args)
+}
+
+/// Without a configuration: the extrinsic from the bag's `/tf_static`, said in the summary
+/// (same accuracy, no warning); without `/tf_static` either, one warning that names the gap.
+#[test]
+fn the_extrinsic_comes_from_tf_static_or_its_absence_is_said_once() {
+    let dir = scratch("tf-static");
+    write_sim_bag_tf(&dir, true, LateStamp::None, true);
+    let p = |f: &str| dir.join(f).to_str().unwrap().to_string();
+    let run = |out: &str| {
+        loglio(&["bag", &p("sim.bag"), "--preset", "vlp32c", "--gt", &p("gt.tum"), "--out", &p(out)])
+    };
+    let out = run("out-tf");
+    let text = String::from_utf8_lossy(&out.stdout).to_string();
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(out.status.success(), "{err}");
+    assert!(err.is_empty(), "no warnings expected: {err}");
+    let line =
+        text.lines().find(|l| l.starts_with("extrinsic from /tf_static")).unwrap_or_else(|| panic!("{text}"));
+    // The scenario's true extrinsic (what extrinsic_config writes), to the printed digits.
+    assert_eq!(
+        line,
+        "extrinsic from /tf_static (velodyne in imu_link): t = [0.0800, -0.0400, 0.0500] m, q wxyz = [0.9998, 0.0045, -0.0086, 0.0175]"
+    );
+    let ate = number_after(&text, "rmse");
+    assert!(ate <= 0.10, "ATE {ate} m: {text}");
+    write_sim_bag(&dir, true);
+    let out = run("out-none");
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(out.status.success(), "{err}");
+    assert_eq!(err.lines().count(), 1, "{err}");
+    assert!(
+        err.starts_with("warning: no LiDAR-IMU extrinsic given (no configuration file, preset vlp32c has none, the data none)"),
+        "{err}"
+    );
+    assert!(!String::from_utf8_lossy(&out.stdout).contains("extrinsic from"));
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]

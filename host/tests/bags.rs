@@ -525,6 +525,152 @@ fn rosbag2_sqlite_round_trip_across_splits() {
     check_sequence(&run, &exp);
 }
 
+/// `/tf_static` gives the LiDAR frame in the IMU frame: through a common parent (`base_link`),
+/// directly, or inverted; in ROS 1 and CDR bags. p_imu = R * p_lidar + t, values by hand.
+#[test]
+fn static_transforms_give_the_lidar_in_the_imu_frame() {
+    use loglio_host::input::bag::msg::{TF_MESSAGE, Transform, encode_tf};
+    let dir = tmp("tf-static");
+    let tf = |parent: &str, child: &str, t: [f64; 3], q: [f64; 4]| Transform {
+        parent: parent.into(),
+        child: child.into(),
+        translation: t,
+        rotation_xyzw: q,
+    };
+    let s = std::f64::consts::FRAC_1_SQRT_2;
+    let yaw90 = [0.0, 0.0, s, s];
+    let cases = [
+        (
+            "common-parent",
+            vec![
+                tf("base_link", "imu_link", [0.1, 0.0, 0.2], [0.0, 0.0, 0.0, 1.0]),
+                tf("/base_link", "velodyne", [0.3, 0.05, 0.5], yaw90),
+            ],
+            [0.2, 0.05, 0.3],
+        ),
+        ("direct", vec![tf("imu_link", "velodyne", [0.2, 0.05, 0.3], yaw90)], [0.2, 0.05, 0.3]),
+        // velodyne -> imu_link: the IMU at (-0.05, 0.2, -0.3) in the LiDAR frame, yawed -90.
+        (
+            "inverse",
+            vec![tf("velodyne", "imu_link", [-0.05, 0.2, -0.3], [0.0, 0.0, -s, s])],
+            [0.2, 0.05, 0.3],
+        ),
+    ];
+    for (name, transforms, t) in cases {
+        for enc in [Encoding::Ros1, Encoding::Cdr] {
+            let (mut msgs, _) = sequence(enc, build::VELODYNE);
+            msgs.insert(0, (T0, "/tf_static", TF_MESSAGE, encode_tf(&transforms, enc)));
+            let path =
+                dir.join(format!("{name}-{enc:?}.{}", if enc == Encoding::Ros1 { "bag" } else { "mcap" }));
+            if enc == Encoding::Ros1 {
+                write_ros1(&path, &msgs, 4096, ChunkCompression::None);
+            } else {
+                write_mcap(&path, &msgs);
+            }
+            let e = BagReader::static_extrinsic(&path, &opts(Preset::Vlp16)).unwrap().unwrap();
+            assert_eq!((e.lidar_frame.as_str(), e.imu_frame.as_str()), ("velodyne", "imu_link"), "{name}");
+            let got = e.imu_lidar.translation.vector;
+            for k in 0..3 {
+                assert!((got[k] - t[k]).abs() < 1e-12, "{name} {enc:?}: {got:?}");
+            }
+            // R is a yaw of 90 degrees: the LiDAR's x is the IMU's y.
+            let x = e.imu_lidar.rotation * nalgebra::Vector3::x();
+            assert!((x - nalgebra::Vector3::y()).norm() < 1e-12, "{name} {enc:?}: {x:?}");
+            // The run itself reads the bag as before (the /tf_static topic is not a role).
+            let run = read_all(&path, opts(Preset::Vlp16)).unwrap();
+            assert!(run.warnings.is_empty(), "{:?}", run.warnings);
+            assert_eq!(run.items.len(), 63);
+        }
+    }
+    // No /tf_static, or frames it does not connect: none.
+    let (msgs, _) = sequence(Encoding::Ros1, build::VELODYNE);
+    let plain = dir.join("plain.bag");
+    write_ros1(&plain, &msgs, 4096, ChunkCompression::None);
+    assert_eq!(BagReader::static_extrinsic(&plain, &opts(Preset::Vlp16)).unwrap(), None);
+    let mut msgs = msgs;
+    msgs.insert(
+        0,
+        (
+            T0,
+            "/tf_static",
+            TF_MESSAGE,
+            encode_tf(&[tf("map", "velodyne", [1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])], Encoding::Ros1),
+        ),
+    );
+    let apart = dir.join("apart.bag");
+    write_ros1(&apart, &msgs, 4096, ChunkCompression::None);
+    assert_eq!(BagReader::static_extrinsic(&apart, &opts(Preset::Vlp16)).unwrap(), None);
+    // /tf_static is latched: reading stops TF_SETTLE messages after the last one once both
+    // frames are known. A connecting transform 900 messages after the first is found; one
+    // 1,200 after is not looked for.
+    assert_eq!(loglio_host::input::bag::TF_SETTLE, 1_000);
+    let link = encode_tf(&[tf("map", "imu_link", [0.0; 3], [0.0, 0.0, 0.0, 1.0])], Encoding::Ros1);
+    for (at, found) in [(900, true), (1_200, false)] {
+        let mut msgs = long_sequence(60);
+        msgs.insert(
+            0,
+            (
+                T0,
+                "/tf_static",
+                TF_MESSAGE,
+                encode_tf(&[tf("map", "velodyne", [1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0])], Encoding::Ros1),
+            ),
+        );
+        msgs.insert(at, (msgs[at - 1].0, "/tf_static", TF_MESSAGE, link.clone()));
+        let path = dir.join(format!("late-{at}.bag"));
+        write_ros1(&path, &msgs, 4096, ChunkCompression::None);
+        let e = BagReader::static_extrinsic(&path, &opts(Preset::Vlp16)).unwrap();
+        assert_eq!(e.is_some(), found, "{at}");
+        if let Some(e) = e {
+            assert_eq!(e.imu_lidar.translation.vector, nalgebra::Vector3::new(1.0, 0.0, 0.0));
+        }
+    }
+}
+
+/// rosbag2's message compression (`compression_mode: message`): each row is one zstd frame
+/// (28 b5 2f fd), decompressed as it is read: the same scans and IMU samples as the plain bag,
+/// from the file alone and from its directory with the metadata. A row that does not
+/// decompress is said as such.
+#[test]
+fn rosbag2_sqlite_with_zstd_message_compression_reads_the_messages() {
+    let dir = tmp("db3-zstd-msg");
+    let bagdir = dir.join("run");
+    std::fs::create_dir_all(&bagdir).unwrap();
+    let (msgs, exp) = sequence(Encoding::Cdr, build::VELODYNE);
+    let packed: Vec<_> = msgs
+        .iter()
+        .map(|(t, topic, ty, b)| (*t, *topic, *ty, zstd::encode_all(b.as_slice(), 3).unwrap()))
+        .collect();
+    assert!(packed.iter().all(|m| m.3.starts_with(&[0x28, 0xb5, 0x2f, 0xfd])));
+    assert!(packed.iter().zip(&msgs).all(|(p, m)| p.3 != m.3));
+    let db = bagdir.join("run_0.db3");
+    write_db3(&db, &packed, 1);
+    std::fs::write(
+        bagdir.join("metadata.yaml"),
+        "rosbag2_bagfile_information:\n  compression_format: zstd\n  compression_mode: MESSAGE\n",
+    )
+    .unwrap();
+    for path in [&db, &bagdir] {
+        let run = read_all(path, opts(Preset::Vlp16)).unwrap();
+        assert!(run.warnings.is_empty(), "{:?}", run.warnings);
+        check_sequence(&run, &exp);
+    }
+    // A row with the magic and garbage after it.
+    let mut bad = packed.clone();
+    bad[0].3 = vec![0x28, 0xb5, 0x2f, 0xfd, 1, 2, 3];
+    let bad_db = dir.join("bad.db3");
+    write_db3(&bad_db, &bad, 1);
+    let run = read_all(&bad_db, opts(Preset::Vlp16)).unwrap();
+    let said = format!("{}\n{:?}", run.warnings.join("\n"), run.end);
+    assert!(
+        said.contains(&format!(
+            "{}: this rosbag2 is zstd-compressed (message compression) and message 1 does not decompress: ",
+            bad_db.display()
+        )),
+        "{said}"
+    );
+}
+
 /// Older rosbag2 releases and converted bags have no timestamp index: the reader then sorts the
 /// message ids once instead of sorting the whole table for every page (quadratic: 34.5 s for
 /// 100,000 messages). Same items in the same order, ties in record time by id.
@@ -1091,7 +1237,7 @@ fn not_bags_corrupt_databases_and_compressed_bags_are_one_line_errors() {
     assert_eq!(
         open_err(&z, o()),
         format!(
-            "{}: a zstd-compressed file; decompress it first (zstd -d, or ros2 bag convert)",
+            "{0}: a zstd-compressed file (a rosbag2 .db3.zstd or .mcap.zstd: file compression), which loglio does not read; decompress it first (`zstd -d {0}`, or `ros2 bag convert` on its directory)",
             z.display()
         )
     );
@@ -1106,7 +1252,17 @@ fn not_bags_corrupt_databases_and_compressed_bags_are_one_line_errors() {
     assert_eq!(
         open_err(&cdir, o()),
         format!(
-            "{}: zstd-compressed rosbag2 bags are not read; decompress it first (ros2 bag convert)",
+            "{}: this rosbag2 is zstd-compressed (file compression), which loglio does not read; decompress it first (`ros2 bag convert` to an uncompressed bag, or `zstd -d` on each .zstd file and compression_format: \"\" in metadata.yaml)",
+            cdir.display()
+        )
+    );
+    // Its .db3.zstd file, without the metadata.
+    std::fs::remove_file(cdir.join("metadata.yaml")).unwrap();
+    std::fs::write(cdir.join("c_0.db3.zstd"), [0x28, 0xb5, 0x2f, 0xfd, 0, 0]).unwrap();
+    assert_eq!(
+        open_err(&cdir, o()),
+        format!(
+            "{}: this rosbag2 is zstd-compressed (file compression: c_0.db3.zstd), which loglio does not read; decompress it first (`ros2 bag convert` to an uncompressed bag, or `zstd -d` on each .zstd file)",
             cdir.display()
         )
     );

@@ -154,6 +154,14 @@ fn eval_reports_and_plots_and_bad_files_are_one_line() {
     }
     let table = stdout(&loglio(&["eval", "--format", "kitti", &gt, &est, "--align", "none"]));
     assert!(table.contains("APE translation (m)          7.790289"), "{table}");
+    // The KITTI files without --format: the error says which flag reads them.
+    fails(
+        &loglio(&["eval", &gt, &est]),
+        1,
+        &format!(
+            "error: {gt} line 1: expected 8 numbers (t tx ty tz qx qy qz qw), found 12; this looks like a KITTI pose file (row-major 3x4 [R|t]): use `--format kitti`"
+        ),
+    );
     // Bad TUM files.
     let bad = d.join("est.txt");
     std::fs::write(&bad, "0 1 2 3 0 0 0 1\n1 1 2 3 0 0 1\n").unwrap();

@@ -50,6 +50,8 @@ pub struct BagRunReport {
     pub bag_stats: String,
     /// The topics read.
     pub topics: String,
+    /// Where the extrinsic came from, when the bag gave it (a summary line).
+    pub extrinsic: Option<String>,
     /// Scan period, s.
     pub scan_period_s: f64,
     /// Wall time, s.
@@ -67,6 +69,13 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
         Ok(o)
     };
     let mut reader = BagReader::open(&opt.bag, bag_opts()?).map_err(|e| PipelineError(e.to_string()))?;
+    // No extrinsic from the configuration: the bag's /tf_static, if it connects the frames.
+    let from_tf = match opt.setup.extrinsic_missing(&cfg) {
+        Some(_) => {
+            BagReader::static_extrinsic(&opt.bag, &bag_opts()?).map_err(|e| PipelineError(e.to_string()))?
+        }
+        None => None,
+    };
     let sel = reader.selection().clone();
     let topics = format!("LiDAR {}, IMU {}", sel.lidar.0, sel.imu.as_deref().unwrap_or("none"));
     // Packets need a decoder: Velodyne from the configuration, Ouster from its metadata (the
@@ -116,6 +125,23 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
     if let Some(m) = &meta {
         cfg.sensor.columns = m.intrinsics.columns_per_frame as u32;
     }
+    let extrinsic = match from_tf {
+        Some(e) => {
+            let t = e.imu_lidar.translation.vector;
+            let q = e.imu_lidar.rotation;
+            cfg.extrinsics.translation = [t.x, t.y, t.z];
+            cfg.extrinsics.rotation_rpy_deg = None;
+            cfg.extrinsics.rotation_quat_wxyz = Some([q.w, q.i, q.j, q.k]);
+            Some(format!(
+                "extrinsic from /tf_static ({} in {}): t = [{:.4}, {:.4}, {:.4}] m, q wxyz = [{:.4}, {:.4}, {:.4}, {:.4}]",
+                e.lidar_frame, e.imu_frame, t.x, t.y, t.z, q.w, q.i, q.j, q.k
+            ))
+        }
+        None => {
+            opt.setup.warn_missing_extrinsic(&cfg);
+            None
+        }
+    };
     let n = dec.as_ref().map_or(0, |d| d.max_points());
     let (mut a, mut b) = (vec![ScanPoint::default(); n], vec![ScanPoint::default(); n]);
     let stream = dec.map(|d| LidarStream::of_kinds(&cfg, d, &mut a, &mut b));
@@ -153,6 +179,7 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
         finished,
         bag_stats: reader.stats().to_string(),
         topics,
+        extrinsic,
         scan_period_s: 1.0 / cfg.sensor.scan_rate_hz,
         wall_s: wall.elapsed().as_secs_f64(),
     })

@@ -641,6 +641,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
         LiveImu::Serial(p) => Some((open_imu(p, cfg.imu.baud)?, p.clone())),
         _ => None,
     };
+    opt.setup.warn_missing_extrinsic(&cfg);
     let imu_desc = match &serial {
         Some((ImuPort::Serial(_), p)) => format!("IMU from {} at {} baud", p.display(), cfg.imu.baud),
         Some((ImuPort::Fifo(_), p)) => format!("IMU from the FIFO {}", p.display()),

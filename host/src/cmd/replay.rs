@@ -160,6 +160,7 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
         done: false,
         pcap: &opt.pcap,
     };
+    opt.setup.warn_missing_extrinsic(&cfg);
     let (stop, _signals) = crate::run::Signals::stop_flag();
     let opts = RunOptions {
         outputs: opt.setup.outputs()?,

@@ -1,8 +1,17 @@
-//! IMU samples from CSV: a header line (`t,gx,gy,gz,ax,ay,az`, or any first line that does not
-//! read as numbers, such as `t_s,gx,...` or `timestamp,...`, with 7 columns), then one sample per
-//! line with `t` in seconds (absolute, e.g. Unix time; parsed exactly to the nanosecond),
-//! angular rate in rad/s and specific force in m/s^2. Blank lines and lines starting with `#`
-//! are skipped; a file without a header starts with data.
+//! IMU samples from CSV: a header line, then one sample per line with the time (absolute, e.g.
+//! Unix time; parsed exactly to the nanosecond), angular rate in rad/s and specific force in
+//! m/s^2. Blank lines and lines starting with `#` are skipped; a file without a header starts
+//! with data in the order `t,gx,gy,gz,ax,ay,az`, `t` in seconds.
+//!
+//! The header names the columns, in any order ([`Layout`]): the time as `t`, `time`,
+//! `timestamp` or `stamp`, its unit named by a suffix (`t_ns`, `timestamp_us`, `t_ms`, `t_s`)
+//! or in brackets (`time [ns]`, `t(ms)`), seconds when none is named; the angular rate as
+//! `gx,gy,gz` (also `gyro_x`, `wx`, `w_RS_S_x`, `angular_velocity_x`, ...) and the specific
+//! force as `ax,ay,az` (also `acc_x`, `a_RS_S_x`, `linear_acceleration_x`, ...), with units in
+//! brackets only if they are rad/s and m/s^2. Other columns are ignored when all seven are
+//! named. A first `#` line that reads as such a header (EuRoC's `#timestamp [ns],w_RS_S_x
+//! [rad s^-1],...`) is the header. A header that cannot be understood is refused in one line
+//! that names it and what was expected: a column taken by position could be the wrong one.
 //!
 //! Real recordings have bad rows; one must not cost the whole file. Rows with a non-finite
 //! value, a wrong number of fields or an unparsable field are dropped and counted; rows are
@@ -155,24 +164,264 @@ pub fn load_counted(path: impl AsRef<Path>) -> Result<(Vec<ImuSample>, ImuCsvSta
 }
 /// Parses seconds (`123.456789012`, at most 9 decimals used, more are rounded off) into ns.
 pub fn parse_seconds_ns(s: &str) -> Option<u64> {
+    parse_time_ns(s, TimeUnit::S)
+}
+
+/// Parses a non-negative decimal time in `unit` into ns, exactly (decimals below 1 ns are
+/// rounded off).
+pub fn parse_time_ns(s: &str, unit: TimeUnit) -> Option<u64> {
     let s = s.trim();
     let (int, frac) = s.split_once('.').unwrap_or((s, ""));
     if int.is_empty() && frac.is_empty() {
         return None;
     }
-    if !int.bytes().all(|c| c.is_ascii_digit()) || !frac.bytes().all(|c| c.is_ascii_digit()) || int.len() > 11
+    let digits = unit.decimals();
+    if !int.bytes().all(|c| c.is_ascii_digit())
+        || !frac.bytes().all(|c| c.is_ascii_digit())
+        || int.len() > 11 + (9 - digits) as usize
     {
         return None;
     }
-    let secs: u64 = if int.is_empty() { 0 } else { int.parse().ok()? };
+    let whole: u64 = if int.is_empty() { 0 } else { int.parse().ok()? };
     let mut ns = 0u64;
-    for (i, c) in frac.bytes().take(9).enumerate() {
-        ns += (c - b'0') as u64 * 10u64.pow(8 - i as u32);
+    for (i, c) in frac.bytes().take(digits as usize).enumerate() {
+        ns += (c - b'0') as u64 * 10u64.pow(digits - 1 - i as u32);
     }
-    if frac.len() > 9 && frac.as_bytes()[9] >= b'5' {
+    if frac.len() > digits as usize && frac.as_bytes()[digits as usize] >= b'5' {
         ns += 1;
     }
-    secs.checked_mul(1_000_000_000)?.checked_add(ns)
+    whole.checked_mul(10u64.pow(digits))?.checked_add(ns)
+}
+
+/// The unit of the time column.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TimeUnit {
+    /// Seconds (the default).
+    S,
+    /// Milliseconds.
+    Ms,
+    /// Microseconds.
+    Us,
+    /// Nanoseconds.
+    Ns,
+}
+
+impl TimeUnit {
+    /// Decimal digits from this unit down to ns.
+    fn decimals(self) -> u32 {
+        match self {
+            TimeUnit::S => 9,
+            TimeUnit::Ms => 6,
+            TimeUnit::Us => 3,
+            TimeUnit::Ns => 0,
+        }
+    }
+
+    /// The unit's symbol.
+    pub fn symbol(self) -> &'static str {
+        match self {
+            TimeUnit::S => "s",
+            TimeUnit::Ms => "ms",
+            TimeUnit::Us => "us",
+            TimeUnit::Ns => "ns",
+        }
+    }
+
+    fn from_symbol(s: &str) -> Option<TimeUnit> {
+        Some(match s {
+            "s" | "sec" | "secs" | "seconds" => TimeUnit::S,
+            "ms" | "msec" => TimeUnit::Ms,
+            "us" | "\u{b5}s" | "usec" => TimeUnit::Us,
+            "ns" | "nsec" => TimeUnit::Ns,
+            _ => return None,
+        })
+    }
+}
+
+/// Where each value is in a row, from the header (or the canonical order without one).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Layout {
+    /// Fields in a row.
+    pub columns: usize,
+    /// The time column.
+    pub t: usize,
+    /// The time column's unit.
+    pub t_unit: TimeUnit,
+    /// The angular rate's columns, x, y, z.
+    pub gyro: [usize; 3],
+    /// The specific force's columns, x, y, z.
+    pub acc: [usize; 3],
+    /// The columns' names, for messages.
+    names: Vec<String>,
+}
+
+impl Default for Layout {
+    fn default() -> Self {
+        Layout {
+            columns: 7,
+            t: 0,
+            t_unit: TimeUnit::S,
+            gyro: [1, 2, 3],
+            acc: [4, 5, 6],
+            names: HEADER.split(',').map(String::from).collect(),
+        }
+    }
+}
+
+/// What a header must hold, for the refusal.
+const EXPECTED_HEADER: &str = "expected a time column (`t`, `time`, `timestamp` or `stamp`, the unit named as in `t_ns` or `time [us]`, seconds if none) and the columns `gx,gy,gz` (rad/s) and `ax,ay,az` (m/s^2), in any order";
+
+/// What one header field names.
+enum Column {
+    Time(TimeUnit),
+    Gyro(usize),
+    Acc(usize),
+}
+
+/// Splits `name [unit]` / `name (unit)` into the name and the unit.
+fn split_unit(f: &str) -> (String, Option<String>) {
+    let f = f.trim().trim_matches('"').trim();
+    for (open, close) in [('[', ']'), ('(', ')')] {
+        if let Some(body) = f.strip_suffix(close)
+            && let Some(at) = body.rfind(open)
+        {
+            let unit: String = body[at + 1..].chars().filter(|c| !c.is_whitespace()).collect();
+            return (
+                body[..at].trim().trim_end_matches('_').to_ascii_lowercase(),
+                Some(unit.to_ascii_lowercase()),
+            );
+        }
+    }
+    (f.to_ascii_lowercase(), None)
+}
+
+/// What a header field names: `Ok(None)` for a column that names nothing known.
+fn classify(field: &str) -> Result<Option<Column>, String> {
+    const TIME: [&str; 6] = ["t", "time", "timestamp", "stamp", "ts", "times"];
+    let (name, unit) = split_unit(field);
+    let tokens: Vec<&str> = name.split(['_', '.', ' ', '-']).filter(|t| !t.is_empty()).collect();
+    let Some((&first, _)) = tokens.split_first() else { return Ok(None) };
+    // Time: `t`, `t_ns`, `timestamp [ns]`.
+    let (base, suffix_unit) = match tokens.as_slice() {
+        [b] => (*b, None),
+        [b, u] => match TimeUnit::from_symbol(u) {
+            Some(tu) => (*b, Some(tu)),
+            None => ("", None),
+        },
+        _ => ("", None),
+    };
+    if TIME.contains(&base) {
+        let bracket = match &unit {
+            Some(u) => Some(TimeUnit::from_symbol(u).ok_or_else(|| {
+                format!("the time column `{}` names the unit `{u}`, not s, ms, us or ns", field.trim())
+            })?),
+            None => None,
+        };
+        return match (suffix_unit, bracket) {
+            (Some(a), Some(b)) if a != b => Err(format!(
+                "the time column `{}` names two units, {} and {}",
+                field.trim(),
+                a.symbol(),
+                b.symbol()
+            )),
+            (a, b) => Ok(Some(Column::Time(a.or(b).unwrap_or(TimeUnit::S)))),
+        };
+    }
+    // Axes: `gx`, `gyro_x`, `w_RS_S_x`, `angular_velocity_x`; `ax`, `acc_x`, `a_RS_S_x`.
+    let last = *tokens.last().unwrap_or(&"");
+    let (kind, axis) = if tokens.len() == 1 && first.len() >= 2 {
+        let (k, a) = first.split_at(first.len() - 1);
+        (k, a)
+    } else {
+        (first, last)
+    };
+    let Some(axis) = ["x", "y", "z"].iter().position(|a| *a == axis) else { return Ok(None) };
+    // Words between the kind and the axis: only those of the known spellings (`a_bias_x` is not
+    // the specific force).
+    if tokens.len() > 2
+        && !tokens[1..tokens.len() - 1].iter().all(|t| {
+            matches!(*t, "velocity" | "vel" | "acceleration" | "accel" | "rs" | "s" | "raw" | "meas")
+        })
+    {
+        return Ok(None);
+    }
+    let gyro = matches!(kind, "g" | "gyro" | "gyr" | "w" | "omega" | "angular" | "ang" | "rot");
+    let acc = matches!(kind, "a" | "acc" | "accel" | "linear" | "lin");
+    if !gyro && !acc {
+        return Ok(None);
+    }
+    if let Some(u) = unit {
+        let ok = if gyro {
+            matches!(u.as_str(), "rad/s" | "rads^-1" | "rad*s^-1" | "rad/sec")
+        } else {
+            matches!(u.as_str(), "m/s^2" | "m/s2" | "ms^-2" | "m*s^-2" | "m/s\u{b2}")
+        };
+        if !ok {
+            return Err(format!(
+                "the column `{}` is in `{u}`; expected {}",
+                field.trim(),
+                if gyro { "rad/s" } else { "m/s^2" }
+            ));
+        }
+    }
+    Ok(Some(if gyro { Column::Gyro(axis) } else { Column::Acc(axis) }))
+}
+
+impl Layout {
+    /// Reads a header's fields; `Err` says why they are not a header this parser understands.
+    pub fn from_header(fields: &[&str]) -> Result<Layout, String> {
+        let mut t: Option<(usize, TimeUnit)> = None;
+        let mut gyro = [None; 3];
+        let mut acc = [None; 3];
+        let mut unknown = Vec::new();
+        for (i, f) in fields.iter().enumerate() {
+            let slot = match classify(f)? {
+                Some(Column::Time(u)) => {
+                    if t.is_some() {
+                        return Err("two time columns".into());
+                    }
+                    t = Some((i, u));
+                    continue;
+                }
+                Some(Column::Gyro(a)) => &mut gyro[a],
+                Some(Column::Acc(a)) => &mut acc[a],
+                None => {
+                    unknown.push(format!("`{}`", f.trim()));
+                    continue;
+                }
+            };
+            if slot.is_some() {
+                return Err(format!("the column `{}` is named twice", f.trim()));
+            }
+            *slot = Some(i);
+        }
+        let mut missing = Vec::new();
+        if t.is_none() {
+            missing.push("the time");
+        }
+        for (c, name) in gyro.iter().chain(&acc).zip(["gx", "gy", "gz", "ax", "ay", "az"]) {
+            if c.is_none() {
+                missing.push(name);
+            }
+        }
+        if !missing.is_empty() {
+            let unknown = if unknown.is_empty() {
+                String::new()
+            } else {
+                format!(" (not understood: {})", unknown.join(", "))
+            };
+            return Err(format!("no column for {}{unknown}", missing.join(", ")));
+        }
+        let (t, t_unit) = t.unwrap_or((0, TimeUnit::S));
+        Ok(Layout {
+            columns: fields.len(),
+            t,
+            t_unit,
+            gyro: gyro.map(|c| c.unwrap_or(0)),
+            acc: acc.map(|c| c.unwrap_or(0)),
+            names: fields.iter().map(|f| f.trim().to_string()).collect(),
+        })
+    }
 }
 
 /// Parses CSV from a reader; each kind of drop is said in one warning.
@@ -189,24 +438,38 @@ enum Bad {
 }
 
 /// Parses one data row.
-fn parse_row(fields: &[&str]) -> Result<ImuSample, Bad> {
-    if fields.len() != 7 {
-        return Err(Bad::Malformed(format!("expected 7 fields, found {}", fields.len())));
+fn parse_row(fields: &[&str], layout: &Layout) -> Result<ImuSample, Bad> {
+    if fields.len() != layout.columns {
+        return Err(Bad::Malformed(format!("expected {} fields, found {}", layout.columns, fields.len())));
     }
-    let t_ns = parse_seconds_ns(fields[0]).ok_or_else(|| {
-        let f = fields[0].to_ascii_lowercase();
+    let tf = fields[layout.t];
+    let t_ns = parse_time_ns(tf, layout.t_unit).ok_or_else(|| {
+        let f = tf.to_ascii_lowercase();
         if f.contains("nan") || f.contains("inf") {
             Bad::NonFinite
         } else {
-            Bad::Malformed(format!("time `{}` is not a non-negative number of seconds", fields[0]))
+            let unit = match layout.t_unit {
+                TimeUnit::S => "seconds",
+                TimeUnit::Ms => "milliseconds",
+                TimeUnit::Us => "microseconds",
+                TimeUnit::Ns => "nanoseconds",
+            };
+            let hint =
+                if layout.t_unit == TimeUnit::S && tf.len() > 11 && tf.bytes().all(|c| c.is_ascii_digit()) {
+                    " (if the times are in ns, us or ms, name the unit in the header: `t_ns`, `t_us`, `t_ms`)"
+                } else {
+                    ""
+                };
+            Bad::Malformed(format!("time `{tf}` is not a non-negative number of {unit}{hint}"))
         }
     })?;
     let mut v = [0f32; 6];
-    for (k, (d, s)) in v.iter_mut().zip(&fields[1..]).enumerate() {
+    for (d, &c) in v.iter_mut().zip(layout.gyro.iter().chain(&layout.acc)) {
+        let s = fields[c];
         let x = s.parse::<f32>().map_err(|_| {
             Bad::Malformed(format!(
                 "column `{}` value `{s}` is not a number",
-                HEADER.split(',').nth(k + 1).unwrap_or("?")
+                layout.names.get(c).map_or("?", String::as_str)
             ))
         })?;
         if !x.is_finite() {
@@ -309,32 +572,47 @@ pub fn parse_counted(r: impl BufRead) -> Result<(Vec<ImuSample>, ImuCsvStats), I
         far: None,
         stats: ImuCsvStats::default(),
     };
+    let mut layout = Layout::default();
+    // The header came from a `#` line: a real header line may still follow.
+    let mut header_from_comment = false;
     for (i, line) in r.lines().enumerate() {
         let n = i + 1;
         let line = line.map_err(|e| ImuCsvError { line: n, problem: format!("read error: {e}") })?;
         let t = line.trim().trim_start_matches('\u{feff}');
-        if t.is_empty() || t.starts_with('#') {
+        if t.is_empty() {
+            continue;
+        }
+        if let Some(c) = t.strip_prefix('#') {
+            // EuRoC's header is a comment: `#timestamp [ns],w_RS_S_x [rad s^-1],...`.
+            if !header_seen {
+                let fields: Vec<&str> = c.split(',').map(str::trim).collect();
+                if fields.len() >= 7
+                    && let Ok(l) = Layout::from_header(&fields)
+                {
+                    layout = l;
+                    header_seen = true;
+                    header_from_comment = true;
+                }
+            }
             continue;
         }
         let fields: Vec<&str> = t.split(',').map(str::trim).collect();
-        if !header_seen {
+        let is_header = fields.iter().any(|f| f.parse::<f64>().is_err());
+        if !header_seen || (header_from_comment && is_header) {
             header_seen = true;
+            header_from_comment = false;
             // A header is a first line whose fields are not all numbers.
-            if fields.iter().any(|f| f.parse::<f64>().is_err()) {
-                if fields.len() != 7 {
-                    return Err(ImuCsvError {
-                        line: n,
-                        problem: format!(
-                            "the header `{t}` has {} columns; expected 7 (`{HEADER}`)",
-                            fields.len()
-                        ),
-                    });
-                }
+            if is_header {
+                layout = Layout::from_header(&fields).map_err(|why| ImuCsvError {
+                    line: n,
+                    problem: format!("the header `{t}` is not understood: {why}; {EXPECTED_HEADER}"),
+                })?;
                 continue;
             }
         }
+        header_from_comment = false;
         sorter.stats.rows += 1;
-        match parse_row(&fields) {
+        match parse_row(&fields, &layout) {
             Ok(s) => sorter.push(s),
             Err(Bad::NonFinite) => {
                 sorter.stats.non_finite += 1;
@@ -398,7 +676,11 @@ mod tests {
     fn refusals_are_one_line() {
         let cases = [
             ("", 0, "empty"),
-            ("time,gx\n", 1, "has 2 columns; expected 7"),
+            (
+                "time,gx\n",
+                1,
+                "the header `time,gx` is not understood: no column for gy, gz, ax, ay, az; expected a time column",
+            ),
             ("t,gx,gy,gz,ax,ay,az\n1,2,3\n", 0, "1 of 1 rows are bad (0 non-finite, 1 malformed"),
             (
                 "t,gx,gy,gz,ax,ay,az\n1,0,0,0,0,0,0\nx,0,0,0,0,0,0\ny,0,0,0,0,0,0\n",
@@ -521,5 +803,115 @@ mod tests {
             e,
             "IMU CSV: 600 of 1000 rows are bad (0 non-finite, 600 malformed, 0 duplicates, 0 out of order, 0 wrong stamps); refusing the file; the first bad row, line 2: expected 7 fields, found 1"
         );
+    }
+
+    /// The values every header variant below must give: 1.5 s, then 1.502 s.
+    fn two_samples() -> Vec<ImuSample> {
+        vec![
+            ImuSample { t_ns: 1_500_000_000, gyro: [0.1, 0.2, 0.3], acc: [1.0, 2.0, 9.8] },
+            ImuSample { t_ns: 1_502_000_000, gyro: [-0.1, 0.0, 0.5], acc: [0.5, -2.0, 9.7] },
+        ]
+    }
+
+    #[test]
+    fn header_variants_name_the_time_column_and_its_unit() {
+        let rows = |t0: &str, t1: &str| format!("{t0},0.1,0.2,0.3,1,2,9.8\n{t1},-0.1,0,0.5,0.5,-2,9.7\n");
+        let cases = [
+            ("t", "1.5", "1.502"),
+            ("t_s", "1.5", "1.502"),
+            ("time", "1.5", "1.502"),
+            ("timestamp", "1.500", "1.502000000"),
+            ("stamp", "1.5", "1.502"),
+            ("time [s]", "1.5", "1.502"),
+            ("t_ms", "1500", "1502"),
+            ("t(ms)", "1500.0", "1502"),
+            ("t_us", "1500000", "1502000"),
+            ("timestamp (us)", "1500000", "1502000.0004"),
+            ("t_ns", "1500000000", "1502000000"),
+            ("timestamp_ns", "1500000000", "1502000000"),
+            ("stamp[ns]", "1500000000", "1502000000"),
+            ("\"Time (ns)\"", "1500000000", "1502000000"),
+        ];
+        for (time, t0, t1) in cases {
+            let text = format!("{time},gx,gy,gz,ax,ay,az\n{}", rows(t0, t1));
+            let (got, stats) = parse_counted(text.as_bytes()).unwrap_or_else(|e| panic!("{time}: {e}"));
+            assert_eq!(got, two_samples(), "{time}");
+            assert_eq!(stats.dropped(), 0, "{time}");
+        }
+        // Unix time in ns: 19 digits, exact.
+        let text = "t_ns,gx,gy,gz,ax,ay,az\n1700000000123456789,0,0,0,0,0,9.81\n";
+        assert_eq!(parse(text.as_bytes()).unwrap()[0].t_ns, 1_700_000_000_123_456_789);
+        assert_eq!(parse_time_ns("1700000000123456.7895", TimeUnit::Us), Some(1_700_000_000_123_456_790));
+        assert_eq!(parse_time_ns("12.5", TimeUnit::Ms), Some(12_500_000));
+        assert_eq!(parse_time_ns("12.5", TimeUnit::Ns), Some(13));
+    }
+
+    #[test]
+    fn named_columns_are_read_in_any_order() {
+        let text = "ax,ay,az,gx,gy,gz,t\n1,2,9.8,0.1,0.2,0.3,1.5\n0.5,-2,9.7,-0.1,0,0.5,1.502\n";
+        assert_eq!(parse(text.as_bytes()).unwrap(), two_samples());
+        // Long names, units in brackets and an extra column that is ignored.
+        let text = "timestamp_ms,temp,acc_x [m/s^2],acc_y [m/s^2],acc_z [m/s^2],gyro_x [rad/s],gyro_y [rad/s],gyro_z [rad/s]\n\
+                    1500,25.0,1,2,9.8,0.1,0.2,0.3\n1502,25.1,0.5,-2,9.7,-0.1,0,0.5\n";
+        assert_eq!(parse(text.as_bytes()).unwrap(), two_samples());
+        // EuRoC: the header is a `#` line, the time in ns.
+        let text = "#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]\n\
+                    1500000000,0.1,0.2,0.3,1,2,9.8\n1502000000,-0.1,0,0.5,0.5,-2,9.7\n";
+        assert_eq!(parse(text.as_bytes()).unwrap(), two_samples());
+        // A `#` comment that reads as a header, then the header itself (in another order).
+        let text = "# t,gx,gy,gz,ax,ay,az\nt,ax,ay,az,gx,gy,gz\n1.5,1,2,9.8,0.1,0.2,0.3\n1.502,0.5,-2,9.7,-0.1,0,0.5\n";
+        assert_eq!(parse(text.as_bytes()).unwrap(), two_samples());
+        // A bad value names its column by the header's name.
+        let text =
+            "t,ax,ay,az,gx,gy,gz\n1.5,1,2,9.8,0.1,0.2,0.3\n1.502,x,x,x,x,x,x\n1.504,1,2,9.8,0.1,0.2,0.3\n";
+        let (got, stats) = parse_counted(text.as_bytes()).unwrap();
+        assert_eq!((got.len(), stats.malformed), (2, 1));
+        let e = parse_counted("t,ax,ay,az,gx,gy,gz\n1.5,1,2,9.8,0.1,0.2,oops\n".as_bytes()).unwrap_err();
+        assert!(e.to_string().ends_with("line 2: column `gz` value `oops` is not a number"), "{e}");
+    }
+
+    #[test]
+    fn headers_not_understood_are_refused_naming_them() {
+        let cases = [
+            (
+                "a,b,c,d,e,f,g",
+                "no column for the time, gx, gy, gz, ax, ay, az (not understood: `a`, `b`, `c`, `d`, `e`, `f`, `g`)",
+            ),
+            ("t,gx,gy,gz,ax,ay,q", "no column for az (not understood: `q`)"),
+            (
+                "t,gx,gy,gz,a_bias_x,a_bias_y,a_bias_z",
+                "no column for ax, ay, az (not understood: `a_bias_x`, `a_bias_y`, `a_bias_z`)",
+            ),
+            ("t,gx,gy,gx,ax,ay,az", "the column `gx` is named twice"),
+            ("t,time,gx,gy,gz,ax,ay,az", "two time columns"),
+            ("t [h],gx,gy,gz,ax,ay,az", "the time column `t [h]` names the unit `h`, not s, ms, us or ns"),
+            ("t_ns [ms],gx,gy,gz,ax,ay,az", "the time column `t_ns [ms]` names two units, ns and ms"),
+            ("t,gx [deg/s],gy,gz,ax,ay,az", "the column `gx [deg/s]` is in `deg/s`; expected rad/s"),
+            ("t,gx,gy,gz,ax [g],ay,az", "the column `ax [g]` is in `g`; expected m/s^2"),
+        ];
+        for (header, why) in cases {
+            let text = format!("{header}\n1,0,0,0,0,0,0\n");
+            let e = parse_counted(text.as_bytes()).unwrap_err();
+            assert_eq!(e.line, 1);
+            assert_eq!(
+                e.to_string(),
+                format!("IMU CSV line 1: the header `{header}` is not understood: {why}; {EXPECTED_HEADER}")
+            );
+        }
+        // The Ouster SDK's IMU CSV (g and deg/s, three clocks): refused, not guessed at.
+        let path =
+            concat!(env!("CARGO_MANIFEST_DIR"), "/../tests/data/ouster-sdk/OS-1-64_1024x10_fw20.imu.csv");
+        let e = load_counted(path).unwrap_err();
+        assert_eq!(e.line, 1);
+        assert_eq!(
+            e.problem,
+            format!(
+                "the header `capture_ts_s,sys_ts_ns,accel_ts_ns,gyro_ts_ns,la_x_g,la_y_g,la_z_g,av_x_dps,av_y_dps,av_z_dps` is not understood: no column for the time, gx, gy, gz, ax, ay, az (not understood: `capture_ts_s`, `sys_ts_ns`, `accel_ts_ns`, `gyro_ts_ns`, `la_x_g`, `la_y_g`, `la_z_g`, `av_x_dps`, `av_y_dps`, `av_z_dps`); {EXPECTED_HEADER}"
+            )
+        );
+        // Unix ns under a header without a unit: the refusal says how to name it.
+        let text = "t,gx,gy,gz,ax,ay,az\n1700000000123456789,0,0,0,0,0,9.81\n";
+        let e = parse_counted(text.as_bytes()).unwrap_err().to_string();
+        assert!(e.ends_with("time `1700000000123456789` is not a non-negative number of seconds (if the times are in ns, us or ms, name the unit in the header: `t_ns`, `t_us`, `t_ms`)"), "{e}");
     }
 }

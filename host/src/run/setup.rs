@@ -6,7 +6,7 @@ use std::path::PathBuf;
 
 use loglio_core::odometry::OdometryConfig;
 
-use crate::config::{AssociationMode, Config, Preset};
+use crate::config::{AssociationMode, Config, Preset, SensorFamily};
 use crate::error::PipelineError;
 use crate::eval::{self, Format};
 use crate::input::lidar_stream::SensorDecoder;
@@ -60,6 +60,40 @@ impl RunSetup {
         Ok(cfg)
     }
 
+    /// Says in one warning that the LiDAR-IMU extrinsic is identity because nothing gave one
+    /// ([`Self::extrinsic_missing`]); the commands call it once their inputs are open, before
+    /// the run.
+    pub fn warn_missing_extrinsic(&self, cfg: &Config) {
+        if let Some(why) = self.extrinsic_missing(cfg) {
+            crate::diag::warn(why);
+        }
+    }
+
+    /// Why the LiDAR-IMU extrinsic is identity because nothing gave one, if it is: no
+    /// `[extrinsics]` in the configuration file and a preset without one (the Velodyne presets:
+    /// their IMU is external; the Ouster presets carry the internal IMU's). Nothing in the
+    /// data gives one today.
+    pub fn extrinsic_missing(&self, cfg: &Config) -> Option<String> {
+        if cfg.preset.family() != SensorFamily::Velodyne {
+            return None;
+        }
+        let where_ = match &self.config {
+            Some(p) => {
+                let text = std::fs::read_to_string(p).ok()?;
+                let table: toml::Table = text.parse().ok()?;
+                if table.contains_key("extrinsics") {
+                    return None;
+                }
+                format!("{} has no [extrinsics]", p.display())
+            }
+            None => "no configuration file".to_string(),
+        };
+        Some(format!(
+            "no LiDAR-IMU extrinsic given ({where_}, preset {} has none, the data none): the LiDAR is taken to sit at the IMU, unrotated; give it as [extrinsics] translation and rotation_rpy_deg (or rotation_quat_wxyz) in the configuration file (--config)",
+            cfg.preset
+        ))
+    }
+
     /// Output options (the ground truth read here).
     pub fn outputs(&self) -> Result<OutputOptions, PipelineError> {
         let gt = match &self.gt {
@@ -111,5 +145,61 @@ impl PacketSetup {
         let class = StorageClass::choose(layout.rows(), layout.cols(), cfg.mapping.map_capacity)?;
         let core = engine::odometry_config(cfg, layout)?;
         Ok(PacketSetup { dec, lidar_port, imu_port, class, core })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A configuration file in a fresh directory.
+    fn config_file(name: &str, text: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("loglio-setup-{}-{name}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("config.toml");
+        std::fs::write(&p, text).unwrap();
+        p
+    }
+
+    #[test]
+    fn a_missing_extrinsic_is_said_once_naming_how_to_give_it() {
+        // A Velodyne preset without a file: one warning, from `warn_missing_extrinsic` only.
+        let setup = RunSetup { preset: Some("vlp32c".into()), ..RunSetup::default() };
+        let (cfg, loaded) = crate::diag::capture(|| setup.load_config().unwrap());
+        assert!(loaded.is_empty(), "{loaded:?}");
+        let ((), said) = crate::diag::capture(|| setup.warn_missing_extrinsic(&cfg));
+        assert_eq!(
+            said,
+            vec![
+                "warning: no LiDAR-IMU extrinsic given (no configuration file, preset vlp32c has none, the data none): the LiDAR is taken to sit at the IMU, unrotated; give it as [extrinsics] translation and rotation_rpy_deg (or rotation_quat_wxyz) in the configuration file (--config)"
+                    .to_string()
+            ]
+        );
+        // The extrinsic it warns about is the identity.
+        assert_eq!(cfg.extrinsics.translation(), [0.0; 3]);
+        assert_eq!(cfg.extrinsics.quaternion_wxyz(), [1.0, 0.0, 0.0, 0.0]);
+        // A file without [extrinsics] is named.
+        let bare = config_file("bare", "preset = \"vlp16\"\n[mapping]\nmax_points = 5000\n");
+        let setup = RunSetup { config: Some(bare.clone()), ..RunSetup::default() };
+        let cfg = setup.load_config().unwrap();
+        let why = setup.extrinsic_missing(&cfg).unwrap();
+        assert!(
+            why.starts_with(&format!(
+                "no LiDAR-IMU extrinsic given ({} has no [extrinsics], preset vlp16 has none, the data none)",
+                bare.display()
+            )),
+            "{why}"
+        );
+        // An [extrinsics] section, even the identity written out, is a given extrinsic.
+        let given = config_file("given", "preset = \"vlp16\"\n[extrinsics]\ntranslation = [0.0, 0.0, 0.0]\n");
+        let setup = RunSetup { config: Some(given), ..RunSetup::default() };
+        let cfg = setup.load_config().unwrap();
+        let ((), said) = crate::diag::capture(|| setup.warn_missing_extrinsic(&cfg));
+        assert!(said.is_empty(), "{said:?}");
+        // An Ouster preset carries its internal IMU's extrinsic.
+        let setup = RunSetup { preset: Some("os1-64".into()), ..RunSetup::default() };
+        let cfg = setup.load_config().unwrap();
+        assert_eq!(setup.extrinsic_missing(&cfg), None);
+        assert_eq!(cfg.extrinsics.translation(), [-0.006253, 0.011775, -0.007645]);
     }
 }

@@ -125,6 +125,8 @@ pub enum TopicKind {
     OusterPacket,
     /// `std_msgs/String` (the Ouster driver's metadata).
     Text,
+    /// `tf2_msgs/TFMessage` (`/tf_static`: the sensors' frames).
+    Tf,
     /// Anything else.
     Other,
 }
@@ -164,6 +166,7 @@ impl TopicInfo {
             ("velodyne_msgs", "VelodyneScan") => TopicKind::VelodyneScan,
             (p, "PacketMsg") if p.contains("ouster") => TopicKind::OusterPacket,
             ("std_msgs", "String") => TopicKind::Text,
+            ("tf2_msgs", "TFMessage") | ("tf", "tfMessage") => TopicKind::Tf,
             _ => TopicKind::Other,
         }
     }
@@ -432,15 +435,27 @@ fn detect(path: &Path) -> Result<(BagFormat, Vec<PathBuf>), BagError> {
     let meta = std::fs::metadata(path).map_err(|e| BagError(format!("cannot open {name}: {e}")))?;
     if meta.is_dir() {
         let yaml = std::fs::read_to_string(path.join("metadata.yaml")).unwrap_or_default();
-        for line in yaml.lines() {
-            if let Some(v) = line.trim().strip_prefix("compression_format:") {
-                let v = v.trim().trim_matches('"').trim_matches('\'');
-                if !v.is_empty() {
-                    return Err(BagError(format!(
-                        "{name}: {v}-compressed rosbag2 bags are not read; decompress it first (ros2 bag convert)"
-                    )));
+        let value = |key: &str| {
+            yaml.lines().find_map(|l| {
+                let v = l.trim().strip_prefix(key)?.strip_prefix(':')?;
+                Some(v.trim().trim_matches('"').trim_matches('\'').to_string())
+            })
+        };
+        let format = value("compression_format").unwrap_or_default();
+        let mode = value("compression_mode").unwrap_or_default().to_ascii_lowercase();
+        // zstd per message is decompressed as the rows are read; a compressed file is not.
+        let readable = format.is_empty() || (format == "zstd" && mode == "message");
+        if !readable {
+            let how = if mode == "message" { "message" } else { "file" };
+            return Err(BagError(format!(
+                "{name}: this rosbag2 is {format}-compressed ({how} compression), which loglio does not read; \
+                 decompress it first (`ros2 bag convert` to an uncompressed bag{})",
+                if format == "zstd" {
+                    ", or `zstd -d` on each .zstd file and compression_format: \"\" in metadata.yaml"
+                } else {
+                    ""
                 }
-            }
+            )));
         }
         let mut files: Vec<PathBuf> = std::fs::read_dir(path)
             .map_err(|e| BagError(format!("cannot read {name}: {e}")))?
@@ -455,9 +470,11 @@ fn detect(path: &Path) -> Result<(BagFormat, Vec<PathBuf>), BagError> {
         files.sort_by_key(split_no);
         let db3: Vec<PathBuf> = files.iter().filter(|p| ext(p).ends_with(".db3")).cloned().collect();
         let mcap: Vec<PathBuf> = files.iter().filter(|p| ext(p).ends_with(".mcap")).cloned().collect();
-        if files.iter().any(|p| ext(p).ends_with(".zstd")) {
+        if let Some(z) = files.iter().find(|p| ext(p).ends_with(".zstd")) {
             return Err(BagError(format!(
-                "{name}: zstd-compressed rosbag2 files are not read; decompress it first (ros2 bag convert)"
+                "{name}: this rosbag2 is zstd-compressed (file compression: {}), which loglio does not read; \
+                 decompress it first (`ros2 bag convert` to an uncompressed bag, or `zstd -d` on each .zstd file)",
+                z.file_name().and_then(|n| n.to_str()).unwrap_or("?")
             )));
         }
         return match (db3.is_empty(), mcap.len()) {
@@ -491,15 +508,58 @@ fn detect(path: &Path) -> Result<(BagFormat, Vec<PathBuf>), BagError> {
         Ok((BagFormat::Mcap, vec![path.to_path_buf()]))
     } else if head.starts_with(b"SQLite format 3\0") {
         Ok((BagFormat::Ros2Sqlite, vec![path.to_path_buf()]))
-    } else if head.starts_with(&[0x28, 0xb5, 0x2f, 0xfd]) {
+    } else if head.starts_with(&ros2_sqlite::ZSTD_MAGIC) {
         Err(BagError(format!(
-            "{name}: a zstd-compressed file; decompress it first (zstd -d, or ros2 bag convert)"
+            "{name}: a zstd-compressed file (a rosbag2 .db3.zstd or .mcap.zstd: file compression), which loglio does not read; \
+             decompress it first (`zstd -d {name}`, or `ros2 bag convert` on its directory)"
         )))
     } else if n == 0 {
         Err(BagError(format!("{name}: empty file, not a bag")))
     } else {
         Err(BagError(format!("{name}: not a ROS bag (neither a ROS 1 bag, a rosbag2 sqlite3 file nor MCAP)")))
     }
+}
+
+/// How many messages [`BagReader::static_extrinsic`] reads at most.
+pub const TF_SEARCH_MESSAGES: usize = 100_000;
+/// How many messages after the last `/tf_static` one [`BagReader::static_extrinsic`] reads
+/// once both frames are known and still not connected.
+pub const TF_SETTLE: usize = 1_000;
+
+/// The LiDAR frame in the IMU frame, from the bag's `/tf_static`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StaticExtrinsic {
+    /// The LiDAR messages' `frame_id`.
+    pub lidar_frame: String,
+    /// The IMU messages' `frame_id`.
+    pub imu_frame: String,
+    /// `p_imu = imu_lidar * p_lidar`.
+    pub imu_lidar: nalgebra::Isometry3<f64>,
+}
+
+/// The pose of `child` in `parent` from static transforms (child -> (parent, pose in parent)):
+/// both frames walked up to their roots, joined at the first frame they share.
+fn chain(
+    parents: &std::collections::HashMap<String, (String, nalgebra::Isometry3<f64>)>,
+    parent: &str,
+    child: &str,
+) -> Option<nalgebra::Isometry3<f64>> {
+    // Each frame's ancestors with the frame's pose in them, the frame itself first.
+    let up = |f: &str| {
+        let mut out = vec![(f.to_string(), nalgebra::Isometry3::identity())];
+        while let Some((p, iso)) = parents.get(&out[out.len() - 1].0) {
+            if out.len() > 64 || out.iter().any(|(n, _)| n == p) {
+                break;
+            }
+            let pose = iso * out[out.len() - 1].1;
+            out.push((p.clone(), pose));
+        }
+        out
+    };
+    let (a, b) = (up(parent), up(child));
+    let (root_parent, root_child) =
+        a.iter().find_map(|(n, pa)| b.iter().find(|(m, _)| m == n).map(|(_, pb)| (*pa, *pb)))?;
+    Some(root_parent.inverse() * root_child)
 }
 
 fn list_topics(topics: &[TopicInfo]) -> String {
@@ -665,6 +725,92 @@ impl BagReader {
             warned: HashSet::new(),
             total,
         })
+    }
+
+    /// The LiDAR frame in the IMU frame from the bag's `/tf_static`: the frames are the
+    /// `frame_id`s of the first LiDAR and IMU messages, the transform the chain of static
+    /// transforms between them (direct, inverse, or through a common parent such as
+    /// `base_link`). Reads until all three are known, at most [`TF_SEARCH_MESSAGES`] messages
+    /// ([`TF_SETTLE`] after the last `/tf_static` one once both frames are known);
+    /// `None` when the bag has no `/tf_static`, the LiDAR has no header (Ouster packets) or
+    /// the frames are not connected.
+    pub fn static_extrinsic(path: &Path, opt: &BagOptions) -> Result<Option<StaticExtrinsic>, BagError> {
+        let name = path.display().to_string();
+        let (format, files) = detect(path)?;
+        let (mut source, topics): (Box<dyn RawSource>, Vec<TopicInfo>) = match format {
+            BagFormat::Ros1 => {
+                let (s, t) = ros1::Ros1Source::open(&files[0])?;
+                (Box::new(s), t)
+            }
+            BagFormat::Ros2Sqlite => {
+                let (s, t) = ros2_sqlite::SqliteSource::open(files)?;
+                (Box::new(s), t)
+            }
+            BagFormat::Mcap => {
+                let (s, t) = mcap_src::McapSource::open(&files[0])?;
+                (Box::new(s), t)
+            }
+        };
+        let Some(tf) = topics.iter().position(|t| t.name == "/tf_static" && t.kind() == TopicKind::Tf) else {
+            return Ok(None);
+        };
+        let (roles, _) = select(&name, &topics, opt)?;
+        let lidar = roles.iter().position(|r| matches!(r, Some(Role::Lidar(_))));
+        let imu = roles.iter().position(|r| matches!(r, Some(Role::Imu(_))));
+        let (Some(lidar), Some(imu)) = (lidar, imu) else { return Ok(None) };
+        if !matches!(topics[lidar].kind(), TopicKind::PointCloud2 | TopicKind::VelodyneScan) {
+            return Ok(None);
+        }
+        source.select(&[lidar, imu, tf]);
+        let frame = |data: &[u8], enc: Encoding| -> Option<String> {
+            let (_, f) = msg::Reader::new(data, enc).ok()?.header().ok()?;
+            Some(f.trim_start_matches('/').to_string())
+        };
+        let (mut lidar_frame, mut imu_frame) = (None, None);
+        let mut parents: std::collections::HashMap<String, (String, nalgebra::Isometry3<f64>)> =
+            std::collections::HashMap::new();
+        // /tf_static is latched: recorded once per publisher, at the start. Reading stops
+        // TF_SETTLE messages after the last one once both frames are known.
+        let mut since_tf: Option<usize> = None;
+        for _ in 0..TF_SEARCH_MESSAGES {
+            if lidar_frame.is_some() && imu_frame.is_some() && since_tf.is_some_and(|n| n > TF_SETTLE) {
+                break;
+            }
+            let Some(ev) = source.next_raw() else { break };
+            let RawEvent::Msg(m) = ev? else { continue };
+            since_tf = since_tf.map(|n| n + 1);
+            if m.topic == tf {
+                since_tf = Some(0);
+            }
+            let Some(enc) = topics[m.topic].encoding else { continue };
+            if m.topic == lidar && lidar_frame.is_none() {
+                lidar_frame = frame(&m.data, enc);
+            } else if m.topic == imu && imu_frame.is_none() {
+                imu_frame = frame(&m.data, enc);
+            } else if m.topic == tf
+                && let Ok(ts) = msg::decode_tf(&m.data, enc)
+            {
+                for t in ts {
+                    let [x, y, z, w] = t.rotation_xyzw;
+                    let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, x, y, z));
+                    let iso = nalgebra::Isometry3::from_parts(nalgebra::Translation3::from(t.translation), q);
+                    parents.insert(
+                        t.child.trim_start_matches('/').to_string(),
+                        (t.parent.trim_start_matches('/').to_string(), iso),
+                    );
+                }
+            }
+            if let (Some(l), Some(i)) = (&lidar_frame, &imu_frame)
+                && let Some(e) = chain(&parents, i, l)
+            {
+                return Ok(Some(StaticExtrinsic {
+                    lidar_frame: l.clone(),
+                    imu_frame: i.clone(),
+                    imu_lidar: e,
+                }));
+            }
+        }
+        Ok(None)
     }
 
     /// The storage format.

@@ -579,6 +579,76 @@ pub const STRING: MessageType = MessageType {
     definition: "string data\n",
 };
 
+/// `tf2_msgs/TFMessage` (`/tf`, `/tf_static`).
+pub const TF_MESSAGE: MessageType = MessageType {
+    name: "tf2_msgs/TFMessage",
+    md5sum: "94810edda583a504dfda3829e70d7eec",
+    definition: concat!(
+        "geometry_msgs/TransformStamped[] transforms\n",
+        "================================================================================\n",
+        "MSG: geometry_msgs/TransformStamped\nHeader header\nstring child_frame_id\nTransform transform\n",
+        "================================================================================\n",
+        "MSG: std_msgs/Header\nuint32 seq\ntime stamp\nstring frame_id\n",
+        "================================================================================\n",
+        "MSG: geometry_msgs/Transform\nVector3 translation\nQuaternion rotation\n",
+        "================================================================================\n",
+        "MSG: geometry_msgs/Vector3\nfloat64 x\nfloat64 y\nfloat64 z\n",
+        "================================================================================\n",
+        "MSG: geometry_msgs/Quaternion\nfloat64 x\nfloat64 y\nfloat64 z\nfloat64 w\n"
+    ),
+};
+
+/// One `geometry_msgs/TransformStamped`: the child frame in the parent frame,
+/// `p_parent = R * p_child + t`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Transform {
+    /// The parent frame (`header.frame_id`).
+    pub parent: String,
+    /// The child frame.
+    pub child: String,
+    /// t, metres.
+    pub translation: [f64; 3],
+    /// R as x, y, z, w.
+    pub rotation_xyzw: [f64; 4],
+}
+
+/// Decodes a `tf2_msgs/TFMessage`.
+pub fn decode_tf(buf: &[u8], enc: Encoding) -> Result<Vec<Transform>, MsgError> {
+    let mut r = Reader::new(buf, enc)?;
+    // Each: a header (at least 12 bytes), a child frame (4) and 7 float64.
+    let n = r.count("transforms", 12 + 4 + 56)?;
+    let mut out = Vec::with_capacity(n);
+    for _ in 0..n {
+        let (_, parent) = r.header()?;
+        let child = r.string("child_frame_id")?;
+        let mut v = [0.0; 7];
+        for x in v.iter_mut() {
+            *x = r.f64("transform")?;
+        }
+        out.push(Transform {
+            parent,
+            child,
+            translation: [v[0], v[1], v[2]],
+            rotation_xyzw: [v[3], v[4], v[5], v[6]],
+        });
+    }
+    Ok(out)
+}
+
+/// Serialises a `tf2_msgs/TFMessage`.
+pub fn encode_tf(transforms: &[Transform], enc: Encoding) -> Vec<u8> {
+    let mut w = Writer::new(enc);
+    w.u32(transforms.len() as u32);
+    for t in transforms {
+        w.header(0, 0, &t.parent);
+        w.string(&t.child);
+        for v in t.translation.iter().chain(&t.rotation_xyzw) {
+            w.f64(*v);
+        }
+    }
+    w.finish()
+}
+
 /// The ROS 2 definition text of a type for an MCAP schema (`ros2msg` encoding): the ROS 1
 /// definition with ROS 2 names (`std_msgs/Header` without `seq`, `builtin_interfaces/Time`).
 pub fn ros2_schema(t: &MessageType) -> String {

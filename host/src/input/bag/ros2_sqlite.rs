@@ -265,6 +265,7 @@ impl SqliteSource {
                 )));
             }
             if let Some(&topic) = self.ids[self.file].get(&topic_id) {
+                let data = decompress(path, id, data)?;
                 self.rows += 1;
                 self.queue.push_back(RawMsg { record_ns: ts as u64, topic, data });
             }
@@ -274,6 +275,24 @@ impl SqliteSource {
             None => Ok(true),
         }
     }
+}
+
+/// A zstd frame's first bytes.
+pub(super) const ZSTD_MAGIC: [u8; 4] = [0x28, 0xb5, 0x2f, 0xfd];
+
+/// A message as stored, or decompressed when rosbag2 compressed it (`compression_mode:
+/// message`, each row one zstd frame; a CDR message starts with 0000 or 0001, never with the
+/// magic).
+fn decompress(path: &Path, id: i64, data: Vec<u8>) -> Result<Vec<u8>, BagError> {
+    if !data.starts_with(&ZSTD_MAGIC) {
+        return Ok(data);
+    }
+    zstd::stream::decode_all(data.as_slice()).map_err(|e| {
+        BagError(format!(
+            "{}: this rosbag2 is zstd-compressed (message compression) and message {id} does not decompress: {e}",
+            path.display()
+        ))
+    })
 }
 
 /// One `messages` row: id, topic id, timestamp, data.
