@@ -306,7 +306,37 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> Default for ScanStorag
     }
 }
 
+/// The caller's threads and their k-NN scratch ([`Odometry::set_parallel`]).
+type ParallelSlot<'a> = Option<(&'a dyn Parallel, &'a mut [KnnScratch])>;
+
 impl<const PIX: usize, const PTS: usize, const DS: usize> ScanStorage<PIX, PTS, DS> {
+    /// The measurements of the first `measured` points against `map`, split over `parallel`'s
+    /// threads where given.
+    fn association<'x, 'm, C: Clock>(
+        &'x mut self,
+        map: &'x VoxelMap<'m>,
+        cfg: &'x OdometryConfig,
+        measured: usize,
+        parallel: &'x mut ParallelSlot<'_>,
+        clock: &'x mut C,
+    ) -> ScanAssociation<'x, 'm, C> {
+        let assoc = ScanAssociation::new(
+            map,
+            &cfg.association,
+            cfg.mode,
+            &self.points[..measured],
+            &self.normals3[..measured],
+            &mut self.corr[..],
+            &mut self.queries,
+            &mut self.neighbours,
+            clock,
+        );
+        match parallel {
+            Some((p, scratch)) => assoc.with_parallel(*p, scratch),
+            None => assoc,
+        }
+    }
+
     /// Empty storage.
     pub const fn new() -> Self {
         Self {
@@ -433,7 +463,7 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     /// The last re-localisation search (whether or not it moved the prediction).
     last_relocalisation: Option<Relocalisation>,
     /// The caller's threads and their k-NN scratch ([`Odometry::set_parallel`]).
-    parallel: Option<(&'a dyn Parallel, &'a mut [KnnScratch])>,
+    parallel: ParallelSlot<'a>,
     /// Running means of the agreeing scans' shares of matching points and innovations.
     share_mean: Option<f32>,
     nis_mean: Option<f32>,
@@ -862,20 +892,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         // The prediction, kept to fall back on when the scan disagrees with the map.
         let prior = (ic.lost_scans > 0 && kept > 0 && !building).then(|| f.clone());
         if kept > 0 && !building {
-            let mut assoc = ScanAssociation::new(
-                &self.map,
-                &self.cfg.association,
-                self.cfg.mode,
-                &st.points[..measured],
-                &st.normals3[..measured],
-                &mut st.corr[..],
-                &mut st.queries,
-                &mut st.neighbours,
-                clock,
-            );
-            if let Some((p, scratch)) = self.parallel.as_mut() {
-                assoc = assoc.with_parallel(*p, scratch);
-            }
+            let mut assoc = st.association(&self.map, &self.cfg, measured, &mut self.parallel, clock);
             let bridge_prior = bridged.then(|| f.clone());
             update = f.update(&mut assoc);
             counts = assoc.counts();
@@ -904,20 +921,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                     last_end = *f.state();
                     last = Some(span);
                     *f = prior.clone();
-                    let mut assoc = ScanAssociation::new(
-                        &self.map,
-                        &self.cfg.association,
-                        self.cfg.mode,
-                        &st.points[..measured],
-                        &st.normals3[..measured],
-                        &mut st.corr[..],
-                        &mut st.queries,
-                        &mut st.neighbours,
-                        clock,
-                    );
-                    if let Some((p, scratch)) = self.parallel.as_mut() {
-                        assoc = assoc.with_parallel(*p, scratch);
-                    }
+                    let mut assoc = st.association(&self.map, &self.cfg, measured, &mut self.parallel, clock);
                     update = f.update(&mut assoc);
                     counts = assoc.counts();
                     times.association_ns = times.association_ns.saturating_add(assoc.elapsed_ns());
