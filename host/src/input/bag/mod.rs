@@ -681,26 +681,32 @@ fn select(
     Ok((roles, sel))
 }
 
+/// The bag's format, its message source and its topics.
+fn open_source(path: &Path) -> Result<(BagFormat, Box<dyn RawSource>, Vec<TopicInfo>), BagError> {
+    let (format, files) = detect(path)?;
+    let (source, topics): (Box<dyn RawSource>, Vec<TopicInfo>) = match format {
+        BagFormat::Ros1 => {
+            let (s, t) = ros1::Ros1Source::open(&files[0])?;
+            (Box::new(s), t)
+        }
+        BagFormat::Ros2Sqlite => {
+            let (s, t) = ros2_sqlite::SqliteSource::open(files)?;
+            (Box::new(s), t)
+        }
+        BagFormat::Mcap => {
+            let (s, t) = mcap_src::McapSource::open(&files[0])?;
+            (Box::new(s), t)
+        }
+    };
+    Ok((format, source, topics))
+}
+
 impl BagReader {
     /// Opens a bag (a file, or a rosbag2 directory), lists its topics and chooses the ones to
     /// read.
     pub fn open(path: &Path, opt: BagOptions) -> Result<BagReader, BagError> {
         let name = path.display().to_string();
-        let (format, files) = detect(path)?;
-        let (mut source, topics): (Box<dyn RawSource>, Vec<TopicInfo>) = match format {
-            BagFormat::Ros1 => {
-                let (s, t) = ros1::Ros1Source::open(&files[0])?;
-                (Box::new(s), t)
-            }
-            BagFormat::Ros2Sqlite => {
-                let (s, t) = ros2_sqlite::SqliteSource::open(files)?;
-                (Box::new(s), t)
-            }
-            BagFormat::Mcap => {
-                let (s, t) = mcap_src::McapSource::open(&files[0])?;
-                (Box::new(s), t)
-            }
-        };
+        let (format, mut source, topics) = open_source(path)?;
         let (roles, selection) = select(&name, &topics, &opt)?;
         let chosen: Vec<usize> = (0..topics.len()).filter(|&i| roles[i].is_some()).collect();
         source.select(&chosen);
@@ -736,21 +742,7 @@ impl BagReader {
     /// the frames are not connected.
     pub fn static_extrinsic(path: &Path, opt: &BagOptions) -> Result<Option<StaticExtrinsic>, BagError> {
         let name = path.display().to_string();
-        let (format, files) = detect(path)?;
-        let (mut source, topics): (Box<dyn RawSource>, Vec<TopicInfo>) = match format {
-            BagFormat::Ros1 => {
-                let (s, t) = ros1::Ros1Source::open(&files[0])?;
-                (Box::new(s), t)
-            }
-            BagFormat::Ros2Sqlite => {
-                let (s, t) = ros2_sqlite::SqliteSource::open(files)?;
-                (Box::new(s), t)
-            }
-            BagFormat::Mcap => {
-                let (s, t) = mcap_src::McapSource::open(&files[0])?;
-                (Box::new(s), t)
-            }
-        };
+        let (_, mut source, topics) = open_source(path)?;
         let Some(tf) = topics.iter().position(|t| t.name == "/tf_static" && t.kind() == TopicKind::Tf) else {
             return Ok(None);
         };
