@@ -206,55 +206,9 @@ impl<const N: usize> ImuTrajectory<N> {
         &self,
         end: &State,
         points: &mut [ScanPoint],
-        mut normals: Option<&mut [[f32; 3]]>,
+        normals: Option<&mut [[f32; 3]]>,
     ) -> Result<UndistortStats, UndistortError> {
-        if self.knots.is_empty() {
-            return Err(UndistortError::NoPoses);
-        }
-        if normals.as_ref().is_some_and(|n| n.len() != points.len()) {
-            return Err(UndistortError::LengthMismatch);
-        }
-        let r_e_t = end.rot.to_rotation_matrix().into_inner().transpose();
-        let r_il = end.ext_rot.to_rotation_matrix().into_inner();
-        let r_il_t = r_il.transpose();
-        let mut stats = UndistortStats::default();
-        let mut cached: Option<(u32, M3, V3)> = None;
-        for (i, pt) in points.iter_mut().enumerate() {
-            let [x, y, z] = pt.xyz;
-            if !(x.is_finite() && y.is_finite() && z.is_finite() && pt.t.is_finite()) {
-                stats.invalid += 1;
-                continue;
-            }
-            let (a, b) = match cached {
-                Some((bits, a, b)) if bits == pt.t.to_bits() => (a, b),
-                _ => {
-                    // Cannot fail: knots is not empty.
-                    let (rot, pos, extrapolated) =
-                        self.pose_at(pt.t as f64).ok_or(UndistortError::NoPoses)?;
-                    if extrapolated {
-                        stats.extrapolated += 1;
-                    }
-                    stats.transforms += 1;
-                    // Forward: q = A p + b, A = R_ILᵀ R_eᵀ R R_IL, b = R_ILᵀ (R_eᵀ (R t_IL + p - p_e) - t_IL).
-                    let a = r_il_t * r_e_t * rot * r_il;
-                    let b = r_il_t * (r_e_t * (rot * end.ext_pos + pos - end.pos) - end.ext_pos);
-                    cached = Some((pt.t.to_bits(), a, b));
-                    (a, b)
-                }
-            };
-            // Inverse: p = Aᵀ (q - b).
-            let p = a.transpose() * (V3::new(x as f64, y as f64, z as f64) - b);
-            pt.xyz = [p.x as f32, p.y as f32, p.z as f32];
-            stats.moved += 1;
-            if let Some(ns) = normals.as_deref_mut() {
-                let n = &mut ns[i];
-                if crate::downsample::normal_is_valid(n) {
-                    let m = a.transpose() * V3::new(n[0] as f64, n[1] as f64, n[2] as f64);
-                    *n = [m.x as f32, m.y as f32, m.z as f32];
-                }
-            }
-        }
-        Ok(stats)
+        self.transform::<true>(end, points, normals)
     }
 
     /// The pose model that holds at `t`: `(valid from, valid to, reference knot a, rate ω,
@@ -382,6 +336,18 @@ impl<const N: usize> ImuTrajectory<N> {
         &self,
         end: &State,
         points: &mut [ScanPoint],
+        normals: Option<&mut [[f32; 3]]>,
+    ) -> Result<UndistortStats, UndistortError> {
+        self.transform::<false>(end, points, normals)
+    }
+
+    /// [`Self::undistort`], or with `INVERSE` [`Self::redistort`] (each point's transform
+    /// `q = A p + b` applied backwards, `p = Aᵀ (q - b)`: the exact inverse of the same
+    /// transform).
+    fn transform<const INVERSE: bool>(
+        &self,
+        end: &State,
+        points: &mut [ScanPoint],
         mut normals: Option<&mut [[f32; 3]]>,
     ) -> Result<UndistortStats, UndistortError> {
         if self.knots.is_empty() {
@@ -437,13 +403,15 @@ impl<const N: usize> ImuTrajectory<N> {
                     (a, b)
                 }
             };
-            let p = a * V3::new(x as f64, y as f64, z as f64) + b;
+            let q = V3::new(x as f64, y as f64, z as f64);
+            let p = if INVERSE { a.transpose() * (q - b) } else { a * q + b };
             pt.xyz = [p.x as f32, p.y as f32, p.z as f32];
             stats.moved += 1;
             if let Some(ns) = normals.as_deref_mut() {
                 let n = &mut ns[i];
                 if crate::downsample::normal_is_valid(n) {
-                    let m = a * V3::new(n[0] as f64, n[1] as f64, n[2] as f64);
+                    let v = V3::new(n[0] as f64, n[1] as f64, n[2] as f64);
+                    let m = if INVERSE { a.transpose() * v } else { a * v };
                     *n = [m.x as f32, m.y as f32, m.z as f32];
                 }
             }
