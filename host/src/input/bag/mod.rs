@@ -681,8 +681,11 @@ fn select(
     Ok((roles, sel))
 }
 
-/// The bag's format, its message source and its topics.
-fn open_source(path: &Path) -> Result<(BagFormat, Box<dyn RawSource>, Vec<TopicInfo>), BagError> {
+/// A bag opened: its format, its message source and its topics.
+type Opened = (BagFormat, Box<dyn RawSource>, Vec<TopicInfo>);
+
+/// Opens the bag at `path` (a file, or a rosbag2 directory).
+fn open_source(path: &Path) -> Result<Opened, BagError> {
     let (format, files) = detect(path)?;
     let (source, topics): (Box<dyn RawSource>, Vec<TopicInfo>) = match format {
         BagFormat::Ros1 => {
