@@ -167,6 +167,42 @@ impl FaultCounts {
     }
 }
 
+/// One item stamped far after the latest, held until the next item confirms the stamp (it
+/// comes later still: a real pause) or refutes it (it comes earlier: a wrong stamp), so that
+/// one bad stamp neither stalls what follows nor is believed.
+struct Hold<T> {
+    item: Option<(u64, T)>,
+}
+
+impl<T> Default for Hold<T> {
+    fn default() -> Self {
+        Self { item: None }
+    }
+}
+
+impl<T> Hold<T> {
+    /// The held item against the next stamp `next_ns`: `Ok` to take it, `Err` a wrong stamp.
+    fn settle(&mut self, next_ns: u64) -> Option<Result<T, T>> {
+        self.item.take().map(|(t, item)| if next_ns < t { Err(item) } else { Ok(item) })
+    }
+
+    /// Holds `item` (stamped `t_ns`) if it is more than `limit_ns` after `latest_ns`; else
+    /// gives it back to be taken now.
+    fn offer(&mut self, latest_ns: Option<u64>, limit_ns: u64, t_ns: u64, item: T) -> Option<T> {
+        if latest_ns.is_some_and(|l| t_ns > l.saturating_add(limit_ns)) {
+            self.item = Some((t_ns, item));
+            None
+        } else {
+            Some(item)
+        }
+    }
+
+    /// What is held, whatever comes next (the end of the run).
+    fn take(&mut self) -> Option<T> {
+        self.item.take().map(|(_, item)| item)
+    }
+}
+
 /// An IMU sample this far after the last one is held until the next confirms it, ns.
 pub const IMU_FORWARD_NS: u64 = 500_000_000;
 /// An IMU pause longer than this is a gap (said and counted), ns.
@@ -251,9 +287,9 @@ pub struct Runner<'e> {
     map_sent_ns: Option<u64>,
     origin: Instant,
     /// An IMU sample stamped far after the last one, held until the next confirms it.
-    held_far: Option<ImuSample>,
+    held_far: Hold<ImuSample>,
     /// A scan far after the latest, held until the next confirms it.
-    held_scan: Option<(OwnedScan, u64)>,
+    held_scan: Hold<(OwnedScan, u64)>,
     /// The latest scan start (LiDAR gaps).
     last_scan_start_ns: Option<u64>,
 }
@@ -284,8 +320,8 @@ impl<'e> Runner<'e> {
             predictor: None,
             map_sent_ns: None,
             origin: Instant::now(),
-            held_far: None,
-            held_scan: None,
+            held_far: Hold::default(),
+            held_scan: Hold::default(),
             last_scan_start_ns: None,
         }
     }
@@ -402,8 +438,9 @@ impl<'e> Runner<'e> {
     pub fn imu(&mut self, mut s: ImuSample) -> Result<(), PipelineError> {
         s.t_ns = s.t_ns.saturating_add_signed(self.imu_offset_ns);
         self.stats.imu_in += 1;
-        if let Some(h) = self.held_far.take() {
-            if s.t_ns < h.t_ns {
+        match self.held_far.settle(s.t_ns) {
+            Some(Ok(h)) => self.accept_imu(h)?,
+            Some(Err(h)) => {
                 self.stats.faults.imu_stamp_jumps += 1;
                 if self.stats.faults.imu_stamp_jumps <= 3 {
                     crate::diag::warn(format!(
@@ -411,15 +448,13 @@ impl<'e> Runner<'e> {
                         (h.t_ns - self.last_imu_ns.unwrap_or(h.t_ns)) as f64 * 1e-9
                     ));
                 }
-            } else {
-                self.accept_imu(h)?;
             }
+            None => {}
         }
-        if self.last_imu_ns.is_some_and(|t| s.t_ns > t.saturating_add(IMU_FORWARD_NS)) {
-            self.held_far = Some(s);
-            return Ok(());
+        match self.held_far.offer(self.last_imu_ns, IMU_FORWARD_NS, s.t_ns, s) {
+            Some(s) => self.accept_imu(s),
+            None => Ok(()),
         }
-        self.accept_imu(s)
     }
 
     fn accept_imu(&mut self, s: ImuSample) -> Result<(), PipelineError> {
@@ -472,8 +507,9 @@ impl<'e> Runner<'e> {
     /// before it (a wrong stamp, e.g. one cloud's `header.stamp` a minute late: dropped and
     /// counted), as IMU samples are.
     pub fn scan(&mut self, scan: OwnedScan, arrival: u64) -> Result<(), PipelineError> {
-        if let Some((h, ha)) = self.held_scan.take() {
-            if scan.start_ns < h.start_ns {
+        match self.held_scan.settle(scan.start_ns) {
+            Some(Ok((h, ha))) => self.accept_scan(h, ha)?,
+            Some(Err((h, _))) => {
                 let f = &mut self.stats.faults;
                 f.scan_stamp_jumps += 1;
                 if f.scan_stamp_jumps <= 3 {
@@ -483,15 +519,14 @@ impl<'e> Runner<'e> {
                             * 1e-9
                     ));
                 }
-            } else {
-                self.accept_scan(h, ha)?;
             }
+            None => {}
         }
-        if self.last_scan_start_ns.is_some_and(|t| scan.start_ns > t.saturating_add(LIDAR_GAP_NS)) {
-            self.held_scan = Some((scan, arrival));
-            return Ok(());
+        let start = scan.start_ns;
+        match self.held_scan.offer(self.last_scan_start_ns, LIDAR_GAP_NS, start, (scan, arrival)) {
+            Some((scan, arrival)) => self.accept_scan(scan, arrival),
+            None => Ok(()),
         }
-        self.accept_scan(scan, arrival)
     }
 
     fn accept_scan(&mut self, scan: OwnedScan, arrival: u64) -> Result<(), PipelineError> {
