@@ -13,6 +13,7 @@
 
 use std::sync::Mutex;
 
+use loglio_core::eskf::PropagationFlags;
 use loglio_core::odometry::{AssociationMode, Odometry, Vlp32cStorage};
 use loglio_core::output::Status;
 use loglio_core::scan::{ScanPoint, ScanView};
@@ -64,6 +65,48 @@ fn well_posed(kind: ScenarioKind) {
         ok + deg > 9 * (ok + deg + imu) / 10,
         "{kind:?}: most scans must update ({ok} ok, {deg} degraded, {imu} imu-only)"
     );
+}
+
+/// Zero-velocity updates only where the platform truly stands (its true speed under 1 cm/s
+/// and turn rate under 0.1 deg/s around the scan end), and at the stand before the run.
+fn standstill_only_at_stands(sc: &Scenario, tr: &Trace) {
+    let mut still = 0;
+    for r in &tr.results {
+        if !r.propagation.has(PropagationFlags::STILL) {
+            continue;
+        }
+        let t = r.pose.t_ns;
+        let (a, b) = (sc.pose_at(t.saturating_sub(50_000_000)), sc.pose_at(t + 50_000_000));
+        let speed = (b.translation.vector - a.translation.vector).norm() / 0.1;
+        let rate = (a.rotation.inverse() * b.rotation).angle() / 0.1;
+        assert!(
+            speed < 0.01 && rate < 0.1f64.to_radians(),
+            "standing at {t} ns? {speed:.4} m/s, {rate:.5} rad/s"
+        );
+        still += 1;
+    }
+    println!("{}: {still} scans standing still", sc.config().kind.name());
+    assert!(still > 0, "the stand at the start gives zero-velocity updates");
+}
+
+/// With the standstill updates on (`filter.standstill`, off by default): they run at the stand
+/// before the drive and never while the vehicle drives or the sensor spins in place, and the
+/// errors stay those of the well-posed runs.
+#[test]
+fn standstill_updates_only_where_the_platform_stands() {
+    let _one = LOCK.lock().unwrap_or_else(|e| e.into_inner());
+    for kind in [ScenarioKind::Vehicle, ScenarioKind::FastRotation] {
+        let sc = scenario(kind, kind.default_duration_s());
+        let mut guard = STORES[0].lock().unwrap_or_else(|e| e.into_inner());
+        let mut cfg = config_for(&sc, AssociationMode::Full);
+        cfg.standstill.enabled = true;
+        let mut odos = [guard.odometry(&cfg).unwrap()];
+        let traces = run_lockstep(&sc, &mut odos, |e| vec![e]);
+        println!("{} (standstill on)", summary(kind.name(), AssociationMode::Full, &traces[0]));
+        let ate = traces[0].ate();
+        assert!(ate.is_finite() && ate <= 0.10, "{kind:?}: ATE {ate:.4} m with the standstill updates");
+        standstill_only_at_stands(&sc, &traces[0]);
+    }
 }
 
 #[test]

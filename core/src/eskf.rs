@@ -364,6 +364,9 @@ impl PropagationFlags {
     pub const DROPPED: u8 = 8;
     /// An IMU gap was bridged at constant velocity (see `EskfConfig::bridge_after_s`).
     pub const BRIDGE: u8 = 16;
+    /// The platform stood still: zero-velocity and zero-rate updates ran after the scan's
+    /// update ([`crate::standstill`]).
+    pub const STILL: u8 = 64;
 
     /// Whether `bit` is set.
     pub fn has(&self, bit: u8) -> bool {
@@ -979,6 +982,44 @@ impl Eskf {
             let pp = (idx::POS + k, idx::POS + k);
             self.p[pp] = self.p[pp].max(var);
         }
+    }
+
+    /// A zero-velocity update: the platform stands still ([`crate::standstill`]), so the
+    /// velocity is measured as zero with variance `var` per axis, m²/s². Through the
+    /// velocity's correlations it corrects the accelerometer bias and the tilt, which an
+    /// unobservable direction of the scans (a corridor's axis) would otherwise leave to drift.
+    /// Returns whether it was applied.
+    pub fn zero_velocity(&mut self, var: f64) -> bool {
+        let v = self.x.vel;
+        self.observe_block(idx::VEL, &(-v), var)
+    }
+
+    /// A zero-rate update: standing still, the gyro's mean `mean_gyro` (rad/s, over the still
+    /// interval) is its bias, measured with variance `var` per axis, (rad/s)².
+    pub fn zero_rate(&mut self, mean_gyro: &V3, var: f64) -> bool {
+        let innovation = mean_gyro - self.x.bg;
+        self.observe_block(idx::BG, &innovation, var)
+    }
+
+    /// A linear update of the three error-state components at `at` with the innovation `y`
+    /// (measurement minus prediction) and variance `var` each: `K = P Hᵀ S⁻¹` with `H`
+    /// selecting the block, so only `P`'s three columns at `at` are read.
+    fn observe_block(&mut self, at: usize, y: &V3, var: f64) -> bool {
+        if !(var > 0.0 && var.is_finite() && y.iter().all(|v| v.is_finite())) {
+            return false;
+        }
+        let ph: SMatrix<f64, DIM, 3> = self.p.fixed_columns::<3>(at).into_owned();
+        let s = ph.fixed_rows::<3>(at).into_owned() + M3::identity() * var;
+        let Some(s_inv) = s.try_inverse() else { return false };
+        let k = ph * s_inv;
+        let dx: StateVector = k * y;
+        let p = self.p - k * ph.transpose();
+        if !dx.iter().all(|v| v.is_finite()) || !p.iter().all(|v| v.is_finite()) {
+            return false;
+        }
+        self.x = self.x.boxplus(&dx);
+        self.p = (p + p.transpose()) * 0.5;
+        true
     }
 
     /// Moves the position by `offset` (world, m): a re-localisation in the map.

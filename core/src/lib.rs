@@ -50,6 +50,7 @@ pub mod scan;
 pub mod scan_assembly;
 pub mod sensor;
 pub mod so3;
+pub mod standstill;
 pub mod surfel;
 #[cfg(test)]
 mod testutil;

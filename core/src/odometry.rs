@@ -91,6 +91,7 @@ use crate::relocalise::{self, Relocalisation, RelocaliseConfig};
 use crate::ring_fals::{PointNormal, RingFals, RingFalsConfig, RingTable, TableError, storage_pixels};
 use crate::scan::{ScanPoint, ScanView};
 use crate::so3;
+use crate::standstill::{ImuWindow, StandstillConfig};
 use crate::undistort::ImuTrajectory;
 use crate::voxel_map::{
     MapConfig, MapError, MapPoint, MapStorage, Neighbours, PRESET_INDEX_SLOTS, PRESET_POOL_VOXELS, VoxelMap,
@@ -195,6 +196,8 @@ pub struct OdometryConfig {
     pub imu_guard: ImuGuardConfig,
     /// The per-scan agreement with the map that decides `lost`.
     pub integrity: IntegrityConfig,
+    /// Zero-velocity and zero-rate updates while the platform stands still.
+    pub standstill: StandstillConfig,
     /// IMU from LiDAR rotation.
     pub ext_rot: UnitQuaternion<f64>,
     /// LiDAR origin in the IMU frame, m.
@@ -220,6 +223,7 @@ impl OdometryConfig {
             init: ImuInitConfig::default(),
             imu_guard: ImuGuardConfig::DEFAULT,
             integrity: IntegrityConfig::DEFAULT,
+            standstill: StandstillConfig::DEFAULT,
             ext_rot: UnitQuaternion::identity(),
             ext_pos: Vector3::zeros(),
             blind: 0.5,
@@ -438,6 +442,8 @@ pub struct OdometryStats {
     pub lost: u32,
     /// Re-localisations that moved the prediction ([`crate::relocalise`]).
     pub relocalisations: u32,
+    /// Scans that stood still and gave zero-velocity updates ([`crate::standstill`]).
+    pub standstill: u32,
 }
 
 /// The LiDAR-inertial odometry over caller-owned storage.
@@ -471,6 +477,10 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     low_run: u32,
     /// Scans left that re-localise after a gap, not judged by the integrity check.
     recovering: u32,
+    /// The IMU samples of the scan being processed (for the standstill test).
+    window: ImuWindow,
+    /// How long the platform has stood still in a row, seconds.
+    still_s: f64,
 }
 
 impl<const PIX: usize, const PTS: usize, const DS: usize> core::fmt::Debug for Odometry<'_, PIX, PTS, DS> {
@@ -536,6 +546,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             nis_mean: None,
             low_run: 0,
             recovering: 0,
+            window: ImuWindow::default(),
+            still_s: 0.0,
         })
     }
 
@@ -680,6 +692,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         self.share_mean = None;
         self.nis_mean = None;
         self.low_run = 0;
+        self.still_s = 0.0;
         self.stats.reinitialisations = self.stats.reinitialisations.saturating_add(1);
     }
 
@@ -745,7 +758,9 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         if let Some(f) = &self.filter {
             st.trajectory.push(f.time_ns(), f.state());
         }
+        self.window.clear();
         while let Some(s) = st.imu.pop_until(end_ns) {
+            self.window.push(&s);
             match &mut self.filter {
                 Some(f) => {
                     let before = f.time_ns();
@@ -996,6 +1011,29 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         }
         let lost = ic.lost_scans > 0 && self.low_run >= ic.lost_scans;
         let low = ic.lost_scans > 0 && self.low_run > 0;
+
+        // Standing still: zero velocity and the gyro's mean as its bias.
+        let dt = self.last_scan_end_ns.map_or(0.0, |t| end_ns.saturating_sub(t) as f64 * 1e-9);
+        let sc = self.cfg.standstill;
+        let stands = sc.enabled
+            && reinit.is_none()
+            && !bridged
+            && !low
+            && kept > 0
+            && !building
+            && update.measurements[0] > 0
+            && update.outcome == UpdateOutcome::Updated
+            && dt <= LIDAR_GAP_S
+            && self.window.stands(&sc, f);
+        self.still_s = if stands { self.still_s + dt } else { 0.0 };
+        if stands && self.still_s >= sc.min_duration_s {
+            let v = f.zero_velocity(sc.velocity_std * sc.velocity_std);
+            let r = f.zero_rate(&self.window.mean_gyro(), self.window.rate_variance(&sc));
+            if v || r {
+                flags.0 |= PropagationFlags::STILL;
+                self.stats.standstill = self.stats.standstill.saturating_add(1);
+            }
+        }
 
         // 6. Map insertion at the updated pose (not while the scans disagree with the map: it
         // stays clean for the re-localisation).

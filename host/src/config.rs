@@ -358,6 +358,9 @@ pub struct MappingConfig {
 pub struct FilterConfig {
     /// Most iterated-update passes per scan.
     pub max_iterations: u32,
+    /// Zero-velocity and zero-rate updates while the platform stands still.
+    #[serde(default)]
+    pub standstill: bool,
 }
 
 /// `[compute]`.
@@ -409,6 +412,7 @@ pub struct Config {
 /// What a key holds, for checking and for the template's comments.
 #[derive(Clone, Copy, Debug)]
 enum Kind {
+    Bool,
     Float { min: f64, max: f64 },
     Int { min: i64, max: i64 },
     Str,
@@ -615,6 +619,12 @@ static SPECS: &[Spec] = &[
         "Most iterated-update passes per scan.",
     ),
     spec(
+        "filter.standstill",
+        Kind::Bool,
+        "",
+        "Zero-velocity and zero-rate updates while the platform stands still (the IMU quiet, the scans see no motion), against drift at a stand where the scene leaves a direction unobserved; off by default (see docs/estimation.md).",
+    ),
+    spec(
         "compute.threads",
         Kind::Int { min: 0, max: 8 },
         "threads",
@@ -700,6 +710,7 @@ fn kind_range_text(kind: Kind, unit: &str) -> String {
         Kind::Float { min, max } => format!("{}..={}{unit_sfx}", fmt_num(min), fmt_num(max)),
         Kind::Int { min, max } => format!("{min}..={max}{unit_sfx}"),
         Kind::Str | Kind::Path => unit.to_string(),
+        Kind::Bool => "true or false".to_string(),
         Kind::Enum(list) => format!("one of: {}", list.join(", ")),
         Kind::Floats { len, min, max } => {
             format!("{len} numbers, each {}..={}{unit_sfx}", fmt_num(min), fmt_num(max))
@@ -742,6 +753,12 @@ fn check_value(spec: &Spec, v: &toml::Value) -> Result<toml::Value, ConfigError>
         _ => None,
     };
     match spec.kind {
+        Kind::Bool => {
+            let toml::Value::Boolean(_) = v else {
+                bail!("{key} must be true or false, found {}", type_name(v))
+            };
+            Ok(v.clone())
+        }
         Kind::Float { min, max } => {
             let Some(f) = as_f64(v) else { bail!("{key} must be a number, found {}", type_name(v)) };
             if !(min..=max).contains(&f) {
@@ -866,7 +883,7 @@ impl Config {
                 association: AssociationMode::Full,
                 knn_search: KnnReach::Exact,
             },
-            filter: FilterConfig { max_iterations: 4 },
+            filter: FilterConfig { max_iterations: 4, standstill: false },
             compute: ComputeConfig::default(),
         }
     }

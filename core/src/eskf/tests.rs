@@ -944,3 +944,55 @@ fn ground_plane_only_is_degenerate_in_x_y_and_yaw() {
     let tilt = (x.rot.inverse() * V3::z()).angle(&(truth.rot.inverse() * V3::z()));
     assert!(tilt < 1e-6, "{tilt} {er:?}");
 }
+
+// --- standstill --------------------------------------------------------------------------------
+
+/// Standing still with a wrong accelerometer bias (0.05 m/s² along x) and gyro bias (0.002
+/// rad/s about z): alone the IMU drifts metres in 10 s; zero-velocity and zero-rate updates
+/// every 0.1 s hold the position to millimetres and find the gyro bias.
+#[test]
+fn zero_velocity_and_zero_rate_updates_hold_a_standing_filter() {
+    let run = |updates: bool| {
+        let x = truth_state(&Motion {
+            rot: Matrix3::identity(),
+            pos: V3::zeros(),
+            vel: V3::zeros(),
+            acc: V3::zeros(),
+            omega: V3::zeros(),
+        });
+        let p = diag_cov(&[
+            (idx::POS, 3, 1e-6),
+            (idx::ROT, 3, 1e-6),
+            (idx::VEL, 3, 1e-4),
+            (idx::BG, 3, 1e-6),
+            (idx::BA, 3, 1e-2),
+        ]);
+        let biased = |t_ns| ImuSample { t_ns, gyro: [0.0, 0.0, 0.002], acc: [0.05, 0.0, G as f32] };
+        let mut f = Eskf::from_state(EskfConfig::default(), x, p, T0, Some(biased(T0)), 1.0);
+        for k in 1..=2000u64 {
+            f.predict(&biased(T0 + k * 5_000_000));
+            if updates && k % 20 == 0 {
+                assert!(f.zero_velocity(0.005 * 0.005));
+                assert!(f.zero_rate(&V3::new(0.0, 0.0, 0.002), 1e-8));
+                finite_and_symmetric(&f);
+            }
+        }
+        *f.state()
+    };
+    let (held, free) = (run(true), run(false));
+    assert!(free.pos.norm() > 1.0, "without the updates the bias drifts: {:.3} m", free.pos.norm());
+    assert!(held.pos.norm() < 0.01, "held to {:.4} m", held.pos.norm());
+    assert!(held.vel.norm() < 0.005, "velocity {:.4} m/s", held.vel.norm());
+    assert!((held.bg.z - 0.002).abs() < 1e-4, "gyro bias {:.5} rad/s", held.bg.z);
+    // The bias is explained (accelerometer bias along x and pitch share it): the world
+    // acceleration the filter sees at rest is nil.
+    let a = held.rot * (V3::new(0.05, 0.0, G) - held.ba) + held.grav.vec();
+    assert!(a.norm() < 1e-3, "{a:?}");
+    // Invalid inputs change nothing.
+    let mut f = still_filter();
+    let before = *f.state();
+    assert!(!f.zero_velocity(0.0));
+    assert!(!f.zero_velocity(f64::NAN));
+    assert!(!f.zero_rate(&V3::new(f64::NAN, 0.0, 0.0), 1e-6));
+    assert_eq!(*f.state(), before);
+}

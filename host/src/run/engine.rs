@@ -35,6 +35,7 @@ use loglio_core::parallel::{Job, Parallel};
 use loglio_core::range_image::{MAX_COLS, MAX_ROWS, RangeImageLayout};
 use loglio_core::ring_fals::storage_pixels;
 use loglio_core::scan::ScanView;
+use loglio_core::standstill::StandstillConfig;
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
 use crate::config::{Config, SensorFamily};
@@ -142,6 +143,7 @@ pub fn odometry_config(cfg: &Config, layout: RangeImageLayout) -> Result<Odometr
             knn_reach: cfg.mapping.knn_search,
             ..base.association
         },
+        standstill: StandstillConfig { enabled: cfg.filter.standstill, ..base.standstill },
         ..base
     })
 }

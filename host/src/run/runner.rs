@@ -76,6 +76,8 @@ pub struct RunStats {
     pub sinks: Vec<SinkStats>,
     /// Timing faults and IMU outliers met.
     pub faults: FaultCounts,
+    /// Scans at a stand, which gave zero-velocity updates.
+    pub standstill: u64,
 }
 
 /// Timing faults and IMU outliers a run met (each also said as a `warning:`).
@@ -620,6 +622,9 @@ impl<'e> Runner<'e> {
             ScanStatus::Bridged => 5,
             ScanStatus::Lost => 6,
         }] += 1;
+        if res.propagation.has(loglio_core::eskf::PropagationFlags::STILL) {
+            st.standstill += 1;
+        }
         let t = &res.times;
         let s = &mut st.stage_sum;
         s.normals_ns += t.normals_ns;
@@ -673,8 +678,11 @@ impl<'e> Runner<'e> {
 /// A summary line of the status counts.
 pub fn status_summary(st: &RunStats) -> String {
     let names = ["initialising", "ok", "degraded", "imu-only", "re-initialising", "bridged", "lost"];
-    let parts: Vec<String> =
+    let mut parts: Vec<String> =
         names.iter().zip(st.status).filter(|(_, n)| *n > 0).map(|(name, n)| format!("{n} {name}")).collect();
+    if st.standstill > 0 {
+        parts.push(format!("{} standing still", st.standstill));
+    }
     parts.join(", ")
 }
 
