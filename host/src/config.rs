@@ -196,6 +196,42 @@ pub enum ImuSource {
     Csv,
 }
 
+/// What the serial IMU speaks (`imu.protocol`, `loglio live --imu-protocol`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum ImuProtocol {
+    /// loglio's IMU frames (COBS + postcard + CRC-32); their time is used as it is.
+    #[default]
+    Loglio,
+    /// Xsens MTi binary output (MTData2: Acceleration, RateOfTurn, SampleTimeFine).
+    Xsens,
+    /// VectorNav binary output (Common group: TimeStartup, AngularRate, Accel).
+    Vectornav,
+}
+
+impl ImuProtocol {
+    /// The name users type.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Loglio => "loglio",
+            Self::Xsens => "xsens",
+            Self::Vectornav => "vectornav",
+        }
+    }
+
+    /// Whether the device stamps samples on its own clock (time since its power-on), which the
+    /// host puts onto its own clock ([`crate::input::time_align::DeviceClock`]).
+    pub fn own_clock(self) -> bool {
+        !matches!(self, Self::Loglio)
+    }
+}
+
+impl fmt::Display for ImuProtocol {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// Which clock stamps the LiDAR points.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -249,8 +285,11 @@ pub struct NetworkConfig {
 pub struct ImuConfig {
     /// Where samples come from.
     pub source: ImuSource,
-    /// Serial device of loglio's IMU frames.
+    /// Serial device of the IMU.
     pub serial_device: String,
+    /// What the serial IMU speaks.
+    #[serde(default)]
+    pub protocol: ImuProtocol,
     /// Serial baud rate.
     pub baud: u32,
     /// IMU CSV file.
@@ -499,7 +538,13 @@ static SPECS: &[Spec] = &[
         "imu.serial_device",
         Kind::Str,
         "device path",
-        "Serial device of the IMU board (imu.source = \"serial\").",
+        "Serial device of the IMU (imu.source = \"serial\").",
+    ),
+    spec(
+        "imu.protocol",
+        Kind::Enum(&["loglio", "xsens", "vectornav"]),
+        "",
+        "What the serial IMU speaks: loglio = loglio's IMU frames (their time is used as it is); xsens = Xsens MTData2 (Acceleration, RateOfTurn, SampleTimeFine); vectornav = VectorNav binary output (TimeStartup, AngularRate, Accel). The Xsens and VectorNav times are put onto this computer's clock (see docs/sensors.md).",
     ),
     spec("imu.baud", Kind::Int { min: 1200, max: 12_000_000 }, "baud", "Serial baud rate."),
     opt(
@@ -651,8 +696,8 @@ const SECTIONS: [Section; 8] = [
     Section {
         name: "imu",
         what: "The IMU: source and noise model.",
-        code: "`source`, `serial_device`, `baud` and `csv_path` are the host's inputs (`serial.rs`, \
-               `imu_csv.rs`). `gyro_noise` and `acc_noise` are the ESKF's process noise as white noise \
+        code: "`source`, `serial_device`, `protocol`, `baud` and `csv_path` are the host's inputs (`serial.rs`, \
+               `device_imu.rs`, `imu_csv.rs`). `gyro_noise` and `acc_noise` are the ESKF's process noise as white noise \
                densities: the discrete variance per IMU step of length dt is `density^2 / dt` (rates) or \
                `density^2 * dt` (integrated angle and velocity); the bias walks add the variance \
                `density^2 * dt` per step; `gravity` is the magnitude of the gravity-aligned world frame.",
@@ -835,6 +880,7 @@ impl Config {
             imu: ImuConfig {
                 source: if ouster { ImuSource::Ouster } else { ImuSource::Serial },
                 serial_device: "/dev/ttyUSB0".into(),
+                protocol: ImuProtocol::Loglio,
                 baud: 921_600,
                 csv_path: None,
                 // LIO-tuned densities (equivalent to the reference's per-step covariances at

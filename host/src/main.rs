@@ -174,10 +174,14 @@ struct ReplayArgs {
 
 #[derive(Debug, Args)]
 struct LiveArgs {
-    /// The IMU's serial device (loglio's IMU frames): a UART, a USB serial adapter, a
-    /// pseudo-terminal or a FIFO (default: the configuration's imu.serial_device).
+    /// The IMU's serial device: a UART, a USB serial adapter, a pseudo-terminal or a FIFO
+    /// (default: the configuration's imu.serial_device).
     #[arg(long, value_name = "PATH", conflicts_with = "ouster_imu")]
     imu_serial: Option<PathBuf>,
+    /// What the serial IMU speaks (overrides imu.protocol): loglio's IMU frames, Xsens MTData2
+    /// or VectorNav binary output.
+    #[arg(long, value_enum, value_name = "PROTOCOL", conflicts_with = "ouster_imu")]
+    imu_protocol: Option<loglio_host::config::ImuProtocol>,
     /// Serial baud rate (overrides imu.baud).
     #[arg(long, value_name = "BAUD", value_parser = clap::value_parser!(u32).range(1200..=12_000_000))]
     baud: Option<u32>,
@@ -510,6 +514,7 @@ fn live_cmd(a: LiveArgs) -> anyhow::Result<()> {
         (None, false) => LiveImu::Config,
     };
     opt.baud = a.baud;
+    opt.imu_protocol = a.imu_protocol;
     opt.bind = a.bind;
     opt.lidar_port = a.lidar_port;
     opt.imu_port = a.imu_port;
