@@ -56,6 +56,7 @@ use crate::diag::warn;
 use crate::error::PipelineError;
 use crate::input::device_imu::{DeviceImuReader, ImuProtocol};
 use crate::input::lidar_stream::{self, Decoded, LidarStream, SensorDecoder, VELODYNE_POSITION_PORT};
+use crate::input::mavlink_imu::{MavlinkImuDecoder, RawScale};
 use crate::input::time_align::{ClockEstimate, DeviceClock};
 use crate::input::udp::{self, UdpSource};
 use crate::run::engine;
@@ -88,6 +89,8 @@ pub enum LiveImu {
     Serial(PathBuf),
     /// The Ouster's IMU packets (UDP, `network.imu_port` or the metadata's).
     OusterPackets,
+    /// An autopilot's MAVLink `HIGHRES_IMU`, `SCALED_IMU` or `RAW_IMU` on this UDP port.
+    Mavlink(u16),
 }
 
 /// A live run's settings.
@@ -202,8 +205,9 @@ pub struct LiveReport {
     pub wall_s: f64,
     /// Latency from a scan's last packet to its result, beside its processing time.
     pub result_latency: crate::sink::WireLatency,
-    /// The serial IMU's protocol, when the IMU came from a serial device.
-    pub imu_protocol: Option<ImuProtocol>,
+    /// The IMU input with its decoding counts in the summary: `serial IMU (xsens)`,
+    /// `MAVLink IMU (HIGHRES_IMU)`; `None` for the Ouster's IMU packets.
+    pub imu_input: Option<String>,
     /// The device clock against this computer's (Xsens, VectorNav with their time configured).
     pub imu_clock: Option<ClockEstimate>,
 }
@@ -230,6 +234,10 @@ struct Counters {
     imu_unsupported: AtomicU64,
     /// The serial IMU's device clock estimate.
     imu_clock: Mutex<Option<ClockEstimate>>,
+    /// MAVLink IMU messages not used (a worse kind than the one used, RAW_IMU without scales).
+    imu_ignored: AtomicU64,
+    /// The MAVLink IMU message used.
+    imu_kind: Mutex<Option<&'static str>>,
     scans_queued: AtomicUsize,
     scan_drops: AtomicU64,
 }
@@ -441,6 +449,60 @@ fn read_imu(
     }
 }
 
+/// The MAVLink IMU thread: datagrams to samples, the autopilot's time onto this computer's
+/// clock through a [`DeviceClock`] (its `time_usec` is since boot, or since 1970 with a GPS).
+fn read_mavlink(
+    sock: UdpSource,
+    raw_scale: Option<RawScale>,
+    tx: SyncSender<Msg>,
+    c: Arc<Counters>,
+    stop: Arc<AtomicBool>,
+    t0: Instant,
+) {
+    let mut dec = MavlinkImuDecoder::new(raw_scale);
+    let mut clock = DeviceClock::new();
+    let mut buf = vec![0u8; 65_536];
+    let mut samples = Vec::new();
+    let (mut warned, mut warned_raw, mut estimated_at) = (false, false, 0u64);
+    'recv: while !stop.load(Relaxed) {
+        match sock.recv(&mut buf) {
+            Ok(Some((n, _, arrival_ns))) => {
+                dec.datagram(&buf[..n], |s| samples.push(s));
+                let st = dec.stats;
+                c.imu_noise_bytes.store(st.dropped_bytes, Relaxed);
+                c.imu_rejected.store(st.crc + st.bad_values, Relaxed);
+                c.imu_ignored.store(st.ignored, Relaxed);
+                *c.imu_kind.lock().unwrap_or_else(|e| e.into_inner()) = dec.message().map(|m| m.name());
+                if raw_scale.is_none() && st.ignored > 0 && dec.message().is_none() && !warned_raw {
+                    warn(
+                        "MAVLink RAW_IMU arrives but imu.raw_imu_acc_scale and imu.raw_imu_gyro_scale are not set: it is ignored (stream HIGHRES_IMU or SCALED_IMU, or set the scales)",
+                    );
+                    warned_raw = true;
+                }
+                for s in samples.drain(..) {
+                    let t_ns = clock.map(s.device_ns, arrival_ns);
+                    if !send_imu(&tx, ImuSample { t_ns, gyro: s.gyro, acc: s.acc }, &c, t0) {
+                        break 'recv;
+                    }
+                }
+                if st.samples >= estimated_at + 100 {
+                    estimated_at = st.samples;
+                    *c.imu_clock.lock().unwrap_or_else(|e| e.into_inner()) = clock.estimate();
+                }
+            }
+            Ok(None) => {}
+            Err(e) => {
+                if !warned {
+                    warn(format!("MAVLink IMU port: {}; still listening", io_reason(&e)));
+                    warned = true;
+                }
+                std::thread::sleep(Duration::from_millis(10));
+            }
+        }
+    }
+    *c.imu_clock.lock().unwrap_or_else(|e| e.into_inner()) = clock.estimate();
+}
+
 /// What the decode thread needs besides its queues.
 struct DecodeSetup {
     cfg: Config,
@@ -601,6 +663,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
         LiveImu::Config => match cfg.imu.source {
             ImuSource::Serial => LiveImu::Serial(PathBuf::from(&cfg.imu.serial_device)),
             ImuSource::Ouster => LiveImu::OusterPackets,
+            ImuSource::Mavlink => LiveImu::Mavlink(cfg.network.mavlink_imu_port),
             ImuSource::Csv => {
                 return Err(PipelineError(
                     "imu.source = \"csv\" is for replays; live needs the IMU on a serial port (--imu-serial PATH) or an Ouster's IMU packets (--ouster-imu)"
@@ -680,10 +743,27 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
         LiveImu::Serial(p) => Some((open_imu(p, cfg.imu.baud)?, p.clone())),
         _ => None,
     };
+    let mavlink = match imu {
+        LiveImu::Mavlink(port) => {
+            Some((bind_udp(SocketAddr::new(bind, port), "MAVLink IMU messages")?, port))
+        }
+        _ => None,
+    };
+    let raw_scale = match (cfg.imu.raw_imu_acc_scale, cfg.imu.raw_imu_gyro_scale) {
+        (Some(acc), Some(gyro)) => Some(RawScale { acc: acc as f32, gyro: gyro as f32 }),
+        _ => None,
+    };
     opt.setup.warn_missing_extrinsic(&cfg);
-    if serial.is_some() && imu_protocol.own_clock() && cfg.time.lidar_time_source == LidarTimeSource::Packet {
+    let own_clock = if mavlink.is_some() {
+        Some("MAVLink".to_string())
+    } else {
+        (serial.is_some() && imu_protocol.own_clock()).then(|| imu_protocol.to_string())
+    };
+    if let Some(what) = own_clock
+        && cfg.time.lidar_time_source == LidarTimeSource::Packet
+    {
         warn(format!(
-            "the {imu_protocol} IMU's time is put onto this computer's clock, the LiDAR's packet times are the sensor's own: set time.lidar_time_source = \"capture\" unless the LiDAR is synchronised to this computer (PTP)"
+            "the {what} IMU's time is put onto this computer's clock, the LiDAR's packet times are the sensor's own: set time.lidar_time_source = \"capture\" unless the LiDAR is synchronised to this computer (PTP)"
         ));
     }
     let imu_desc = match &serial {
@@ -691,11 +771,17 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
             format!("{imu_protocol} IMU from {} at {} baud", p.display(), cfg.imu.baud)
         }
         Some((ImuPort::Fifo(_), p)) => format!("{imu_protocol} IMU from the FIFO {}", p.display()),
-        None => format!("IMU from the Ouster's packets on UDP {imu_port}"),
+        None => match &mavlink {
+            Some((_, port)) => {
+                format!("IMU from MAVLink (HIGHRES_IMU, SCALED_IMU or RAW_IMU) on UDP {bind}:{port}")
+            }
+            None => format!("IMU from the Ouster's packets on UDP {imu_port}"),
+        },
     };
-    let imu_source_name = match &serial {
-        Some((_, p)) => p.display().to_string(),
-        None => format!("the Ouster IMU packets (UDP {bind}:{imu_port})"),
+    let imu_source_name = match (&serial, &mavlink) {
+        (Some((_, p)), _) => p.display().to_string(),
+        (None, Some((_, port))) => format!("the MAVLink IMU messages (UDP {bind}:{port})"),
+        (None, None) => format!("the Ouster IMU packets (UDP {bind}:{imu_port})"),
     };
 
     let outputs = files::Outputs::new(opt.setup.outputs()?)?;
@@ -703,7 +789,11 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
     let _signals = if opt.handle_signals { Some(crate::run::Signals::register(&stop_signal)?) } else { None };
     let scan_period_s = 1.0 / cfg.sensor.scan_rate_hz;
     let preset = cfg.preset;
-    let serial_protocol = (imu != LiveImu::OusterPackets).then_some(imu_protocol);
+    let imu_label = match &imu {
+        LiveImu::OusterPackets => None,
+        LiveImu::Mavlink(_) => Some("MAVLink IMU".to_string()),
+        _ => Some(format!("serial IMU ({imu_protocol})")),
+    };
     let decode_setup = DecodeSetup { cfg: cfg.clone(), dec, lidar_port, imu_port, hold_for_gps };
 
     let res = engine::with_engine(
@@ -746,7 +836,18 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                             .map_err(spawn_err)?,
                     )
                 }
-                None => None,
+                None => match mavlink {
+                    Some((sock, _)) => {
+                        let (tx, c, stop) = (msg_tx.clone(), Arc::clone(&counters), Arc::clone(&stop_rx));
+                        Some(
+                            std::thread::Builder::new()
+                                .name("loglio-mavlink-imu".into())
+                                .spawn(move || read_mavlink(sock, raw_scale, tx, c, stop, t0))
+                                .map_err(spawn_err)?,
+                        )
+                    }
+                    None => None,
+                },
             };
             drop(msg_tx);
             eprintln!(
@@ -839,6 +940,10 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                             format!(
                                 "{unsupported} VectorNav messages from {imu_source_name} in {s:.0} s select GPS, Attitude or INS outputs, which loglio cannot measure: configure a binary output of the Common (or Time and IMU) group only"
                             )
+                        } else if c.imu_samples.load(Relaxed) == 0 && noise > 0 && matches!(imu, LiveImu::Mavlink(_)) {
+                            format!(
+                                "{noise} bytes from {imu_source_name} in {s:.0} s but no MAVLink IMU message decodes: does the sender speak MAVLink and stream HIGHRES_IMU, SCALED_IMU or RAW_IMU?"
+                            )
                         } else if c.imu_samples.load(Relaxed) == 0 && noise > 0 {
                             format!(
                                 "{noise} bytes from {imu_source_name} in {s:.0} s but no IMU {} decodes: wrong --baud, or {}?",
@@ -904,6 +1009,15 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                     runner.stats.scans,
                     if imu == LiveImu::OusterPackets {
                         "'s IMU port".to_string()
+                    } else if matches!(imu, LiveImu::Mavlink(_)) {
+                        format!(
+                            ": the autopilot must stream HIGHRES_IMU, SCALED_IMU or RAW_IMU to this port{}",
+                            if c.imu_ignored.load(Relaxed) > 0 {
+                                " (RAW_IMU arrived: it needs imu.raw_imu_acc_scale and imu.raw_imu_gyro_scale)"
+                            } else {
+                                ""
+                            }
+                        )
                     } else if imu_protocol == ImuProtocol::Loglio {
                         ", its --baud and the IMU board".to_string()
                     } else {
@@ -923,10 +1037,14 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
             let (stats, finished) = runner.finish()?;
             let result_latency = std::mem::take(&mut times.borrow_mut().result);
             let clock = *c.imu_clock.lock().unwrap_or_else(|e| e.into_inner());
-            Ok((stats, finished, counts, stopped_by, result_latency, clock))
+            let imu_label = imu_label.map(|l| match *c.imu_kind.lock().unwrap_or_else(|e| e.into_inner()) {
+                Some(kind) => format!("{l} ({kind})"),
+                None => l,
+            });
+            Ok((stats, finished, counts, stopped_by, result_latency, clock, imu_label))
         },
     )??;
-    let (stats, finished, counts, stopped_by, result_latency, imu_clock) = res;
+    let (stats, finished, counts, stopped_by, result_latency, imu_clock, imu_input) = res;
     Ok(LiveReport {
         stats,
         finished,
@@ -935,7 +1053,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
         scan_period_s,
         wall_s: wall.elapsed().as_secs_f64(),
         result_latency,
-        imu_protocol: serial_protocol,
+        imu_input,
         imu_clock,
     })
 }
@@ -1017,9 +1135,9 @@ pub fn summary(r: &LiveReport) -> String {
         s.push_str(&format!("; {} packets before the first GPS time skipped", c.gps_wait_packets));
     }
     s.push('\n');
-    if let Some(p) = r.imu_protocol {
+    if let Some(p) = &r.imu_input {
         s.push_str(&format!(
-            "serial IMU ({p}): {} bytes not IMU data, {} messages refused",
+            "{p}: {} bytes not IMU data, {} messages refused",
             c.imu_noise_bytes, c.imu_rejected
         ));
         if let Some(e) = &r.imu_clock {

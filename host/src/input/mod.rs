@@ -5,6 +5,7 @@ pub mod bag;
 pub mod device_imu;
 pub mod imu_csv;
 pub mod lidar_stream;
+pub mod mavlink_imu;
 pub mod ouster_meta;
 pub mod pace;
 pub mod pcap;
