@@ -476,4 +476,54 @@ mod tests {
             assert_eq!(dec.stats.dropped_bytes, noise as u64, "{:?}", dec.stats);
         }
     }
+
+    fn decode_all(dec: &mut Decoder, mut bytes: &[u8], out: &mut Vec<VectorNavSample>) {
+        loop {
+            let (n, s) = dec.feed(bytes);
+            bytes = &bytes[n..];
+            match s {
+                Some(s) => out.push(s),
+                None if bytes.is_empty() => return,
+                None => {}
+            }
+        }
+    }
+
+    proptest::proptest! {
+        /// Any bytes in any chunking: no panic, every sample finite, no byte counted twice.
+        #[test]
+        fn arbitrary_bytes_are_safe(bytes in proptest::collection::vec(proptest::prelude::any::<u8>(), 0..3000), chunk in 1usize..80) {
+            let mut dec = Decoder::new();
+            let mut got = Vec::new();
+            for c in bytes.chunks(chunk) {
+                decode_all(&mut dec, c, &mut got);
+            }
+            proptest::prop_assert!(got.iter().all(|s| s.acc.iter().chain(s.gyro.iter()).all(|v| v.is_finite())));
+            proptest::prop_assert!(dec.stats.dropped_bytes <= bytes.len() as u64);
+            proptest::prop_assert_eq!(dec.stats.samples, got.len() as u64);
+        }
+
+        /// Good messages with noise (without the sync byte) before each: every message is
+        /// recovered in order and exactly the noise is counted as dropped.
+        #[test]
+        fn messages_behind_noise_are_all_recovered(
+            noise in proptest::collection::vec(proptest::collection::vec(0u8..0xFA, 0..40), 1..30),
+            chunk in 1usize..80,
+        ) {
+            let mut stream = Vec::new();
+            for (k, n) in noise.iter().enumerate() {
+                stream.extend_from_slice(n);
+                stream.extend(common(k as u64 * 1000, [k as f32, 0.0, 0.1], [0.0, 0.5, k as f32]));
+            }
+            let mut dec = Decoder::new();
+            let mut got = Vec::new();
+            for c in stream.chunks(chunk) {
+                decode_all(&mut dec, c, &mut got);
+            }
+            let times: Vec<u64> = got.iter().map(|s| s.time_startup_ns.unwrap_or(u64::MAX)).collect();
+            proptest::prop_assert_eq!(times, (0..noise.len() as u64).map(|k| k * 1000).collect::<Vec<_>>());
+            let noise_bytes: usize = noise.iter().map(Vec::len).sum();
+            proptest::prop_assert_eq!(dec.stats.dropped_bytes, noise_bytes as u64);
+        }
+    }
 }

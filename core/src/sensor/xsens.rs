@@ -601,4 +601,42 @@ mod tests {
             assert_eq!(st.dropped_bytes, noise as u64, "{st:?}");
         }
     }
+
+    proptest::proptest! {
+        /// Any bytes in any chunking: no panic, every sample finite, no byte counted twice.
+        #[test]
+        fn arbitrary_bytes_are_safe(bytes in proptest::collection::vec(proptest::prelude::any::<u8>(), 0..3000), chunk in 1usize..80) {
+            let mut dec = Decoder::new();
+            let mut got = Vec::new();
+            for c in bytes.chunks(chunk) {
+                decode_all(&mut dec, c, &mut got);
+            }
+            proptest::prop_assert!(got.iter().all(|s| s.acc.iter().chain(s.gyro.iter()).all(|v| v.is_finite())));
+            proptest::prop_assert!(dec.stats.dropped_bytes <= bytes.len() as u64);
+            proptest::prop_assert_eq!(dec.stats.samples, got.len() as u64);
+        }
+
+        /// Good messages with noise (without the preamble) before each: every message is
+        /// recovered in order and exactly the noise is counted as dropped.
+        #[test]
+        fn messages_behind_noise_are_all_recovered(
+            noise in proptest::collection::vec(proptest::collection::vec(0u8..0xFA, 0..40), 1..30),
+            chunk in 1usize..80,
+        ) {
+            let mut stream = Vec::new();
+            for (k, n) in noise.iter().enumerate() {
+                stream.extend_from_slice(n);
+                stream.extend(imu_message(k as u16, k as u32 * 50, [k as f32, 0.0, 9.81], [0.0, 0.5, k as f32]));
+            }
+            let mut dec = Decoder::new();
+            let mut got = Vec::new();
+            for c in stream.chunks(chunk) {
+                decode_all(&mut dec, c, &mut got);
+            }
+            let counters: Vec<u16> = got.iter().map(|s| s.counter.unwrap_or(u16::MAX)).collect();
+            proptest::prop_assert_eq!(counters, (0..noise.len() as u16).collect::<Vec<_>>());
+            let noise_bytes: usize = noise.iter().map(Vec::len).sum();
+            proptest::prop_assert_eq!(dec.stats.dropped_bytes, noise_bytes as u64);
+        }
+    }
 }
