@@ -236,4 +236,28 @@ mod tests {
         assert_eq!((c.samples, c.lost, c.dropped_bytes), (4, 0, 3 + 5));
         assert!(c.rejected >= 1);
     }
+
+    #[test]
+    fn vectornav_and_loglio_times_pass_through() {
+        // VectorNav: Common group TimeStartup, AngularRate, Accel; the CRC big-endian.
+        let mut m = vec![0xFA, 0x01, 0x21, 0x01];
+        m.extend(7_000_000_123u64.to_le_bytes());
+        m.extend([0.5f32, 0.0, -0.5].iter().flat_map(|x| x.to_le_bytes()));
+        m.extend([0.0f32, 0.0, -9.81].iter().flat_map(|x| x.to_le_bytes()));
+        let crc = vectornav::crc16(&m[1..]);
+        m.extend(crc.to_be_bytes());
+        let stream = [&b"$VNYMR,0*00\r\n"[..], &m, &m[..10]].concat();
+        let mut r = DeviceImuReader::new(&stream[..], ImuProtocol::Vectornav);
+        let s = r.next_sample().unwrap().unwrap();
+        assert_eq!((s.device_ns, s.gyro, s.acc), (Some(7_000_000_123), [0.5, 0.0, -0.5], [0.0, 0.0, -9.81]));
+        assert_eq!(r.next_sample().unwrap(), None);
+        assert_eq!((r.counts().samples, r.counts().dropped_bytes), (1, 13));
+        // loglio's frame: its time is the LiDAR clock's, as it is.
+        let f = imu_frame::ImuFrame { seq: 3, t_ns: 42, gyro: [1.0; 3], acc: [2.0; 3] };
+        let mut buf = [0u8; imu_frame::FRAME_MAX];
+        let n = imu_frame::encode(&f, &mut buf).unwrap();
+        let mut r = DeviceImuReader::new(&buf[..n], ImuProtocol::Loglio);
+        let s = r.next_sample().unwrap().unwrap();
+        assert_eq!((s.device_ns, s.gyro, s.acc), (Some(42), [1.0; 3], [2.0; 3]));
+    }
 }
