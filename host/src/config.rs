@@ -194,6 +194,45 @@ pub enum ImuSource {
     Ouster,
     /// A CSV file `t,gx,gy,gz,ax,ay,az` (replays only).
     Csv,
+    /// An autopilot's `HIGHRES_IMU`, `SCALED_IMU` or `RAW_IMU` over MAVLink on UDP
+    /// `network.mavlink_imu_port` (live only).
+    Mavlink,
+}
+
+/// What the serial IMU speaks (`imu.protocol`, `loglio live --imu-protocol`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum ImuProtocol {
+    /// loglio's IMU frames (COBS + postcard + CRC-32); their time is used as it is.
+    #[default]
+    Loglio,
+    /// Xsens MTi binary output (MTData2: Acceleration, RateOfTurn, SampleTimeFine).
+    Xsens,
+    /// VectorNav binary output (Common group: TimeStartup, AngularRate, Accel).
+    Vectornav,
+}
+
+impl ImuProtocol {
+    /// The name users type.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Loglio => "loglio",
+            Self::Xsens => "xsens",
+            Self::Vectornav => "vectornav",
+        }
+    }
+
+    /// Whether the device stamps samples on its own clock (time since its power-on), which the
+    /// host puts onto its own clock ([`crate::input::time_align::DeviceClock`]).
+    pub fn own_clock(self) -> bool {
+        !matches!(self, Self::Loglio)
+    }
+}
+
+impl fmt::Display for ImuProtocol {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
 }
 
 /// Which clock stamps the LiDAR points.
@@ -241,6 +280,13 @@ pub struct NetworkConfig {
     pub lidar_port: u16,
     /// UDP port of the Ouster IMU packets.
     pub imu_port: u16,
+    /// UDP port of the MAVLink IMU messages (`imu.source = "mavlink"`).
+    #[serde(default = "default_mavlink_imu_port")]
+    pub mavlink_imu_port: u16,
+}
+
+fn default_mavlink_imu_port() -> u16 {
+    14550
 }
 
 /// `[imu]`.
@@ -249,13 +295,22 @@ pub struct NetworkConfig {
 pub struct ImuConfig {
     /// Where samples come from.
     pub source: ImuSource,
-    /// Serial device of loglio's IMU frames.
+    /// Serial device of the IMU.
     pub serial_device: String,
+    /// What the serial IMU speaks.
+    #[serde(default)]
+    pub protocol: ImuProtocol,
     /// Serial baud rate.
     pub baud: u32,
     /// IMU CSV file.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub csv_path: Option<PathBuf>,
+    /// MAVLink `RAW_IMU` accelerometer scale, m/s^2 per count.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub raw_imu_acc_scale: Option<f64>,
+    /// MAVLink `RAW_IMU` gyroscope scale, rad/s per count.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub raw_imu_gyro_scale: Option<f64>,
     /// Gyroscope white noise density, rad/s/sqrt(Hz).
     pub gyro_noise: f64,
     /// Accelerometer white noise density, m/s^2/sqrt(Hz).
@@ -494,16 +549,28 @@ static SPECS: &[Spec] = &[
         "Port of the Ouster IMU packets (7503); unused for Velodyne.",
     ),
     spec(
+        "network.mavlink_imu_port",
+        Kind::Int { min: 1, max: 65535 },
+        "UDP port",
+        "Port the autopilot sends its MAVLink IMU messages to (imu.source = \"mavlink\").",
+    ),
+    spec(
         "imu.source",
-        Kind::Enum(&["serial", "ouster", "csv"]),
+        Kind::Enum(&["serial", "ouster", "csv", "mavlink"]),
         "",
-        "Where IMU samples come from: serial = loglio IMU frames on imu.serial_device; ouster = the Ouster's own IMU packets; csv = imu.csv_path (replays).",
+        "Where IMU samples come from: serial = the IMU on imu.serial_device (imu.protocol); ouster = the Ouster's own IMU packets; csv = imu.csv_path (replays); mavlink = an autopilot's HIGHRES_IMU, SCALED_IMU or RAW_IMU on UDP network.mavlink_imu_port (live).",
     ),
     spec(
         "imu.serial_device",
         Kind::Str,
         "device path",
-        "Serial device of the IMU board (imu.source = \"serial\").",
+        "Serial device of the IMU (imu.source = \"serial\").",
+    ),
+    spec(
+        "imu.protocol",
+        Kind::Enum(&["loglio", "xsens", "vectornav"]),
+        "",
+        "What the serial IMU speaks: loglio = loglio's IMU frames (their time is used as it is); xsens = Xsens MTData2 (Acceleration, RateOfTurn, SampleTimeFine); vectornav = VectorNav binary output (TimeStartup, AngularRate, Accel). The Xsens and VectorNav times are put onto this computer's clock (see docs/sensors.md).",
     ),
     spec("imu.baud", Kind::Int { min: 1200, max: 12_000_000 }, "baud", "Serial baud rate."),
     opt(
@@ -512,6 +579,20 @@ static SPECS: &[Spec] = &[
         "path",
         "IMU CSV with the header t,gx,gy,gz,ax,ay,az (s, rad/s, m/s^2); for imu.source = \"csv\".",
         "\"imu.csv\"",
+    ),
+    opt(
+        "imu.raw_imu_acc_scale",
+        Kind::Float { min: 1e-9, max: 1.0 },
+        "m/s^2 per count",
+        "MAVLink RAW_IMU accelerometer scale: full scale / 32768 for raw counts (e.g. 16 g: 0.0047884), 0.00980665 for ArduPilot's (milli-g). Without both scales RAW_IMU is ignored.",
+        "0.00980665",
+    ),
+    opt(
+        "imu.raw_imu_gyro_scale",
+        Kind::Float { min: 1e-9, max: 1.0 },
+        "rad/s per count",
+        "MAVLink RAW_IMU gyroscope scale: full scale / 32768 for raw counts (e.g. 2000 deg/s: 0.0010653), 0.001 for ArduPilot's (mrad/s).",
+        "0.001",
     ),
     spec(
         "imu.gyro_noise",
@@ -661,8 +742,8 @@ const SECTIONS: [Section; 8] = [
     Section {
         name: "imu",
         what: "The IMU: source and noise model.",
-        code: "`source`, `serial_device`, `baud` and `csv_path` are the host's inputs (`serial.rs`, \
-               `imu_csv.rs`). `gyro_noise` and `acc_noise` are the ESKF's process noise as white noise \
+        code: "`source`, `serial_device`, `protocol`, `baud` and `csv_path` are the host's inputs (`serial.rs`, \
+               `device_imu.rs`, `imu_csv.rs`). `gyro_noise` and `acc_noise` are the ESKF's process noise as white noise \
                densities: the discrete variance per IMU step of length dt is `density^2 / dt` (rates) or \
                `density^2 * dt` (integrated angle and velocity); the bias walks add the variance \
                `density^2 * dt` per step; `gravity` is the magnitude of the gravity-aligned world frame.",
@@ -848,12 +929,16 @@ impl Config {
                 bind: "0.0.0.0".into(),
                 lidar_port: if ouster { 7502 } else { 2368 },
                 imu_port: 7503,
+                mavlink_imu_port: 14550,
             },
             imu: ImuConfig {
                 source: if ouster { ImuSource::Ouster } else { ImuSource::Serial },
                 serial_device: "/dev/ttyUSB0".into(),
+                protocol: ImuProtocol::Loglio,
                 baud: 921_600,
                 csv_path: None,
+                raw_imu_acc_scale: None,
+                raw_imu_gyro_scale: None,
                 // LIO-tuned densities (equivalent to the reference's per-step covariances at
                 // 200 Hz, see docs): far above an IMU datasheet's, which ignore vibration.
                 gyro_noise: 5e-3,
@@ -1014,6 +1099,9 @@ impl Config {
             }
             ImuSource::Csv if self.imu.csv_path.is_none() => bail!("imu.source = \"csv\" needs imu.csv_path"),
             _ => {}
+        }
+        if self.imu.raw_imu_acc_scale.is_some() != self.imu.raw_imu_gyro_scale.is_some() {
+            bail!("imu.raw_imu_acc_scale and imu.raw_imu_gyro_scale are set together (RAW_IMU needs both)");
         }
         let e = &self.extrinsics;
         if e.rotation_quat_wxyz.is_some() && e.rotation_rpy_deg.is_some() {
@@ -1220,10 +1308,12 @@ mod tests {
     }
 
     /// Optional keys that no preset sets, so a serialised preset never has them.
-    const UNSET_IN_EVERY_PRESET: [(&str, &str); 4] = [
+    const UNSET_IN_EVERY_PRESET: [(&str, &str); 6] = [
         ("sensor.calibration", "without it the datasheet beam table is used"),
         ("sensor.ouster_metadata", "without it the nominal Ouster beam table is used"),
         ("imu.csv_path", "only imu.source = \"csv\" reads it"),
+        ("imu.raw_imu_acc_scale", "only MAVLink RAW_IMU needs it"),
+        ("imu.raw_imu_gyro_scale", "only MAVLink RAW_IMU needs it"),
         ("extrinsics.rotation_quat_wxyz", "the presets give the rotation as rotation_rpy_deg"),
     ];
 
@@ -1277,6 +1367,8 @@ mod tests {
         cfg.sensor.calibration = Some("VLP16.yaml".into());
         cfg.sensor.ouster_metadata = Some("os1.json".into());
         cfg.imu.csv_path = Some("imu.csv".into());
+        cfg.imu.raw_imu_acc_scale = Some(0.00980665);
+        cfg.imu.raw_imu_gyro_scale = Some(0.001);
         cfg.extrinsics.rotation_quat_wxyz = Some([1.0, 0.0, 0.0, 0.0]);
         assert_eq!(
             dotted_keys(&cfg),

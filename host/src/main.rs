@@ -174,16 +174,24 @@ struct ReplayArgs {
 
 #[derive(Debug, Args)]
 struct LiveArgs {
-    /// The IMU's serial device (loglio's IMU frames): a UART, a USB serial adapter, a
-    /// pseudo-terminal or a FIFO (default: the configuration's imu.serial_device).
+    /// The IMU's serial device: a UART, a USB serial adapter, a pseudo-terminal or a FIFO
+    /// (default: the configuration's imu.serial_device).
     #[arg(long, value_name = "PATH", conflicts_with = "ouster_imu")]
     imu_serial: Option<PathBuf>,
+    /// What the serial IMU speaks (overrides imu.protocol): loglio's IMU frames, Xsens MTData2
+    /// or VectorNav binary output.
+    #[arg(long, value_enum, value_name = "PROTOCOL", conflicts_with = "ouster_imu")]
+    imu_protocol: Option<loglio_host::config::ImuProtocol>,
     /// Serial baud rate (overrides imu.baud).
     #[arg(long, value_name = "BAUD", value_parser = clap::value_parser!(u32).range(1200..=12_000_000))]
     baud: Option<u32>,
     /// Take the IMU from the Ouster's IMU packets (UDP --imu-port).
     #[arg(long)]
     ouster_imu: bool,
+    /// Take the IMU from an autopilot's MAVLink HIGHRES_IMU, SCALED_IMU or RAW_IMU messages
+    /// sent to this UDP port (as imu.source = "mavlink" with network.mavlink_imu_port).
+    #[arg(long, value_name = "PORT", conflicts_with_all = ["imu_serial", "ouster_imu", "imu_protocol"])]
+    imu_mavlink_udp: Option<u16>,
     /// Local IP address to listen on (overrides network.bind, default 0.0.0.0).
     #[arg(long, value_name = "IP")]
     bind: Option<std::net::IpAddr>,
@@ -504,12 +512,14 @@ fn live_cmd(a: LiveArgs) -> anyhow::Result<()> {
         bail!("--imu-timeout must be a positive number of seconds, not {}", a.imu_timeout);
     }
     let mut opt = LiveOptions::new(a.run.setup());
-    opt.imu = match (a.imu_serial, a.ouster_imu) {
-        (Some(p), _) => LiveImu::Serial(p),
-        (None, true) => LiveImu::OusterPackets,
-        (None, false) => LiveImu::Config,
+    opt.imu = match (a.imu_serial, a.ouster_imu, a.imu_mavlink_udp) {
+        (Some(p), _, _) => LiveImu::Serial(p),
+        (None, true, _) => LiveImu::OusterPackets,
+        (None, false, Some(port)) => LiveImu::Mavlink(port),
+        (None, false, None) => LiveImu::Config,
     };
     opt.baud = a.baud;
+    opt.imu_protocol = a.imu_protocol;
     opt.bind = a.bind;
     opt.lidar_port = a.lidar_port;
     opt.imu_port = a.imu_port;

@@ -824,3 +824,241 @@ fn live_survives_the_fault_injector() {
     println!("live with faults: ATE {:.4} m, {scans} scans\n{text}\n{}", r.ape_trans.rmse, err.join("\n"));
     let _ = std::fs::remove_dir_all(dir);
 }
+
+/// An Xsens MTData2 message (PacketCounter, SampleTimeFine, float32 Acceleration and
+/// RateOfTurn), written from Xsens' "MT Low Level Communication Protocol Documentation"
+/// independently of the core's parser: FA FF 36 LEN, the data packets (id u16 BE, size u8,
+/// big-endian values), and the checksum that makes the bytes after the preamble sum to 0.
+fn xsens_message(counter: u16, ticks: u32, acc: [f32; 3], gyro: [f32; 3]) -> Vec<u8> {
+    let mut d = vec![0x10, 0x20, 2];
+    d.extend(counter.to_be_bytes());
+    d.extend([0x10, 0x60, 4]);
+    d.extend(ticks.to_be_bytes());
+    d.extend([0x40, 0x20, 12]);
+    d.extend(acc.iter().flat_map(|x| x.to_be_bytes()));
+    d.extend([0x80, 0x20, 12]);
+    d.extend(gyro.iter().flat_map(|x| x.to_be_bytes()));
+    let mut m = vec![0xFA, 0xFF, 0x36, d.len() as u8];
+    m.extend(d);
+    let sum = m[1..].iter().fold(0u8, |s, &b| s.wrapping_add(b));
+    m.push(sum.wrapping_neg());
+    m
+}
+
+/// An Xsens on the serial line instead of loglio's IMU board: the simulator's IMU samples (the
+/// scenario's motion) re-sent as MTData2 messages stamped with a device clock that started at
+/// an arbitrary time, with line noise before some messages and some messages corrupted. The
+/// LiDAR is taken on this computer's clock (`lidar_time_source = "capture"`), the Xsens's time
+/// goes onto it through the device-clock estimate. Checked: every good message arrives as a
+/// sample, the noise bytes and the corrupted messages are counted (not fatal), the clock
+/// offset is reported, and the trajectory matches the simulator's ground truth once the
+/// simulator's clock is put onto this computer's (the start of the paced stream).
+#[test]
+fn live_reads_an_xsens_with_noise_on_the_line() {
+    use loglio_core::sensor::imu_frame;
+    use loglio_firmware_sim::stream::{Wire, WireEvent, WireStream};
+    let Some(run) = SimRun::start("live_reads_an_xsens_with_noise_on_the_line", "xsens", 6.0) else {
+        return;
+    };
+    let (sc, dir, out) = (&run.sc, &run.dir, run.dir.join("out"));
+    let mut config = std::fs::read_to_string(dir.join("config.toml")).unwrap();
+    config.push_str("[time]\nlidar_time_source = \"capture\"\n");
+    std::fs::write(dir.join("config.toml"), config).unwrap();
+    // The device was powered on 1234.5 s before the scenario starts.
+    let power_on = sc.start_ns() - 1_234_500_000_000;
+    let (mut noise, mut corrupted, mut messages) = (0u64, 0u64, 0u64);
+    let events: Vec<WireEvent> = WireStream::new(sc)
+        .map(|ev| {
+            let (t_ns, mut frame) = match ev {
+                WireEvent { t_ns, wire: Wire::Serial(frame) } => (t_ns, frame),
+                other => return other,
+            };
+            let n = frame.len();
+            let f = imu_frame::decode_in_place(&mut frame[..n - 1]).expect("the simulator's frame");
+            let ticks = ((f.t_ns - power_on) / 100_000) as u32;
+            let mut bytes = Vec::new();
+            if f.seq % 50 == 7 {
+                bytes.extend([0x00, 0xFA, 0x13, 0x37, 0xFA]); // noise with stray preambles
+                noise += 5;
+            }
+            let mut m = xsens_message(f.seq as u16, ticks, f.acc, f.gyro);
+            if f.seq % 97 == 30 {
+                m[20] ^= 0x04; // a flipped bit: the checksum fails
+                noise += m.len() as u64;
+                corrupted += 1;
+            } else {
+                messages += 1;
+            }
+            bytes.extend(m);
+            WireEvent { t_ns, wire: Wire::Serial(bytes) }
+        })
+        .collect();
+    let cfg = LiveConfig {
+        host: std::net::Ipv4Addr::LOCALHOST,
+        rate: 1.0,
+        pty_link: None,
+        port_offset: run.offset,
+    };
+    let mut child = None;
+    let mut stream_start_ns = 0u64;
+    let sent = loglio_firmware_sim::live::run_events(events.into_iter(), sc.start_ns(), &cfg, |pty| {
+        let pty = pty.path.to_str().unwrap();
+        child = Some(run.spawn_live(&[
+            "--imu-serial",
+            pty,
+            "--imu-protocol",
+            "xsens",
+            "--out",
+            out.to_str().unwrap(),
+        ]));
+        // The stream is paced from here: the simulator's start is now on this computer's clock.
+        stream_start_ns = loglio_host::input::udp::host_time_ns();
+    })
+    .unwrap();
+    let child = child.unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    child.interrupt();
+    let (status, text, err) = child.finish();
+    assert!(status.success(), "{status}: {err:?}\n{text}");
+    assert!(!err.iter().any(|l| l.contains("panicked") || l.contains("error:")), "{err:?}");
+    assert!(err.iter().any(|l| l.contains("listening") && l.contains("xsens IMU from")), "{err:?}");
+
+    // Every good message is a sample; the corrupted ones are IMU drops (PacketCounter gaps).
+    let samples = number_after(&text, "decoded, ") as u64;
+    let [_, _, imu_drops, _] = drops(&text);
+    let lost_on_the_line = sent.imu_dropped;
+    assert!(samples + lost_on_the_line >= messages && samples <= messages, "{text}\n{sent:?}");
+    assert!(imu_drops >= corrupted, "{text}");
+    // The noise and the corrupted messages are counted to the byte (when the line lost nothing).
+    let line =
+        text.lines().find(|l| l.starts_with("serial IMU (xsens): ")).unwrap_or_else(|| panic!("{text}"));
+    let counted = number_after(line, "serial IMU (xsens): ") as u64;
+    // Refused: the corrupted messages and the false starts at the stray preambles in the noise.
+    let refused = number_after(line, "bytes not IMU data, ") as u64;
+    assert!(refused >= corrupted, "{line}");
+    if lost_on_the_line == 0 {
+        assert_eq!(counted, noise, "{line}");
+    } else {
+        assert!(counted > 0, "{line}");
+    }
+    // The device clock: 1234.5 s since power-on at the start, against this computer's clock.
+    let offset_s = number_after(line, "arrival - device time ");
+    let want_s = (stream_start_ns - (sc.start_ns() - power_on)) as f64 * 1e-9;
+    assert!((offset_s - want_s).abs() < 0.05, "offset {offset_s} s, expected about {want_s} s: {line}");
+    assert!(line.contains("ppm over "), "{line}");
+
+    // The trajectory against the ground truth, the simulator's clock moved onto this
+    // computer's: the Xsens samples carried the scenario's motion.
+    let (poses, scans, tracked) = check_outputs(&out);
+    assert!(tracked >= 30, "{tracked} of {scans} scans updated by the LiDAR: {text}");
+    let gt = eval::read_trajectory(&dir.join("gt.tum"), Format::Tum, None).unwrap();
+    let est = eval::read_trajectory(&out.join("trajectory.tum"), Format::Tum, None).unwrap();
+    let opt = EvalOptions {
+        offset: -((stream_start_ns - sc.start_ns()) as f64 * 1e-9),
+        max_diff: 0.02,
+        ..EvalOptions::default()
+    };
+    let r = eval::evaluate(&gt, &est, &opt).unwrap();
+    assert!(r.matched * 10 >= poses * 9, "{} of {poses} poses matched: {text}", r.matched);
+    assert!(r.ape_trans.rmse <= 0.10, "ATE {} m: {text}", r.ape_trans.rmse);
+    println!("live xsens: ATE {:.4} m, {scans} scans\n{text}", r.ape_trans.rmse);
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+/// An autopilot's IMU over MAVLink: the simulator's IMU samples re-sent as `HIGHRES_IMU`
+/// datagrams (loglio's own MAVLink framing; pymavlink's frames are checked field by field in
+/// `tests/mavlink.rs`) stamped with the autopilot's time since boot, with heartbeats and
+/// junk datagrams between them. Checked: every sample arrives, the junk is counted, the clock
+/// offset is reported, and the trajectory matches the ground truth on this computer's clock.
+#[test]
+fn live_reads_a_mavlink_imu_over_udp() {
+    use loglio_core::sensor::imu_frame;
+    use loglio_firmware_sim::stream::{Wire, WireEvent, WireStream};
+    use loglio_host::sink::mavlink::Encoder;
+    let Some(run) = SimRun::start("live_reads_a_mavlink_imu_over_udp", "mavlink-imu", 6.0) else {
+        return;
+    };
+    let (sc, dir, out) = (&run.sc, &run.dir, run.dir.join("out"));
+    let mut config = std::fs::read_to_string(dir.join("config.toml")).unwrap();
+    config.push_str("[time]\nlidar_time_source = \"capture\"\n");
+    std::fs::write(dir.join("config.toml"), config).unwrap();
+    let boot = sc.start_ns() - 77_000_000_000; // the autopilot booted 77 s before
+    let mav_port = 14_550u16;
+    let mut enc = Encoder::new(1, 1);
+    let (mut junk, mut messages) = (0u64, 0u64);
+    let mut events = Vec::new();
+    for ev in WireStream::new(sc) {
+        let (t_ns, mut frame) = match ev {
+            WireEvent { t_ns, wire: Wire::Serial(frame) } => (t_ns, frame),
+            other => {
+                events.push(other);
+                continue;
+            }
+        };
+        let n = frame.len();
+        let f = imu_frame::decode_in_place(&mut frame[..n - 1]).expect("the simulator's frame");
+        // HIGHRES_IMU (id 105, CRC_EXTRA 93): time_usec, acc, gyro, mag, pressures, temperature,
+        // fields_updated, id.
+        let mut p = ((f.t_ns - boot) / 1000).to_le_bytes().to_vec();
+        for v in f.acc.iter().chain(f.gyro.iter()).chain([0.0f32; 7].iter()) {
+            p.extend(v.to_le_bytes());
+        }
+        p.extend(0x3Fu16.to_le_bytes());
+        p.push(0);
+        let mut buf = [0u8; 300];
+        let len = enc.frame(105, 93, &p, &mut buf).unwrap();
+        events.push(WireEvent { t_ns, wire: Wire::Udp { port: mav_port, payload: buf[..len].to_vec() } });
+        messages += 1;
+        if f.seq % 50 == 7 {
+            events.push(WireEvent { t_ns, wire: Wire::Udp { port: mav_port, payload: vec![0x13, 0x37] } });
+            junk += 2;
+            let len = enc.frame(0, 50, &[0, 0, 0, 0, 2, 3, 0, 4, 3], &mut buf).unwrap(); // a heartbeat
+            events.push(WireEvent { t_ns, wire: Wire::Udp { port: mav_port, payload: buf[..len].to_vec() } });
+        }
+    }
+    let cfg = LiveConfig {
+        host: std::net::Ipv4Addr::LOCALHOST,
+        rate: 1.0,
+        pty_link: None,
+        port_offset: run.offset,
+    };
+    let mut child = None;
+    let mut stream_start_ns = 0u64;
+    let listen = (mav_port + run.offset).to_string();
+    loglio_firmware_sim::live::run_events(events.into_iter(), sc.start_ns(), &cfg, |_pty| {
+        child = Some(run.spawn_live(&["--imu-mavlink-udp", &listen, "--out", out.to_str().unwrap()]));
+        stream_start_ns = loglio_host::input::udp::host_time_ns();
+    })
+    .unwrap();
+    let child = child.unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    child.interrupt();
+    let (status, text, err) = child.finish();
+    assert!(status.success(), "{status}: {err:?}\n{text}");
+    assert!(!err.iter().any(|l| l.contains("panicked") || l.contains("error:")), "{err:?}");
+    // Loopback loses nothing unless this machine starves the receiving thread: a little slack.
+    let samples = number_after(&text, "decoded, ") as u64;
+    assert!(samples * 100 >= messages * 97 && samples <= messages, "{samples} of {messages}: {text}");
+    let line = text
+        .lines()
+        .find(|l| l.starts_with("MAVLink IMU (HIGHRES_IMU): "))
+        .unwrap_or_else(|| panic!("{text}"));
+    assert_eq!(number_after(line, "MAVLink IMU (HIGHRES_IMU): ") as u64, junk, "{line}");
+    let offset_s = number_after(line, "arrival - device time ");
+    let want_s = (stream_start_ns - (sc.start_ns() - boot)) as f64 * 1e-9;
+    assert!((offset_s - want_s).abs() < 0.05, "offset {offset_s} s, expected about {want_s} s: {line}");
+    let (poses, scans, tracked) = check_outputs(&out);
+    assert!(tracked >= 30, "{tracked} of {scans} scans updated by the LiDAR: {text}");
+    let gt = eval::read_trajectory(&dir.join("gt.tum"), Format::Tum, None).unwrap();
+    let est = eval::read_trajectory(&out.join("trajectory.tum"), Format::Tum, None).unwrap();
+    let opt = EvalOptions {
+        offset: -((stream_start_ns - sc.start_ns()) as f64 * 1e-9),
+        max_diff: 0.02,
+        ..EvalOptions::default()
+    };
+    let r = eval::evaluate(&gt, &est, &opt).unwrap();
+    assert!(r.matched * 10 >= poses * 9, "{} of {poses} poses matched: {text}", r.matched);
+    assert!(r.ape_trans.rmse <= 0.10, "ATE {} m: {text}", r.ape_trans.rmse);
+    println!("live mavlink IMU: ATE {:.4} m, {scans} scans\n{text}", r.ape_trans.rmse);
+    let _ = std::fs::remove_dir_all(dir);
+}

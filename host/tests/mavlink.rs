@@ -368,3 +368,78 @@ fn serial_output_reaches_pymavlink_through_a_pty() {
     assert!(msgs.iter().all(|m| (f(m, "_sys"), f(m, "_comp")) == (42.0, 197.0)), "--mavlink-sysid 42");
     eprintln!("mavlink serial: {} messages over the pty for {} scan poses", msgs.len(), tum.len());
 }
+
+/// Encodes IMU messages with pymavlink and prints each frame as a hex line: RAW_IMU (MAVLink 2,
+/// signed), SCALED_IMU (MAVLink 1), a HEARTBEAT, HIGHRES_IMU (MAVLink 2; zeros at its end, which
+/// MAVLink 2 truncates).
+const IMU_ENCODER: &str = r#"
+from pymavlink.dialects.v20 import common as m2
+from pymavlink.dialects.v10 import common as m1
+class Sink:
+    def write(self, b): pass
+signed = m2.MAVLink(Sink(), srcSystem=1, srcComponent=1)
+signed.signing.secret_key = bytes(range(32))
+signed.signing.link_id = 1
+signed.signing.sign_outgoing = True
+v2 = m2.MAVLink(Sink(), srcSystem=1, srcComponent=1)
+v1 = m1.MAVLink(Sink(), srcSystem=1, srcComponent=1)
+frames = [
+    signed.raw_imu_encode(5_000_000, 10, -20, -1000, 100, -200, 300, 1, 2, 3).pack(signed),
+    v1.scaled_imu_encode(4000, 10, -20, -1000, 100, -200, 300, 1, 2, 3).pack(v1),
+    v2.heartbeat_encode(18, 8, 0, 0, 4).pack(v2),
+    v2.highres_imu_encode(1234567890123, 0.5, -0.25, 9.75, 0.125, 0.0, -1.0, 0, 0, 0, 0, 0, 0, 0, 0).pack(v2),
+]
+for f in frames:
+    print(bytes(f).hex())
+"#;
+
+/// The MAVLink IMU input against pymavlink's frames: every kind decodes to the values sent, in
+/// SI units, through both protocol versions, a signature and MAVLink 2's truncation.
+#[test]
+fn imu_messages_from_pymavlink_decode_exactly() {
+    use loglio_host::input::mavlink_imu::{ImuMessage, MavlinkImuDecoder, RawScale};
+    let Some(python) = common::peer_python("mavlink IMU in") else { return };
+    let out = Command::new(python).arg("-c").arg(IMU_ENCODER).output().expect("run pymavlink");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let frames: Vec<Vec<u8>> = String::from_utf8(out.stdout)
+        .unwrap()
+        .lines()
+        .map(|l| (0..l.len()).step_by(2).map(|i| u8::from_str_radix(&l[i..i + 2], 16).unwrap()).collect())
+        .collect();
+    assert_eq!(frames.len(), 4);
+    assert_eq!(frames[1][0], 0xFE, "SCALED_IMU in MAVLink 1");
+    assert_eq!(frames[0][2] & 1, 1, "RAW_IMU signed");
+    // ArduPilot's RAW_IMU units (milli-g, mrad/s) as the configured scales.
+    let mut dec = MavlinkImuDecoder::new(Some(RawScale { acc: 0.009_806_65, gyro: 0.001 }));
+    let mut got = Vec::new();
+    // Each frame a datagram, then all of them in one datagram (the best kind stays HIGHRES_IMU).
+    for f in &frames {
+        dec.datagram(f, |s| got.push(s));
+    }
+    assert_eq!(got.len(), 3, "{:?}", dec.stats);
+    let g = 9.806_65f32;
+    assert_eq!(got[0].message, ImuMessage::RawImu);
+    assert_eq!(got[0].device_ns, 5_000_000_000);
+    assert_eq!(got[0].acc, [10.0 * 0.009_806_65, -20.0 * 0.009_806_65, -1000.0 * 0.009_806_65]);
+    assert_eq!(got[0].gyro, [0.1, -0.2, 0.3].map(|v: f32| (v * 1000.0).round() * 0.001));
+    assert_eq!(got[1].message, ImuMessage::ScaledImu);
+    assert_eq!(got[1].device_ns, 4_000_000_000);
+    assert_eq!(got[1].acc, [10.0, -20.0, -1000.0].map(|v: f32| v * 1e-3 * g));
+    assert_eq!(got[1].gyro, [100.0, -200.0, 300.0].map(|v: f32| v * 1e-3));
+    assert_eq!(got[2].message, ImuMessage::HighresImu);
+    assert_eq!(got[2].device_ns, 1_234_567_890_123_000);
+    assert_eq!((got[2].acc, got[2].gyro), ([0.5, -0.25, 9.75], [0.125, 0.0, -1.0]));
+    assert_eq!(dec.stats.other_messages, 1);
+    assert_eq!((dec.stats.crc, dec.stats.dropped_bytes), (0, 0));
+    let all: Vec<u8> = frames.concat();
+    let mut n = 0;
+    dec.datagram(&all, |s| {
+        assert_eq!(s.message, ImuMessage::HighresImu);
+        n += 1;
+    });
+    assert_eq!((n, dec.stats.ignored), (1, 2));
+    // Without the scales RAW_IMU is ignored, not misread.
+    let mut dec = MavlinkImuDecoder::new(None);
+    dec.datagram(&frames[0], |_| panic!("RAW_IMU without scales"));
+    assert_eq!(dec.stats.ignored, 1);
+}

@@ -3,5 +3,8 @@
 
 pub mod imu_frame;
 pub mod ouster;
+mod sync_buf;
+pub mod vectornav;
 pub mod velodyne;
 pub mod velodyne_position;
+pub mod xsens;

@@ -54,13 +54,16 @@ use loglio_core::imu::ImuSample;
 use crate::config::{Config, ImuSource, LidarTimeSource, SensorFamily};
 use crate::diag::warn;
 use crate::error::PipelineError;
+use crate::input::device_imu::{DeviceImuReader, ImuProtocol};
 use crate::input::lidar_stream::{self, Decoded, LidarStream, SensorDecoder, VELODYNE_POSITION_PORT};
-use crate::input::serial::ImuFrameReader;
+use crate::input::mavlink_imu::{MavlinkImuDecoder, RawScale};
+use crate::input::time_align::{ClockEstimate, DeviceClock};
 use crate::input::udp::{self, UdpSource};
 use crate::run::engine;
 use crate::run::runner::{OwnedScan, RunStats, Runner};
 use crate::run::setup::{PacketSetup, RunSetup};
 use crate::sink::files::{self, Finished};
+use std::sync::Mutex;
 
 /// Datagrams waiting for the decode thread (about 1.4 s of a VLP-32C, 3 s of an OS1-128).
 pub const DATAGRAM_QUEUE: usize = 2048;
@@ -86,6 +89,8 @@ pub enum LiveImu {
     Serial(PathBuf),
     /// The Ouster's IMU packets (UDP, `network.imu_port` or the metadata's).
     OusterPackets,
+    /// An autopilot's MAVLink `HIGHRES_IMU`, `SCALED_IMU` or `RAW_IMU` on this UDP port.
+    Mavlink(u16),
 }
 
 /// A live run's settings.
@@ -97,6 +102,8 @@ pub struct LiveOptions {
     pub imu: LiveImu,
     /// Serial baud rate (overrides `imu.baud`).
     pub baud: Option<u32>,
+    /// What the serial IMU speaks (overrides `imu.protocol`).
+    pub imu_protocol: Option<ImuProtocol>,
     /// Local address to listen on (overrides `network.bind`).
     pub bind: Option<IpAddr>,
     /// LiDAR data port (overrides the metadata's and `network.lidar_port`).
@@ -125,6 +132,7 @@ impl LiveOptions {
             setup,
             imu: LiveImu::Config,
             baud: None,
+            imu_protocol: None,
             bind: None,
             lidar_port: None,
             imu_port: None,
@@ -170,6 +178,8 @@ pub struct LiveCounts {
     pub imu_drops: u64,
     /// Bytes of the serial line that were not part of a good frame (noise, partial frames).
     pub imu_noise_bytes: u64,
+    /// Serial IMU messages refused (failed checks, unreadable or incomplete data).
+    pub imu_rejected: u64,
     /// Complete scans dropped because the odometry did not keep up.
     pub scan_drops: u64,
     /// Mean latency, receipt of a scan's last packet to its result, seconds.
@@ -195,6 +205,11 @@ pub struct LiveReport {
     pub wall_s: f64,
     /// Latency from a scan's last packet to its result, beside its processing time.
     pub result_latency: crate::sink::WireLatency,
+    /// The IMU input with its decoding counts in the summary: `serial IMU (xsens)`,
+    /// `MAVLink IMU (HIGHRES_IMU)`; `None` for the Ouster's IMU packets.
+    pub imu_input: Option<String>,
+    /// The device clock against this computer's (Xsens, VectorNav with their time configured).
+    pub imu_clock: Option<ClockEstimate>,
 }
 
 /// What the threads count (read by the status line).
@@ -214,6 +229,15 @@ struct Counters {
     imu_queue_drops: AtomicU64,
     imu_seq_gaps: AtomicU64,
     imu_noise_bytes: AtomicU64,
+    imu_rejected: AtomicU64,
+    /// VectorNav messages refused for their output groups.
+    imu_unsupported: AtomicU64,
+    /// The serial IMU's device clock estimate.
+    imu_clock: Mutex<Option<ClockEstimate>>,
+    /// MAVLink IMU messages not used (a worse kind than the one used, RAW_IMU without scales).
+    imu_ignored: AtomicU64,
+    /// The MAVLink IMU message used.
+    imu_kind: Mutex<Option<&'static str>>,
     scans_queued: AtomicUsize,
     scan_drops: AtomicU64,
 }
@@ -360,10 +384,13 @@ fn send_imu(tx: &SyncSender<Msg>, s: ImuSample, c: &Counters, t0: Instant) -> bo
     }
 }
 
-/// The serial IMU thread.
+/// The serial IMU thread. loglio's frames carry the LiDAR's clock and are used as they are; an
+/// Xsens's or a VectorNav's own time goes onto this computer's clock through a [`DeviceClock`]
+/// (without a device time, the arrival time is used).
 fn read_imu(
     port: ImuPort,
     path: PathBuf,
+    protocol: ImuProtocol,
     tx: SyncSender<Msg>,
     c: Arc<Counters>,
     stop: Arc<AtomicBool>,
@@ -373,15 +400,28 @@ fn read_imu(
         ImuPort::Serial(p) => Box::new(p),
         ImuPort::Fifo(f) => Box::new(f),
     };
-    let mut r = ImuFrameReader::new(src);
+    let mut r = DeviceImuReader::new(src, protocol);
+    let mut clock = DeviceClock::new();
+    let mut estimated_at = 0u64;
     while !stop.load(Relaxed) {
-        let next = r.next_frame();
-        let st = r.stats();
-        c.imu_seq_gaps.store(st.seq_gaps, Relaxed);
+        let next = r.next_sample();
+        let st = r.counts();
+        c.imu_seq_gaps.store(st.lost, Relaxed);
         c.imu_noise_bytes.store(st.dropped_bytes, Relaxed);
+        c.imu_rejected.store(st.rejected, Relaxed);
+        c.imu_unsupported.store(r.unsupported_messages(), Relaxed);
         match next {
-            Ok(Some(f)) => {
-                if !send_imu(&tx, f.sample(), &c, t0) {
+            Ok(Some(d)) => {
+                let t_ns = match (protocol.own_clock(), d.device_ns) {
+                    (false, Some(t)) => t,
+                    (true, Some(t)) => clock.map(t, d.arrival_ns),
+                    (_, None) => d.arrival_ns,
+                };
+                if protocol.own_clock() && d.device_ns.is_some() && st.samples >= estimated_at + 100 {
+                    estimated_at = st.samples;
+                    *c.imu_clock.lock().unwrap_or_else(|e| e.into_inner()) = clock.estimate();
+                }
+                if !send_imu(&tx, ImuSample { t_ns, gyro: d.gyro, acc: d.acc }, &c, t0) {
                     break;
                 }
             }
@@ -404,6 +444,63 @@ fn read_imu(
             }
         }
     }
+    if protocol.own_clock() {
+        *c.imu_clock.lock().unwrap_or_else(|e| e.into_inner()) = clock.estimate();
+    }
+}
+
+/// The MAVLink IMU thread: datagrams to samples, the autopilot's time onto this computer's
+/// clock through a [`DeviceClock`] (its `time_usec` is since boot, or since 1970 with a GPS).
+fn read_mavlink(
+    sock: UdpSource,
+    raw_scale: Option<RawScale>,
+    tx: SyncSender<Msg>,
+    c: Arc<Counters>,
+    stop: Arc<AtomicBool>,
+    t0: Instant,
+) {
+    let mut dec = MavlinkImuDecoder::new(raw_scale);
+    let mut clock = DeviceClock::new();
+    let mut buf = vec![0u8; 65_536];
+    let mut samples = Vec::new();
+    let (mut warned, mut warned_raw, mut estimated_at) = (false, false, 0u64);
+    'recv: while !stop.load(Relaxed) {
+        match sock.recv(&mut buf) {
+            Ok(Some((n, _, arrival_ns))) => {
+                dec.datagram(&buf[..n], |s| samples.push(s));
+                let st = dec.stats;
+                c.imu_noise_bytes.store(st.dropped_bytes, Relaxed);
+                c.imu_rejected.store(st.crc + st.bad_values, Relaxed);
+                c.imu_ignored.store(st.ignored, Relaxed);
+                *c.imu_kind.lock().unwrap_or_else(|e| e.into_inner()) = dec.message().map(|m| m.name());
+                if raw_scale.is_none() && st.ignored > 0 && dec.message().is_none() && !warned_raw {
+                    warn(
+                        "MAVLink RAW_IMU arrives but imu.raw_imu_acc_scale and imu.raw_imu_gyro_scale are not set: it is ignored (stream HIGHRES_IMU or SCALED_IMU, or set the scales)",
+                    );
+                    warned_raw = true;
+                }
+                for s in samples.drain(..) {
+                    let t_ns = clock.map(s.device_ns, arrival_ns);
+                    if !send_imu(&tx, ImuSample { t_ns, gyro: s.gyro, acc: s.acc }, &c, t0) {
+                        break 'recv;
+                    }
+                }
+                if st.samples >= estimated_at + 100 {
+                    estimated_at = st.samples;
+                    *c.imu_clock.lock().unwrap_or_else(|e| e.into_inner()) = clock.estimate();
+                }
+            }
+            Ok(None) => {}
+            Err(e) => {
+                if !warned {
+                    warn(format!("MAVLink IMU port: {}; still listening", io_reason(&e)));
+                    warned = true;
+                }
+                std::thread::sleep(Duration::from_millis(10));
+            }
+        }
+    }
+    *c.imu_clock.lock().unwrap_or_else(|e| e.into_inner()) = clock.estimate();
 }
 
 /// What the decode thread needs besides its queues.
@@ -566,6 +663,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
         LiveImu::Config => match cfg.imu.source {
             ImuSource::Serial => LiveImu::Serial(PathBuf::from(&cfg.imu.serial_device)),
             ImuSource::Ouster => LiveImu::OusterPackets,
+            ImuSource::Mavlink => LiveImu::Mavlink(cfg.network.mavlink_imu_port),
             ImuSource::Csv => {
                 return Err(PipelineError(
                     "imu.source = \"csv\" is for replays; live needs the IMU on a serial port (--imu-serial PATH) or an Ouster's IMU packets (--ouster-imu)"
@@ -585,6 +683,10 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
     if let Some(b) = opt.baud {
         cfg.imu.baud = b;
     }
+    if let Some(p) = opt.imu_protocol {
+        cfg.imu.protocol = p;
+    }
+    let imu_protocol = cfg.imu.protocol;
     if !(opt.lidar_timeout_s > 0.0 && opt.lidar_timeout_s.is_finite()) {
         return Err(PipelineError(format!(
             "--lidar-timeout must be a positive number of seconds, not {}",
@@ -641,15 +743,45 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
         LiveImu::Serial(p) => Some((open_imu(p, cfg.imu.baud)?, p.clone())),
         _ => None,
     };
-    opt.setup.warn_missing_extrinsic(&cfg);
-    let imu_desc = match &serial {
-        Some((ImuPort::Serial(_), p)) => format!("IMU from {} at {} baud", p.display(), cfg.imu.baud),
-        Some((ImuPort::Fifo(_), p)) => format!("IMU from the FIFO {}", p.display()),
-        None => format!("IMU from the Ouster's packets on UDP {imu_port}"),
+    let mavlink = match imu {
+        LiveImu::Mavlink(port) => {
+            Some((bind_udp(SocketAddr::new(bind, port), "MAVLink IMU messages")?, port))
+        }
+        _ => None,
     };
-    let imu_source_name = match &serial {
-        Some((_, p)) => p.display().to_string(),
-        None => format!("the Ouster IMU packets (UDP {bind}:{imu_port})"),
+    let raw_scale = match (cfg.imu.raw_imu_acc_scale, cfg.imu.raw_imu_gyro_scale) {
+        (Some(acc), Some(gyro)) => Some(RawScale { acc: acc as f32, gyro: gyro as f32 }),
+        _ => None,
+    };
+    opt.setup.warn_missing_extrinsic(&cfg);
+    let own_clock = if mavlink.is_some() {
+        Some("MAVLink".to_string())
+    } else {
+        (serial.is_some() && imu_protocol.own_clock()).then(|| imu_protocol.to_string())
+    };
+    if let Some(what) = own_clock
+        && cfg.time.lidar_time_source == LidarTimeSource::Packet
+    {
+        warn(format!(
+            "the {what} IMU's time is put onto this computer's clock, the LiDAR's packet times are the sensor's own: set time.lidar_time_source = \"capture\" unless the LiDAR is synchronised to this computer (PTP)"
+        ));
+    }
+    let imu_desc = match &serial {
+        Some((ImuPort::Serial(_), p)) => {
+            format!("{imu_protocol} IMU from {} at {} baud", p.display(), cfg.imu.baud)
+        }
+        Some((ImuPort::Fifo(_), p)) => format!("{imu_protocol} IMU from the FIFO {}", p.display()),
+        None => match &mavlink {
+            Some((_, port)) => {
+                format!("IMU from MAVLink (HIGHRES_IMU, SCALED_IMU or RAW_IMU) on UDP {bind}:{port}")
+            }
+            None => format!("IMU from the Ouster's packets on UDP {imu_port}"),
+        },
+    };
+    let imu_source_name = match (&serial, &mavlink) {
+        (Some((_, p)), _) => p.display().to_string(),
+        (None, Some((_, port))) => format!("the MAVLink IMU messages (UDP {bind}:{port})"),
+        (None, None) => format!("the Ouster IMU packets (UDP {bind}:{imu_port})"),
     };
 
     let outputs = files::Outputs::new(opt.setup.outputs()?)?;
@@ -657,6 +789,11 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
     let _signals = if opt.handle_signals { Some(crate::run::Signals::register(&stop_signal)?) } else { None };
     let scan_period_s = 1.0 / cfg.sensor.scan_rate_hz;
     let preset = cfg.preset;
+    let imu_label = match &imu {
+        LiveImu::OusterPackets => None,
+        LiveImu::Mavlink(_) => Some("MAVLink IMU".to_string()),
+        _ => Some(format!("serial IMU ({imu_protocol})")),
+    };
     let decode_setup = DecodeSetup { cfg: cfg.clone(), dec, lidar_port, imu_port, hold_for_gps };
 
     let res = engine::with_engine(
@@ -695,11 +832,22 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                     Some(
                         std::thread::Builder::new()
                             .name("loglio-imu".into())
-                            .spawn(move || read_imu(port, path, tx, c, stop, t0))
+                            .spawn(move || read_imu(port, path, imu_protocol, tx, c, stop, t0))
                             .map_err(spawn_err)?,
                     )
                 }
-                None => None,
+                None => match mavlink {
+                    Some((sock, _)) => {
+                        let (tx, c, stop) = (msg_tx.clone(), Arc::clone(&counters), Arc::clone(&stop_rx));
+                        Some(
+                            std::thread::Builder::new()
+                                .name("loglio-mavlink-imu".into())
+                                .spawn(move || read_mavlink(sock, raw_scale, tx, c, stop, t0))
+                                .map_err(spawn_err)?,
+                        )
+                    }
+                    None => None,
+                },
             };
             drop(msg_tx);
             eprintln!(
@@ -787,9 +935,23 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                     if last_lidar != 0 {
                         let noise = c.imu_noise_bytes.load(Relaxed);
                         imu_stall.check(now, c.last_imu_ns.load(Relaxed), imu_timeout_ns, |s| {
-                        if c.imu_samples.load(Relaxed) == 0 && noise > 0 {
+                        let unsupported = c.imu_unsupported.load(Relaxed);
+                        if c.imu_samples.load(Relaxed) == 0 && unsupported > 0 {
                             format!(
-                                "{noise} bytes from {imu_source_name} in {s:.0} s but no IMU frame decodes: wrong --baud, or not loglio's IMU board?"
+                                "{unsupported} VectorNav messages from {imu_source_name} in {s:.0} s select GPS, Attitude or INS outputs, which loglio cannot measure: configure a binary output of the Common (or Time and IMU) group only"
+                            )
+                        } else if c.imu_samples.load(Relaxed) == 0 && noise > 0 && matches!(imu, LiveImu::Mavlink(_)) {
+                            format!(
+                                "{noise} bytes from {imu_source_name} in {s:.0} s but no MAVLink IMU message decodes: does the sender speak MAVLink and stream HIGHRES_IMU, SCALED_IMU or RAW_IMU?"
+                            )
+                        } else if c.imu_samples.load(Relaxed) == 0 && noise > 0 {
+                            format!(
+                                "{noise} bytes from {imu_source_name} in {s:.0} s but no IMU {} decodes: wrong --baud, or {}?",
+                                if imu_protocol.own_clock() { "message" } else { "frame" },
+                                match imu_protocol {
+                                    ImuProtocol::Loglio => "not loglio's IMU board (--imu-protocol)".to_string(),
+                                    p => format!("not {p} binary output with acceleration and angular rate (--imu-protocol)"),
+                                }
                             )
                         } else {
                             format!(
@@ -846,9 +1008,22 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                     counts.lidar_packets,
                     runner.stats.scans,
                     if imu == LiveImu::OusterPackets {
-                        "'s IMU port"
+                        "'s IMU port".to_string()
+                    } else if matches!(imu, LiveImu::Mavlink(_)) {
+                        format!(
+                            ": the autopilot must stream HIGHRES_IMU, SCALED_IMU or RAW_IMU to this port{}",
+                            if c.imu_ignored.load(Relaxed) > 0 {
+                                " (RAW_IMU arrived: it needs imu.raw_imu_acc_scale and imu.raw_imu_gyro_scale)"
+                            } else {
+                                ""
+                            }
+                        )
+                    } else if imu_protocol == ImuProtocol::Loglio {
+                        ", its --baud and the IMU board".to_string()
                     } else {
-                        ", its --baud and the IMU board"
+                        format!(
+                            ", its --baud and that it sends {imu_protocol} binary output with acceleration and angular rate"
+                        )
                     }
                 )));
             }
@@ -861,10 +1036,15 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
             }
             let (stats, finished) = runner.finish()?;
             let result_latency = std::mem::take(&mut times.borrow_mut().result);
-            Ok((stats, finished, counts, stopped_by, result_latency))
+            let clock = *c.imu_clock.lock().unwrap_or_else(|e| e.into_inner());
+            let imu_label = imu_label.map(|l| match *c.imu_kind.lock().unwrap_or_else(|e| e.into_inner()) {
+                Some(kind) => format!("{l} ({kind})"),
+                None => l,
+            });
+            Ok((stats, finished, counts, stopped_by, result_latency, clock, imu_label))
         },
     )??;
-    let (stats, finished, counts, stopped_by, result_latency) = res;
+    let (stats, finished, counts, stopped_by, result_latency, imu_clock, imu_input) = res;
     Ok(LiveReport {
         stats,
         finished,
@@ -873,6 +1053,8 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
         scan_period_s,
         wall_s: wall.elapsed().as_secs_f64(),
         result_latency,
+        imu_input,
+        imu_clock,
     })
 }
 
@@ -887,6 +1069,7 @@ fn snapshot(c: &Counters, stats: &RunStats, t: &ScanTimes) -> LiveCounts {
         imu_samples: c.imu_samples.load(Relaxed),
         imu_drops: c.imu_seq_gaps.load(Relaxed) + c.imu_queue_drops.load(Relaxed) + stats.imu_dropped,
         imu_noise_bytes: c.imu_noise_bytes.load(Relaxed),
+        imu_rejected: c.imu_rejected.load(Relaxed),
         scan_drops: c.scan_drops.load(Relaxed),
         latency_mean_s: if t.scans > 0 { t.latency_sum_ns as f64 * 1e-9 / t.scans as f64 } else { 0.0 },
         latency_max_s: t.latency_max_ns as f64 * 1e-9,
@@ -952,6 +1135,16 @@ pub fn summary(r: &LiveReport) -> String {
         s.push_str(&format!("; {} packets before the first GPS time skipped", c.gps_wait_packets));
     }
     s.push('\n');
+    if let Some(p) = &r.imu_input {
+        s.push_str(&format!(
+            "{p}: {} bytes not IMU data, {} messages refused",
+            c.imu_noise_bytes, c.imu_rejected
+        ));
+        if let Some(e) = &r.imu_clock {
+            s.push_str(&format!("; device clock: {e}"));
+        }
+        s.push('\n');
+    }
     s.push_str(&format!(
         "latency (last packet of a scan to its result): mean {:.0} ms, max {:.0} ms\n",
         c.latency_mean_s * 1e3,

@@ -111,6 +111,12 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
         (Some(i), _) => i.clone(),
         (None, ImuSource::Ouster) => ImuInput::OusterPackets,
         (None, ImuSource::Csv) => ImuInput::Csv(cfg.imu.csv_path.clone().unwrap_or_default()),
+        (None, ImuSource::Mavlink) => {
+            return Err(PipelineError(
+                "imu.source = \"mavlink\" is for live runs; the replay needs --imu FILE (an IMU CSV or a serial capture) or the Ouster's IMU packets (--ouster-imu)"
+                    .into(),
+            ));
+        }
         (None, ImuSource::Serial) => {
             return Err(PipelineError(
                 "no IMU for the replay: pass --imu FILE (an IMU CSV or a serial capture), or use an Ouster's IMU packets (--ouster-imu)"

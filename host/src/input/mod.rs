@@ -2,8 +2,10 @@
 //! bags), decodes it and hands the run loop time-ordered IMU samples and whole scans.
 
 pub mod bag;
+pub mod device_imu;
 pub mod imu_csv;
 pub mod lidar_stream;
+pub mod mavlink_imu;
 pub mod ouster_meta;
 pub mod pace;
 pub mod pcap;

@@ -119,6 +119,118 @@ pub fn packet_time_ns(cfg: &TimeAlignConfig, sensor_ns: u64, capture_ns: u64) ->
     base.saturating_add_signed(cfg.offset_ns)
 }
 
+/// Puts the sample times of an IMU that stamps on its own clock (Xsens SampleTimeFine,
+/// VectorNav TimeStartup: time since its power-on) onto this computer's clock, the clock of the
+/// arrival times and of the LiDAR's capture times.
+///
+/// The arrival of a sample is its device time plus a fixed offset plus a transport delay that
+/// is never negative and often large (USB polling, the serial driver, a busy thread). The
+/// minimum of `arrival - device` over a window is therefore the offset plus the smallest
+/// delay, and follows the offset with the least latency: one late sample cannot move it, and
+/// the device's sample-to-sample spacing (its crystal) is kept. The minimum is taken over the
+/// current and the previous window of [`DeviceClock::WINDOW_NS`] device time, so a drift
+/// between the clocks is followed a window at a time; the drift itself is the slope of the
+/// window minima over the run. A device time that steps back (the device restarted) starts the
+/// estimate afresh. Mapped times only increase.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct DeviceClock {
+    /// The window being filled: its first device time and its minimum of arrival - device.
+    cur: Option<(u64, i64)>,
+    /// The last complete window's minimum.
+    prev_min: Option<i64>,
+    /// The first and the last complete window (first device time, minimum).
+    first_window: Option<(u64, i64)>,
+    last_window: Option<(u64, i64)>,
+    last_device: Option<u64>,
+    last_out: u64,
+    /// Times the device time stepped back.
+    pub resets: u64,
+}
+
+/// What a [`DeviceClock`] estimated.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ClockEstimate {
+    /// Arrival minus device time (the smallest over the last windows), ns.
+    pub offset_ns: i64,
+    /// Drift of arrival minus device time, parts per million of device time (positive: the
+    /// device's clock runs slow against this computer's); `None` before two complete windows.
+    pub drift_ppm: Option<f64>,
+    /// Device time the drift was measured over, s.
+    pub span_s: f64,
+    /// Times the device time stepped back.
+    pub resets: u64,
+}
+
+impl DeviceClock {
+    /// The window of device time over which the minimum is taken.
+    pub const WINDOW_NS: u64 = 1_000_000_000;
+
+    /// A clock with no sample yet.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// This computer's time (ns) of a sample stamped `device_ns` that arrived at `arrival_ns`.
+    pub fn map(&mut self, device_ns: u64, arrival_ns: u64) -> u64 {
+        if self.last_device.is_some_and(|d| device_ns < d) {
+            let resets = self.resets + 1;
+            *self = Self { resets, ..Self::default() };
+        }
+        self.last_device = Some(device_ns);
+        let d = (arrival_ns as i128 - device_ns as i128).clamp(i64::MIN as i128, i64::MAX as i128) as i64;
+        self.cur = Some(match self.cur {
+            Some((start, m)) if device_ns - start < Self::WINDOW_NS => (start, m.min(d)),
+            Some((start, m)) => {
+                self.prev_min = Some(m);
+                self.first_window.get_or_insert((start, m));
+                self.last_window = Some((start, m));
+                (device_ns, d)
+            }
+            None => (device_ns, d),
+        });
+        let t = (device_ns as i128 + self.offset_ns().unwrap_or(d) as i128).clamp(0, u64::MAX as i128) as u64;
+        let t = if self.last_out == 0 { t } else { t.max(self.last_out + 1) };
+        self.last_out = t;
+        t
+    }
+
+    /// The offset in use: the smallest arrival - device of this and the previous window.
+    pub fn offset_ns(&self) -> Option<i64> {
+        let cur = self.cur.map(|(_, m)| m);
+        match (self.prev_min, cur) {
+            (Some(p), Some(c)) => Some(p.min(c)),
+            (p, c) => p.or(c),
+        }
+    }
+
+    /// The estimate so far (`None` before the first sample).
+    pub fn estimate(&self) -> Option<ClockEstimate> {
+        let offset_ns = self.offset_ns()?;
+        let (drift_ppm, span_s) = match (self.first_window, self.last_window) {
+            (Some((t0, m0)), Some((t1, m1))) if t1 > t0 => {
+                let span = (t1 - t0) as f64;
+                (Some((m1 - m0) as f64 / span * 1e6), span * 1e-9)
+            }
+            _ => (None, 0.0),
+        };
+        Some(ClockEstimate { offset_ns, drift_ppm, span_s, resets: self.resets })
+    }
+}
+
+impl std::fmt::Display for ClockEstimate {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "arrival - device time {:.6} s", self.offset_ns as f64 * 1e-9)?;
+        match self.drift_ppm {
+            Some(p) => write!(f, ", drift {p:+.1} ppm over {:.0} s", self.span_s)?,
+            None => f.write_str(", drift not measured (under 2 s)")?,
+        }
+        if self.resets > 0 {
+            write!(f, ", device time restarted {} times", self.resets)?;
+        }
+        Ok(())
+    }
+}
+
 /// Two streams that do not overlap in time.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct NoOverlap {
@@ -220,6 +332,39 @@ mod tests {
         assert_eq!(packet_time_ns(&cfg, 100, 900), 895);
         assert_eq!("capture".parse::<LidarTimeSource>(), Ok(LidarTimeSource::Capture));
         assert!("gps".parse::<LidarTimeSource>().is_err());
+    }
+
+    #[test]
+    fn device_clock_follows_the_smallest_delay_and_measures_drift() {
+        // A device at 400 Hz whose clock runs 50 ppm slow; arrivals 3 ms (one sample in 37)
+        // to 10 ms after the sample, one in 7 a further 40 ms late (a busy host).
+        let offset = 1_700_000_000_000_000_000i64;
+        let mut c = DeviceClock::new();
+        let mut max_err = 0i64;
+        let mut last = 0u64;
+        for k in 0..4000u64 {
+            let dev = 5_000_000_000 + k * 2_500_000;
+            let true_host = (dev as f64 * (1.0 + 50e-6)) as i64 + offset;
+            let jitter = if k % 37 == 0 { 0 } else { 1_000_000 + (k * 7_919 % 6_000_000) as i64 };
+            let delay = 3_000_000 + jitter + if k % 7 == 3 { 40_000_000 } else { 0 };
+            let t = c.map(dev, (true_host + delay) as u64);
+            assert!(t > last, "mapped times increase");
+            last = t;
+            if k > 400 {
+                // After the first window: within the smallest delay (3 ms) plus a window of drift.
+                max_err = max_err.max((t as i64 - true_host - 3_000_000).abs());
+            }
+        }
+        assert!(max_err < 200_000, "{max_err} ns");
+        let e = c.estimate().unwrap();
+        let drift = e.drift_ppm.unwrap();
+        assert!((drift - 50.0).abs() < 3.0, "{drift} ppm");
+        assert!(e.to_string().starts_with("arrival - device time "), "{e}");
+        // The device restarts: its time steps back and the estimate starts afresh.
+        let t = c.map(1_000_000, 1_700_000_100_000_000_000);
+        assert_eq!(t, 1_700_000_100_000_000_000);
+        assert_eq!(c.estimate().unwrap().resets, 1);
+        assert_eq!(c.estimate().unwrap().drift_ppm, None);
     }
 
     #[test]
