@@ -607,11 +607,50 @@ pub struct EvalReport {
     pub gt_positions: Vec<[f64; 3]>,
     /// Matched, aligned estimate positions.
     pub est_positions: Vec<[f64; 3]>,
+    /// The positions lie nearly on a line (their second spread under
+    /// [`LINE_SPREAD_RATIO`] of the first): the rotation about it was taken from the
+    /// orientations, as positions alone leave it to noise.
+    pub rotation_from_orientations: bool,
+}
+
+/// Below this ratio of the ground truth's second to first positional variance, the positions
+/// are taken as a line (a straight drive): 1 cm of wander across 10 m of travel is 1e-6.
+pub const LINE_SPREAD_RATIO: f64 = 1e-4;
+
+/// The rotation that best takes the orientations `est` onto `gt` (chordal mean of
+/// `R_gt R_estᵀ`, projected onto SO(3)).
+fn orientation_alignment(gt: &[Pose], est: &[Pose]) -> Option<Matrix3<f64>> {
+    let mut m = Matrix3::zeros();
+    for (g, e) in gt.iter().zip(est) {
+        m += g.r * e.r.transpose();
+    }
+    let svd = m.svd(true, true);
+    let (u, v_t) = (svd.u?, svd.v_t?);
+    let mut d = Matrix3::identity();
+    if (u * v_t).determinant() < 0.0 {
+        d[(2, 2)] = -1.0;
+    }
+    let r = u * d * v_t;
+    r.iter().all(|v| v.is_finite()).then_some(r)
+}
+
+/// The second to first positional variance of `p` (1: a blob, 0: a line or a point).
+fn spread_ratio(p: &[Vector3<f64>]) -> f64 {
+    let n = p.len().max(1) as f64;
+    let m = p.iter().fold(Vector3::zeros(), |a, b| a + b) / n;
+    let mut c = Matrix3::zeros();
+    for q in p {
+        c += (q - m) * (q - m).transpose();
+    }
+    let mut e: Vec<f64> = c.symmetric_eigenvalues().iter().copied().collect();
+    e.sort_by(|a, b| b.total_cmp(a));
+    if e[0] > 0.0 { e[1] / e[0] } else { 0.0 }
 }
 
 /// Evaluates `est` against `gt`.
 pub fn evaluate(gt: &Trajectory, est: &Trajectory, opt: &EvalOptions) -> Result<EvalReport, EvalError> {
     let (g, e) = associate(gt, est, opt.max_diff, opt.offset)?;
+    let mut rotation_from_orientations = false;
     let alignment = match opt.align {
         Alignment::None => Similarity::identity(),
         Alignment::Se3 | Alignment::Sim3 => {
@@ -620,7 +659,30 @@ pub fn evaluate(gt: &Trajectory, est: &Trajectory, opt: &EvalOptions) -> Result<
             }
             let x: Vec<_> = e.poses.iter().map(|p| p.t).collect();
             let y: Vec<_> = g.poses.iter().map(|p| p.t).collect();
-            umeyama(&x, &y, opt.align == Alignment::Sim3)?
+            // Along a straight line the positions leave the rotation about it to their noise
+            // (an 11.6 deg "rotation error" on a straight 4 s drive): take the rotation from the
+            // orientations there, the translation (and scale) from the positions.
+            let r_or =
+                (spread_ratio(&y) < LINE_SPREAD_RATIO).then(|| orientation_alignment(&g.poses, &e.poses));
+            match r_or.flatten() {
+                Some(r) => {
+                    rotation_from_orientations = true;
+                    let n = x.len() as f64;
+                    let (mx, my) = (x.iter().sum::<Vector3<f64>>() / n, y.iter().sum::<Vector3<f64>>() / n);
+                    let s = if opt.align == Alignment::Sim3 {
+                        let (mut num, mut den) = (0.0, 0.0);
+                        for (a, b) in x.iter().zip(&y) {
+                            num += (b - my).dot(&(r * (a - mx)));
+                            den += (a - mx).norm_squared();
+                        }
+                        if den > 0.0 && num > 0.0 { num / den } else { 1.0 }
+                    } else {
+                        1.0
+                    };
+                    Similarity { r, t: my - r * mx * s, s }
+                }
+                None => umeyama(&x, &y, opt.align == Alignment::Sim3)?,
+            }
         }
     };
     let est_al: Vec<Pose> = e.poses.iter().map(|p| alignment.apply(p)).collect();
@@ -672,6 +734,7 @@ pub fn evaluate(gt: &Trajectory, est: &Trajectory, opt: &EvalOptions) -> Result<
         has_stamps: g.stamps.is_some(),
         gt_positions: g.poses.iter().map(|p| [p.t.x, p.t.y, p.t.z]).collect(),
         est_positions: est_al.iter().map(|p| [p.t.x, p.t.y, p.t.z]).collect(),
+        rotation_from_orientations,
     })
 }
 
@@ -681,7 +744,7 @@ impl EvalReport {
         let o = &self.options;
         let a = &self.alignment;
         format!(
-            "{{\"gt_poses\": {}, \"est_poses\": {}, \"matched\": {}, \"alignment\": {{\"mode\": \"{}\", \"scale\": {:e}, \"translation\": [{:e}, {:e}, {:e}]}}, \
+            "{{\"gt_poses\": {}, \"est_poses\": {}, \"matched\": {}, \"alignment\": {{\"mode\": \"{}\", \"scale\": {:e}, \"translation\": [{:e}, {:e}, {:e}], \"rotation_from\": \"{}\"}}, \
              \"rpe_delta\": {}, \"rpe_unit\": \"{}\", \"all_pairs\": {}, \"pairs_from_gt\": {}, \
              \"ape_trans_m\": {}, \"ape_rot_deg\": {}, \"rpe_trans_m\": {}, \"rpe_rot_deg\": {}}}",
             self.gt_poses,
@@ -696,6 +759,7 @@ impl EvalReport {
             a.t.x,
             a.t.y,
             a.t.z,
+            if self.rotation_from_orientations { "orientations" } else { "positions" },
             o.rpe_delta,
             if o.rpe_unit == DeltaUnit::Frames { "frames" } else { "m" },
             o.all_pairs,
@@ -721,6 +785,12 @@ impl fmt::Display for EvalReport {
             "matched {} of {} estimated / {} ground-truth poses; alignment: {align}",
             self.matched, self.est_poses, self.gt_poses
         )?;
+        if self.rotation_from_orientations {
+            writeln!(
+                f,
+                "note: the positions lie on a line, which leaves the rotation about it open: the alignment's rotation is taken from the orientations"
+            )?;
+        }
         let unit = if o.rpe_unit == DeltaUnit::Frames { "frames" } else { "m" };
         let pairs = if o.all_pairs { ", all pairs" } else { "" };
         writeln!(
@@ -988,5 +1058,61 @@ mod tests {
                 "{err}"
             );
         }
+    }
+
+    /// A straight 4 s drive: the positions leave the rotation about the line to their noise
+    /// (millimetres across 10 m), so Umeyama's rotation about it is noise, and with it the APE
+    /// rotation. The orientations fix it.
+    #[test]
+    fn a_straight_drive_takes_its_rotation_from_the_orientations() {
+        let n = 40;
+        let wobble = |i: usize, k: u64| {
+            // splitmix64 of (i, k)
+            let mut h = (i as u64 * 16 + k).wrapping_add(0x9e37_79b9_7f4a_7c15);
+            h = (h ^ (h >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            h = (h ^ (h >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            h ^= h >> 31;
+            (h % 2001) as f64 / 1000.0 - 1.0
+        };
+        let stamps: Vec<f64> = (0..n).map(|i| i as f64 * 0.1).collect();
+        let gt = Trajectory {
+            stamps: Some(stamps.clone()),
+            poses: (0..n)
+                .map(|i| Pose {
+                    r: rz(0.001 * wobble(i, 1)),
+                    t: Vector3::new(0.25 * i as f64, 0.0005 * wobble(i, 5), 0.0005 * wobble(i, 6)),
+                })
+                .collect(),
+        };
+        // The estimate: the same orientations; its positions wander across the line on their
+        // own (up to 2 mm), not with the ground truth's wander.
+        let est = Trajectory {
+            stamps: Some(stamps),
+            poses: gt
+                .poses
+                .iter()
+                .enumerate()
+                .map(|(i, p)| Pose {
+                    r: p.r,
+                    t: Vector3::new(p.t.x, 0.0, 0.0)
+                        + 0.002 * Vector3::new(wobble(i, 2), wobble(i, 3), wobble(i, 4)),
+                })
+                .collect(),
+        };
+        let x: Vec<_> = est.poses.iter().map(|p| p.t).collect();
+        let y: Vec<_> = gt.poses.iter().map(|p| p.t).collect();
+        let by_positions = umeyama(&x, &y, false).unwrap();
+        let roll = rotation_angle(&by_positions.r).to_degrees();
+        assert!(roll > 5.0, "positions alone: noise decides the roll ({roll:.3} deg)");
+        let r = evaluate(&gt, &est, &EvalOptions::default()).unwrap();
+        assert!(r.rotation_from_orientations);
+        assert!(r.ape_rot_deg.max < 1e-9, "{:?}", r.ape_rot_deg);
+        assert!(r.ape_trans.max < 0.004, "{:?}", r.ape_trans);
+        assert!(r.to_json().contains("\"rotation_from\": \"orientations\""));
+        assert!(r.to_string().contains("the positions lie on a line"));
+        // A helix is no line: the positions decide, as before.
+        let h = helix(50);
+        let rh = evaluate(&h, &h, &EvalOptions::default()).unwrap();
+        assert!(!rh.rotation_from_orientations);
     }
 }
