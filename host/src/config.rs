@@ -194,6 +194,9 @@ pub enum ImuSource {
     Ouster,
     /// A CSV file `t,gx,gy,gz,ax,ay,az` (replays only).
     Csv,
+    /// No IMU: LiDAR-only odometry with a constant-velocity model (the core's
+    /// `MotionModel::LIDAR_ONLY`; the world is the first scan's frame, not gravity-aligned).
+    None,
 }
 
 /// Which clock stamps the LiDAR points.
@@ -491,9 +494,9 @@ static SPECS: &[Spec] = &[
     ),
     spec(
         "imu.source",
-        Kind::Enum(&["serial", "ouster", "csv"]),
+        Kind::Enum(&["serial", "ouster", "csv", "none"]),
         "",
-        "Where IMU samples come from: serial = loglio IMU frames on imu.serial_device; ouster = the Ouster's own IMU packets; csv = imu.csv_path (replays).",
+        "Where IMU samples come from: serial = loglio IMU frames on imu.serial_device; ouster = the Ouster's own IMU packets; csv = imu.csv_path (replays); none = no IMU: LiDAR-only odometry with a constant-velocity model (sim, replay, bag; the world is the first scan's frame).",
     ),
     spec(
         "imu.serial_device",

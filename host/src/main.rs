@@ -91,6 +91,10 @@ struct SimArgs {
     /// without it.
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
+    /// Leave the simulated IMU out: LiDAR-only odometry with a constant-velocity model (the
+    /// world is the first scan's frame).
+    #[arg(long)]
+    no_imu: bool,
     /// Pace the run by the simulated time (real time), e.g. to watch it live in Foxglove.
     #[arg(long)]
     realtime: bool,
@@ -607,6 +611,7 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
         progress: !a.realtime,
         realtime: a.realtime.then_some(a.rate),
         sinks: a.outputs,
+        no_imu: a.no_imu,
     })
 }
 
@@ -634,6 +639,7 @@ fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
         progress: !a.realtime,
         realtime: a.realtime.then_some(a.rate),
         sinks: a.outputs,
+        no_imu: false,
     })
 }
 

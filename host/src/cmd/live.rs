@@ -572,6 +572,12 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                         .into(),
                 ));
             }
+            ImuSource::None => {
+                return Err(PipelineError(
+                    "imu.source = \"none\" (LiDAR-only) is for sim, replay and bag; live needs the IMU on a serial port (--imu-serial PATH) or an Ouster's IMU packets (--ouster-imu)"
+                        .into(),
+                ));
+            }
         },
         other => other.clone(),
     };
