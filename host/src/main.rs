@@ -188,6 +188,10 @@ struct LiveArgs {
     /// Take the IMU from the Ouster's IMU packets (UDP --imu-port).
     #[arg(long)]
     ouster_imu: bool,
+    /// No IMU: LiDAR-only odometry with a constant-velocity model (imu.source = "none"; the
+    /// world is the first scan's frame).
+    #[arg(long, conflicts_with_all = ["imu_serial", "ouster_imu"])]
+    no_imu: bool,
     /// Local IP address to listen on (overrides network.bind, default 0.0.0.0).
     #[arg(long, value_name = "IP")]
     bind: Option<std::net::IpAddr>,
@@ -508,10 +512,11 @@ fn live_cmd(a: LiveArgs) -> anyhow::Result<()> {
         bail!("--imu-timeout must be a positive number of seconds, not {}", a.imu_timeout);
     }
     let mut opt = LiveOptions::new(a.run.setup());
-    opt.imu = match (a.imu_serial, a.ouster_imu) {
-        (Some(p), _) => LiveImu::Serial(p),
-        (None, true) => LiveImu::OusterPackets,
-        (None, false) => LiveImu::Config,
+    opt.imu = match (a.imu_serial, a.ouster_imu, a.no_imu) {
+        (_, _, true) => LiveImu::None,
+        (Some(p), _, _) => LiveImu::Serial(p),
+        (None, true, _) => LiveImu::OusterPackets,
+        (None, false, _) => LiveImu::Config,
     };
     opt.baud = a.baud;
     opt.bind = a.bind;

@@ -86,6 +86,8 @@ pub enum LiveImu {
     Serial(PathBuf),
     /// The Ouster's IMU packets (UDP, `network.imu_port` or the metadata's).
     OusterPackets,
+    /// No IMU: LiDAR-only, a constant-velocity model (`imu.source = "none"`, `--no-imu`).
+    None,
 }
 
 /// A live run's settings.
@@ -572,15 +574,14 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                         .into(),
                 ));
             }
-            ImuSource::None => {
-                return Err(PipelineError(
-                    "imu.source = \"none\" (LiDAR-only) is for sim, replay and bag; live needs the IMU on a serial port (--imu-serial PATH) or an Ouster's IMU packets (--ouster-imu)"
-                        .into(),
-                ));
-            }
+            ImuSource::None => LiveImu::None,
         },
         other => other.clone(),
     };
+    let lidar_only = imu == LiveImu::None;
+    if lidar_only {
+        cfg.imu.source = ImuSource::None;
+    }
     let family = cfg.preset.family();
     if imu == LiveImu::OusterPackets && family != SensorFamily::Ouster {
         return Err(PipelineError(format!(
@@ -647,10 +648,13 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
         LiveImu::Serial(p) => Some((open_imu(p, cfg.imu.baud)?, p.clone())),
         _ => None,
     };
-    opt.setup.warn_missing_extrinsic(&cfg);
+    if !lidar_only {
+        opt.setup.warn_missing_extrinsic(&cfg);
+    }
     let imu_desc = match &serial {
         Some((ImuPort::Serial(_), p)) => format!("IMU from {} at {} baud", p.display(), cfg.imu.baud),
         Some((ImuPort::Fifo(_), p)) => format!("IMU from the FIFO {}", p.display()),
+        None if lidar_only => crate::run::runner::LIDAR_ONLY_MODEL.to_string(),
         None => format!("IMU from the Ouster's packets on UDP {imu_port}"),
     };
     let imu_source_name = match &serial {
@@ -714,6 +718,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
 
             let times = Rc::new(RefCell::new(ScanTimes::default()));
             let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
+            runner.set_lidar_only(lidar_only);
             runner.sinks = opt.setup.sinks.build();
             runner.set_origin(t0);
             runner.sinks.set_origin(t0);
@@ -790,7 +795,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                     lidar_stall.check(now, last_lidar, lidar_timeout_ns, |s| {
                         format!("no LiDAR packets on UDP {lidar_addr} for {s:.0} s; still listening")
                     });
-                    if last_lidar != 0 {
+                    if last_lidar != 0 && !lidar_only {
                         let noise = c.imu_noise_bytes.load(Relaxed);
                         imu_stall.check(now, c.last_imu_ns.load(Relaxed), imu_timeout_ns, |s| {
                         if c.imu_samples.load(Relaxed) == 0 && noise > 0 {
@@ -822,6 +827,9 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                         // "live: <status and pose>; <rates, latency, drops>": the status first.
                         let rest = line.strip_prefix("live: ").unwrap_or(&line).to_string();
                         line = format!("live: {}; {rest}", pose_phrase(runner.latest.as_ref()));
+                        if lidar_only {
+                            line = line.replacen("live: ", "live: LiDAR-only (no IMU), ", 1);
+                        }
                         if !runner.sinks.is_empty() {
                             line.push_str(&format!("; outputs: {}", runner.sinks.status_phrase()));
                         }
@@ -846,7 +854,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                     counts.datagrams
                 )));
             }
-            if runner.stats.imu_in == 0 {
+            if runner.stats.imu_in == 0 && !lidar_only {
                 return Err(PipelineError(format!(
                     "no IMU data arrived from {imu_source_name} during the run ({} LiDAR packets, {} scans): check the device{}",
                     counts.lidar_packets,
