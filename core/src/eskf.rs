@@ -364,6 +364,9 @@ impl PropagationFlags {
     pub const DROPPED: u8 = 8;
     /// An IMU gap was bridged at constant velocity (see `EskfConfig::bridge_after_s`).
     pub const BRIDGE: u8 = 16;
+    /// No IMU: the scan was predicted by the LiDAR-only constant-velocity model
+    /// ([`crate::motion_model`]).
+    pub const LIDAR_ONLY: u8 = 32;
     /// The platform stood still: zero-velocity and zero-rate updates ran after the scan's
     /// update ([`crate::standstill`]).
     pub const STILL: u8 = 64;
@@ -931,6 +934,15 @@ impl Eskf {
     /// holding a sample of a walking or turning platform for seconds runs away, the mean
     /// motion does not, and the scans correct what it misses.
     fn bridge(&mut self, dt: f64) {
+        self.constant_velocity_step(dt, self.cfg.bridge_acc_std, self.cfg.bridge_gyro_std);
+        self.counters.gaps = self.counters.gaps.saturating_add(1);
+        self.flags.0 |= PropagationFlags::GAP | PropagationFlags::BRIDGE;
+    }
+
+    /// One step at the held motion ([`Self::set_bridge_motion`]) with white acceleration
+    /// `acc_std` (m/s^2/√Hz) and rate `gyro_std` (rad/s/√Hz) as its process noise: the bridge's
+    /// and the LiDAR-only model's step.
+    fn constant_velocity_step(&mut self, dt: f64, acc_std: f64, gyro_std: f64) {
         let r = self.x.rot.to_rotation_matrix().into_inner();
         let acc = r.transpose() * (-self.x.grav.vec()) + self.x.ba;
         let mut gyro = self.x.bg;
@@ -948,7 +960,7 @@ impl Eskf {
         blocks.f_vg = SMatrix::zeros();
         propagate_cov(&mut self.p, &blocks, dt);
         add_process_noise(&mut self.p, &self.cfg, dt, 1.0);
-        let (sa, sg) = (self.cfg.bridge_acc_std, self.cfg.bridge_gyro_std);
+        let (sa, sg) = (acc_std, gyro_std);
         let (qa, qg) = (sa * sa, sg * sg * dt);
         for k in 0..3 {
             self.p[(idx::ROT + k, idx::ROT + k)] += qg;
@@ -958,8 +970,62 @@ impl Eskf {
             self.p[(idx::VEL + k, idx::POS + k)] += qa * dt * dt / 2.0;
         }
         self.counters.steps = self.counters.steps.saturating_add(1);
-        self.counters.gaps = self.counters.gaps.saturating_add(1);
-        self.flags.0 |= PropagationFlags::GAP | PropagationFlags::BRIDGE;
+    }
+
+    /// A filter for a LiDAR without IMU ([`crate::motion_model`]): at `t_ns` (the first scan's
+    /// end) the body frame is the world (identity pose, at rest), with the initial position
+    /// and yaw sigmas on every axis; gravity (`gravity` m/s^2 along world -z, a placeholder:
+    /// its direction is unknown) and the biases stay fixed at their values, and the extrinsic
+    /// is not estimated (nothing observes it without an IMU).
+    pub fn without_imu(
+        cfg: EskfConfig,
+        t_ns: u64,
+        gravity: f64,
+        ext_rot: UnitQuaternion<f64>,
+        ext_pos: V3,
+    ) -> Self {
+        let cfg = EskfConfig { estimate_extrinsic: false, ..cfg };
+        let g = if gravity.is_finite() && gravity > 0.0 { gravity } else { 9.81 };
+        let x = State {
+            rot: UnitQuaternion::identity(),
+            pos: V3::zeros(),
+            ext_rot,
+            ext_pos,
+            vel: V3::zeros(),
+            bg: V3::zeros(),
+            ba: V3::zeros(),
+            grav: S2::new(&V3::new(0.0, 0.0, -g), g),
+        };
+        let s = &cfg.initial;
+        let mut p = StateCov::zeros();
+        set_diag3(&mut p, idx::POS, V3::repeat(s.pos * s.pos));
+        set_diag3(&mut p, idx::ROT, V3::repeat(s.yaw * s.yaw));
+        Self::from_state(cfg, x, p, t_ns, None, 1.0)
+    }
+
+    /// Propagates to `t_ns` without IMU: the LiDAR's constant-velocity model (the rate and
+    /// velocity between the last two updated scan ends, [`Self::set_bridge_motion`]; at rest
+    /// before the second), with `acc_std` and `gyro_std` as its process noise (see
+    /// [`crate::motion_model`]). The state's velocity is set to the held one before the step
+    /// (the knot before a scan then carries it). A time not after the state time does nothing
+    /// (`Stale`); no sample is held and nothing is dropped.
+    pub fn predict_constant_velocity(&mut self, t_ns: u64, acc_std: f64, gyro_std: f64) -> Predicted {
+        if t_ns <= self.t_ns {
+            return Predicted::Stale;
+        }
+        let dt = secs(t_ns - self.t_ns);
+        self.constant_velocity_step(dt, acc_std, gyro_std);
+        self.t_ns = t_ns;
+        self.flags.0 |= PropagationFlags::LIDAR_ONLY;
+        Predicted::Integrated { dt_s: dt }
+    }
+
+    /// Sets the state's velocity to the held motion's, if any (before the knot a
+    /// constant-velocity step starts from).
+    pub fn hold_velocity(&mut self) {
+        if let Some((_, v)) = self.bridge_motion {
+            self.x.vel = v;
+        }
     }
 
     /// The motion the scans last measured (body rate, rad/s; world velocity, m/s), held

@@ -20,6 +20,7 @@
 //! | data association | [`association`] |
 //! | iterated error-state Kalman filter | [`eskf`] |
 //! | the per-scan pipeline | [`odometry`] |
+//! | the motion model between scans (IMU, or LiDAR-only constant velocity) | [`motion_model`] |
 //! | IMU outliers (beyond full scale, spikes, wrong stamps) | [`imu_guard`] |
 //! | re-localisation in the map after a LiDAR gap or when lost | [`relocalise`] |
 //! | the caller's clock for stage timing | [`clock`] |
@@ -40,6 +41,7 @@ pub mod eskf;
 pub mod imu;
 pub mod imu_guard;
 pub mod math;
+pub mod motion_model;
 pub mod odometry;
 pub mod output;
 pub mod parallel;

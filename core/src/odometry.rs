@@ -15,6 +15,10 @@
 //! - [`OdometryConfig::vlp32c`] and [`OdometryConfig::os1_16`] are the paper's two setups; set
 //!   the extrinsic ([`OdometryConfig::with_extrinsic`]) and the IMU noise (`eskf.noise`) of the
 //!   actual rig.
+//! - Without an IMU, [`OdometryConfig::motion`] = [`MotionModel::LIDAR_ONLY`] predicts each
+//!   scan at the constant velocity of the last two (LiDAR-only, [`crate::motion_model`]): no
+//!   IMU samples are needed, the first scan's frame is the world, and every result's
+//!   propagation flags carry [`PropagationFlags::LIDAR_ONLY`].
 //!
 //! # One scan
 //!
@@ -81,6 +85,7 @@ use crate::imu::{
     ImuDrop, ImuInitConfig, ImuInitializer, ImuPush, ImuQueue, ImuSample, InitStatus, WaitReason,
 };
 use crate::imu_guard::{ImuGuard, ImuGuardConfig};
+use crate::motion_model::{ConstantVelocity, MotionModel};
 use crate::output::{
     AssociationCounts, BridgeReason, ImuOnlyReason, Integrity, PoseEstimate, ReinitReason, ScanResult,
     StageTimes, Status,
@@ -202,6 +207,9 @@ pub struct OdometryConfig {
     pub ext_rot: UnitQuaternion<f64>,
     /// LiDAR origin in the IMU frame, m.
     pub ext_pos: Vector3<f64>,
+    /// What predicts the pose between scans: the IMU, or without one a constant velocity
+    /// ([`crate::motion_model`]).
+    pub motion: MotionModel,
     /// Points nearer than this are ignored (the vehicle itself), m.
     pub blind: f32,
     /// Points farther than this are ignored, m.
@@ -226,6 +234,7 @@ impl OdometryConfig {
             standstill: StandstillConfig::DEFAULT,
             ext_rot: UnitQuaternion::identity(),
             ext_pos: Vector3::zeros(),
+            motion: MotionModel::Imu,
             blind: 0.5,
             max_range: 150.0,
         }
@@ -245,6 +254,12 @@ impl OdometryConfig {
     pub fn with_extrinsic(mut self, rot: UnitQuaternion<f64>, pos: Vector3<f64>) -> Self {
         self.ext_rot = rot;
         self.ext_pos = pos;
+        self
+    }
+
+    /// The same settings with another motion model ([`MotionModel::LIDAR_ONLY`]: no IMU).
+    pub fn with_motion(mut self, motion: MotionModel) -> Self {
+        self.motion = motion;
         self
     }
 
@@ -615,6 +630,9 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         let mut n = 0u32;
         while let Some(s) = self.scan.imu.pop_until(until_ns) {
             n = n.saturating_add(1);
+            if self.cfg.motion.is_lidar_only() {
+                continue;
+            }
             match &mut self.filter {
                 Some(f) => {
                     let before = f.time_ns();
@@ -759,6 +777,10 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             st.trajectory.push(f.time_ns(), f.state());
         }
         self.window.clear();
+        if let MotionModel::ConstantVelocity(cv) = self.cfg.motion {
+            predict_without_imu(&mut self.filter, st, &self.cfg, cv, scan.start_ns, end_ns);
+            flags.0 |= PropagationFlags::LIDAR_ONLY;
+        }
         while let Some(s) = st.imu.pop_until(end_ns) {
             self.window.push(&s);
             match &mut self.filter {
@@ -875,7 +897,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         let mut first = AssociationCounts::default();
         let mut measured_n = 0u32;
         let ic = self.cfg.integrity;
-        let bridged = flags.has(PropagationFlags::BRIDGE);
+        // Without IMU every scan is predicted as a bridged one is (the LiDAR's own motion).
+        let bridged = flags.has(PropagationFlags::BRIDGE) || flags.has(PropagationFlags::LIDAR_ONLY);
         let mut measured = 0;
         if kept > 0 && !building {
             // The measured points first; the map still gets them all (step 6).
@@ -1141,6 +1164,35 @@ fn select_measured(points: &mut [ScanPoint], normals: &mut [[f32; 3]], budget: u
         normals.swap(j, src);
     }
     b
+}
+
+/// The LiDAR-only prediction of a scan ending at `end_ns` ([`crate::motion_model`]): IMU
+/// samples queued anyway are discarded; the first scan starts the filter at the identity (at
+/// its end: one knot, no motion); every later one is propagated at the held rate and velocity,
+/// the scan's trajectory holding the knot before (with that velocity) and the end.
+fn predict_without_imu<const PIX: usize, const PTS: usize, const DS: usize>(
+    filter: &mut Option<Eskf>,
+    st: &mut ScanStorage<PIX, PTS, DS>,
+    cfg: &OdometryConfig,
+    cv: ConstantVelocity,
+    start_ns: u64,
+    end_ns: u64,
+) {
+    while st.imu.pop_until(end_ns).is_some() {}
+    st.trajectory.clear(start_ns);
+    match filter {
+        None => {
+            let f = Eskf::without_imu(cfg.eskf, end_ns, cfg.init.gravity, cfg.ext_rot, cfg.ext_pos);
+            st.trajectory.push(f.time_ns(), f.state());
+            *filter = Some(f);
+        }
+        Some(f) => {
+            f.hold_velocity();
+            st.trajectory.push(f.time_ns(), f.state());
+            f.predict_constant_velocity(end_ns, cv.acc_std, cv.gyro_std);
+            st.trajectory.push(f.time_ns(), f.state());
+        }
+    }
 }
 
 /// Re-seeds the filter after an IMU jump that moved its time from `before_ns` without

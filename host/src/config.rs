@@ -197,6 +197,9 @@ pub enum ImuSource {
     /// An autopilot's `HIGHRES_IMU`, `SCALED_IMU` or `RAW_IMU` over MAVLink on UDP
     /// `network.mavlink_imu_port` (live only).
     Mavlink,
+    /// No IMU: LiDAR-only odometry with a constant-velocity model (the core's
+    /// `MotionModel::LIDAR_ONLY`; the world is the first scan's frame, not gravity-aligned).
+    None,
 }
 
 /// What the serial IMU speaks (`imu.protocol`, `loglio live --imu-protocol`).
@@ -556,9 +559,9 @@ static SPECS: &[Spec] = &[
     ),
     spec(
         "imu.source",
-        Kind::Enum(&["serial", "ouster", "csv", "mavlink"]),
+        Kind::Enum(&["serial", "ouster", "csv", "mavlink", "none"]),
         "",
-        "Where IMU samples come from: serial = the IMU on imu.serial_device (imu.protocol); ouster = the Ouster's own IMU packets; csv = imu.csv_path (replays); mavlink = an autopilot's HIGHRES_IMU, SCALED_IMU or RAW_IMU on UDP network.mavlink_imu_port (live).",
+        "Where IMU samples come from: serial = the IMU on imu.serial_device (imu.protocol); ouster = the Ouster's own IMU packets; csv = imu.csv_path (replays); mavlink = an autopilot's HIGHRES_IMU, SCALED_IMU or RAW_IMU on UDP network.mavlink_imu_port (live); none = no IMU: LiDAR-only odometry with a constant-velocity model (the world is the first scan's frame).",
     ),
     spec(
         "imu.serial_device",

@@ -91,6 +91,10 @@ struct SimArgs {
     /// without it.
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
+    /// Leave the simulated IMU out: LiDAR-only odometry with a constant-velocity model (the
+    /// world is the first scan's frame).
+    #[arg(long)]
+    no_imu: bool,
     /// Pace the run by the simulated time (real time), e.g. to watch it live in Foxglove.
     #[arg(long)]
     realtime: bool,
@@ -192,6 +196,10 @@ struct LiveArgs {
     /// sent to this UDP port (as imu.source = "mavlink" with network.mavlink_imu_port).
     #[arg(long, value_name = "PORT", conflicts_with_all = ["imu_serial", "ouster_imu", "imu_protocol"])]
     imu_mavlink_udp: Option<u16>,
+    /// No IMU: LiDAR-only odometry with a constant-velocity model (imu.source = "none"; the
+    /// world is the first scan's frame).
+    #[arg(long, conflicts_with_all = ["imu_serial", "ouster_imu", "imu_mavlink_udp"])]
+    no_imu: bool,
     /// Local IP address to listen on (overrides network.bind, default 0.0.0.0).
     #[arg(long, value_name = "IP")]
     bind: Option<std::net::IpAddr>,
@@ -512,11 +520,12 @@ fn live_cmd(a: LiveArgs) -> anyhow::Result<()> {
         bail!("--imu-timeout must be a positive number of seconds, not {}", a.imu_timeout);
     }
     let mut opt = LiveOptions::new(a.run.setup());
-    opt.imu = match (a.imu_serial, a.ouster_imu, a.imu_mavlink_udp) {
-        (Some(p), _, _) => LiveImu::Serial(p),
-        (None, true, _) => LiveImu::OusterPackets,
-        (None, false, Some(port)) => LiveImu::Mavlink(port),
-        (None, false, None) => LiveImu::Config,
+    opt.imu = match (a.imu_serial, a.ouster_imu, a.imu_mavlink_udp, a.no_imu) {
+        (_, _, _, true) => LiveImu::None,
+        (Some(p), _, _, _) => LiveImu::Serial(p),
+        (None, true, _, _) => LiveImu::OusterPackets,
+        (None, false, Some(port), _) => LiveImu::Mavlink(port),
+        (None, false, None, _) => LiveImu::Config,
     };
     opt.baud = a.baud;
     opt.imu_protocol = a.imu_protocol;
@@ -617,6 +626,7 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
         progress: !a.realtime,
         realtime: a.realtime.then_some(a.rate),
         sinks: a.outputs,
+        no_imu: a.no_imu,
     })
 }
 
@@ -644,6 +654,7 @@ fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
         progress: !a.realtime,
         realtime: a.realtime.then_some(a.rate),
         sinks: a.outputs,
+        no_imu: false,
     })
 }
 

@@ -82,6 +82,11 @@ fn write_sim_bag_with(dir: &Path, ring_time: bool, late: LateStamp) {
 /// [`write_sim_bag_with`], with the true extrinsic in `/tf_static` (`imu_link` -> `velodyne`)
 /// when `tf`.
 fn write_sim_bag_tf(dir: &Path, ring_time: bool, late: LateStamp, tf: bool) {
+    write_sim_bag_imu(dir, ring_time, late, tf, true);
+}
+
+/// [`write_sim_bag_tf`], without the IMU topic unless `imu`.
+fn write_sim_bag_imu(dir: &Path, ring_time: bool, late: LateStamp, tf: bool, imu: bool) {
     let mut c = ScenarioConfig::new(ScenarioKind::Vehicle, SensorModel::Vlp32c, 2);
     c.duration_s = 4.0;
     let sc = Scenario::from_config(c).unwrap();
@@ -100,7 +105,7 @@ fn write_sim_bag_tf(dir: &Path, ring_time: bool, late: LateStamp, tf: bool) {
         w.write(conn, sc.start_ns(), &encode_tf(&[t], Encoding::Ros1)).unwrap();
     }
     let cloud_conn = w.add_typed_connection("/velodyne_points", &POINTCLOUD2).unwrap();
-    let imu_conn = w.add_typed_connection("/imu/data", &IMU).unwrap();
+    let imu_conn = if imu { Some(w.add_typed_connection("/imu/data", &IMU).unwrap()) } else { None };
     let mut gt = String::new();
     let at = sc.start_ns() + 2_000_000_000;
     let (mut cloud_late, mut imu_late) = (late == LateStamp::Cloud, late == LateStamp::Imu);
@@ -115,6 +120,7 @@ fn write_sim_bag_tf(dir: &Path, ring_time: bool, late: LateStamp, tf: bool) {
     for ev in sc.events() {
         match ev {
             Event::Imu(s) => {
+                let Some(imu_conn) = imu_conn else { continue };
                 let m = Imu {
                     stamp_ns: minute(&mut imu_late, s.t_ns),
                     orientation_xyzw: [0.0, 0.0, 0.0, 1.0],
@@ -163,6 +169,33 @@ fn run_bag(dir: &Path, extra: &[&str]) -> Output {
     args.extend(extra.iter().map(|s| s.to_string()));
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
     loglio(&args)
+}
+
+/// A bag without an IMU topic runs LiDAR-only (constant-velocity model) with one warning
+/// instead of failing ("error: no IMU topic"), and says so in the summary and `eval.json`.
+#[test]
+fn a_bag_without_imu_runs_lidar_only_with_one_warning() {
+    let dir = scratch("no-imu");
+    write_sim_bag_imu(&dir, true, LateStamp::None, false, false);
+    let out = run_bag(&dir, &[]);
+    let text = String::from_utf8_lossy(&out.stdout).to_string();
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(out.status.success(), "{err}");
+    assert_eq!(err.lines().count(), 1, "{err}");
+    assert!(
+        err.starts_with("warning: ")
+            && err
+                .contains(": no IMU topic (sensor_msgs/Imu): LiDAR-only (no IMU), a constant-velocity model"),
+        "{err}"
+    );
+    assert!(text.contains("LiDAR-only (no IMU): constant-velocity model\n"), "{text}");
+    assert!(text.contains("IMU none"), "{text}");
+    let ate = number_after(&text, "rmse");
+    // Measured 2026-11-27: see the ATE printed; LiDAR-inertial on the same bag <= 0.10 m.
+    assert!(ate <= 0.10, "ATE {ate} m: {text}");
+    let eval = std::fs::read_to_string(dir.join("out/eval.json")).unwrap();
+    assert!(eval.starts_with("{\"motion_model\": \"lidar-only (no IMU): constant velocity\", "), "{eval}");
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// Without a configuration: the extrinsic from the bag's `/tf_static`, said in the summary

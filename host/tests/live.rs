@@ -378,6 +378,33 @@ fn live_stops_after_seconds_with_the_ouster_imu() {
     let _ = std::fs::remove_dir_all(&run.dir);
 }
 
+/// Without an IMU (`--no-imu`) live runs LiDAR-only: no IMU warning or error, the summary
+/// and the status line say LiDAR-only, and the scans are tracked.
+#[test]
+fn live_without_imu_runs_lidar_only() {
+    let Some(run) = SimRun::start("live_without_imu_runs_lidar_only", "no-imu", 4.5) else {
+        return;
+    };
+    let out = run.dir.join("out");
+    let (_, child) =
+        run.stream(|_pty| run.spawn_live(&["--no-imu", "--seconds", "3.5", "--out", out.to_str().unwrap()]));
+    let (status, text, err) = child.finish();
+    assert!(status.success(), "{status}: {err:?}\n{text}");
+    assert!(text.contains("LiDAR-only (no IMU): constant-velocity model\n"), "{text}");
+    assert!(text.contains(", 0 IMU samples"), "{text}");
+    assert!(
+        !err.iter().any(|l| l.contains("panicked") || l.contains("error:") || l.contains("IMU data")),
+        "{err:?}"
+    );
+    assert!(err.iter().any(|l| l.contains("live: LiDAR-only (no IMU), ")), "status line: {err:?}");
+    let (poses, scans, tracked) = check_outputs(&out);
+    assert!(
+        (5..=36).contains(&scans) && poses == scans && tracked + 2 >= scans,
+        "{scans} scans, {poses} poses, {tracked} tracked: {text}"
+    );
+    let _ = std::fs::remove_dir_all(&run.dir);
+}
+
 /// Runs `loglio live` to its end (bad input: it must not wait long).
 fn live_output(args: &[&str]) -> (ExitStatus, String, Vec<String>) {
     let c = LiveChild::spawn(args);

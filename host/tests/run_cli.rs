@@ -248,6 +248,65 @@ fn replay_ouster_takes_one_imu() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Without an IMU a pcap replays LiDAR-only (constant-velocity model) with one warning instead
+/// of an error, and `sim --no-imu` leaves the simulated IMU out; both say so in the summary and
+/// track the ground truth.
+#[test]
+fn replay_and_sim_without_imu_run_lidar_only() {
+    let dir = sim_files("replay-no-imu", loglio_firmware_sim::lidar::SensorModel::Vlp32c, 4.0);
+    let p = |f: &str| dir.join(f).to_str().unwrap().to_string();
+    let out = loglio(&[
+        "replay",
+        &p("sim/lidar.pcap"),
+        "--config",
+        &p("config.toml"),
+        "--gt",
+        &p("sim/groundtruth.tum"),
+        "--out",
+        &p("out"),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert_eq!(err.lines().count(), 1, "one warning: {err}");
+    assert!(
+        err.starts_with("warning: no IMU for the replay (--imu FILE, --ouster-imu): LiDAR-only (no IMU)"),
+        "{err}"
+    );
+    let text = stdout(&out);
+    assert!(
+        text.starts_with("LiDAR-only (no IMU): constant-velocity model\n")
+            || text.contains("\nLiDAR-only (no IMU): constant-velocity model\n"),
+        "{text}"
+    );
+    assert!(text.contains(", 0 IMU samples"), "{text}");
+    let ate = number_after(&text, "rmse");
+    assert!(ate <= 0.10, "ATE {ate} m: {text}");
+    assert!(status_count(&text, "ok") + status_count(&text, "degraded") >= 35, "{text}");
+    let eval = std::fs::read_to_string(dir.join("out/eval.json")).unwrap();
+    assert!(eval.starts_with("{\"motion_model\": \"lidar-only (no IMU): constant velocity\", "), "{eval}");
+    let _ = std::fs::remove_dir_all(&dir);
+
+    let dir = scratch("sim-no-imu");
+    let o = dir.to_str().unwrap();
+    let text = stdout(&loglio(&[
+        "sim",
+        "--scenario",
+        "handheld",
+        "--sensor",
+        "os1-16",
+        "--seconds",
+        "8",
+        "--no-imu",
+        "--out",
+        o,
+    ]));
+    assert!(text.starts_with("LiDAR-only (no IMU): constant-velocity model\n"), "{text}");
+    assert!(text.contains(", 0 IMU samples\n"), "{text}");
+    assert_eq!(status_count(&text, "initialising") + status_count(&text, "re-initialising"), 0, "{text}");
+    let ate = number_after(&text, "rmse");
+    assert!(ate <= 0.05, "ATE {ate} m: {text}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn replay_bad_input_is_one_line() {
     let dir = sim_files("replay-bad", loglio_firmware_sim::lidar::SensorModel::Vlp16, 3.0);
@@ -257,11 +316,6 @@ fn replay_bad_input_is_one_line() {
     let e =
         fails_with(&loglio(&["replay", &p("sim/lidar.pcap"), "--preset", "vlp64", "--out", &out]), "error: ");
     assert!(e.contains("unknown preset \"vlp64\" (known: vlp16,"), "{e}");
-    // A Velodyne without an IMU.
-    fails_with(
-        &loglio(&["replay", &p("sim/lidar.pcap"), "--preset", "vlp16", "--out", &out]),
-        "error: no IMU for the replay",
-    );
     // Not a pcap.
     let e = fails_with(
         &loglio(&[

@@ -36,6 +36,7 @@ fn handheld(seconds: f64) -> SimOptions {
         progress: false,
         realtime: None,
         sinks: Default::default(),
+        no_imu: false,
     }
 }
 

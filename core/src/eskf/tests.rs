@@ -996,3 +996,50 @@ fn zero_velocity_and_zero_rate_updates_hold_a_standing_filter() {
     assert!(!f.zero_rate(&V3::new(f64::NAN, 0.0, 0.0), 1e-6));
     assert_eq!(*f.state(), before);
 }
+
+/// Without IMU (LiDAR-only): the filter starts at the identity with no held sample and the
+/// extrinsic not estimated; a constant-velocity step moves at the held rate and velocity
+/// (at rest before one is held), grows the pose uncertainty by the given white acceleration and
+/// rate, flags `LIDAR_ONLY` (not a bridge or gap), and a time not after the state's is stale.
+#[test]
+fn lidar_only_constant_velocity_prediction() {
+    let cfg = EskfConfig { estimate_extrinsic: true, ..EskfConfig::default() };
+    let ext = (UnitQuaternion::from_euler_angles(0.0, 0.0, 0.3), V3::new(0.1, 0.0, 0.05));
+    let mut f = Eskf::without_imu(cfg, T0, G, ext.0, ext.1);
+    assert!(!f.config().estimate_extrinsic);
+    assert!(f.held_sample().is_none());
+    assert_eq!(f.state().rot, UnitQuaternion::identity());
+    assert_eq!(f.state().pos, V3::zeros());
+    assert_eq!((f.state().ext_rot, f.state().ext_pos), ext);
+    assert_eq!(f.covariance()[(idx::EXT_ROT, idx::EXT_ROT)], 0.0);
+    // At rest before any motion is held.
+    let dt = 0.1;
+    let t1 = T0 + 100_000_000;
+    assert_eq!(f.predict_constant_velocity(t1, 2.0, 1.0), Predicted::Integrated { dt_s: dt });
+    assert_eq!(f.time_ns(), t1);
+    assert!(f.state().pos.norm() < 1e-12 && f.state().rot.angle() < 1e-12);
+    let flags = f.take_flags();
+    assert!(flags.has(PropagationFlags::LIDAR_ONLY));
+    assert!(!flags.has(PropagationFlags::BRIDGE) && !flags.has(PropagationFlags::GAP));
+    let p = f.covariance();
+    for k in 0..3 {
+        assert!(p[(idx::POS + k, idx::POS + k)] >= 4.0 * dt * dt * dt / 3.0);
+        assert!(p[(idx::ROT + k, idx::ROT + k)] >= dt);
+        assert!(p[(idx::VEL + k, idx::VEL + k)] >= 4.0 * dt);
+    }
+    // The held motion: constant body rate and world velocity.
+    let (w, v) = (V3::new(0.0, 0.0, 0.5), V3::new(2.0, -1.0, 0.0));
+    f.set_bridge_motion(w, v);
+    f.hold_velocity();
+    assert_eq!(f.state().vel, v);
+    let t2 = t1 + 100_000_000;
+    f.predict_constant_velocity(t2, 2.0, 1.0);
+    assert!((f.state().pos - v * dt).norm() < 1e-12, "{:?}", f.state().pos);
+    let want = so3::exp_quat(&(w * dt));
+    assert!(f.state().rot.angle_to(&want) < 1e-12);
+    // Not after the state time: nothing.
+    let before = f.clone();
+    assert_eq!(f.predict_constant_velocity(t2, 2.0, 1.0), Predicted::Stale);
+    assert_eq!(f.state().pos, before.state().pos);
+    assert_eq!(f.covariance(), before.covariance());
+}

@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use loglio_core::scan::ScanPoint;
 
-use crate::config::SensorFamily;
+use crate::config::{ImuSource, SensorFamily};
 use crate::diag::warn;
 use crate::error::PipelineError;
 use crate::input::bag::{BagEvent, BagOptions, BagReader, PacketKind, TopicKind};
@@ -66,15 +66,23 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
         let mut o = BagOptions::from_config(&cfg)?;
         o.lidar_topic = opt.lidar_topic.clone();
         o.imu_topic = opt.imu_topic.clone();
+        o.require_imu = false;
         Ok(o)
     };
     let mut reader = BagReader::open(&opt.bag, bag_opts()?).map_err(|e| PipelineError(e.to_string()))?;
+    let lidar_only = reader.selection().imu.is_none();
+    if lidar_only && cfg.imu.source != ImuSource::None {
+        warn(format!(
+            "{}: no IMU topic (sensor_msgs/Imu): LiDAR-only (no IMU), a constant-velocity model; the world is the first scan's frame",
+            opt.bag.display()
+        ));
+    }
     // No extrinsic from the configuration: the bag's /tf_static, if it connects the frames.
     let from_tf = match opt.setup.extrinsic_missing(&cfg) {
-        Some(_) => {
+        Some(_) if !lidar_only => {
             BagReader::static_extrinsic(&opt.bag, &bag_opts()?).map_err(|e| PipelineError(e.to_string()))?
         }
-        None => None,
+        _ => None,
     };
     let sel = reader.selection().clone();
     let topics = format!("LiDAR {}, IMU {}", sel.lidar.0, sel.imu.as_deref().unwrap_or("none"));
@@ -138,7 +146,9 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
             ))
         }
         None => {
-            opt.setup.warn_missing_extrinsic(&cfg);
+            if !lidar_only {
+                opt.setup.warn_missing_extrinsic(&cfg);
+            }
             None
         }
     };
@@ -160,6 +170,9 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
         scans: 0,
         done: false,
     };
+    if lidar_only {
+        cfg.imu.source = ImuSource::None;
+    }
     let (stop, _signals) = crate::run::Signals::stop_flag();
     let opts = RunOptions {
         outputs: opt.setup.outputs()?,

@@ -185,6 +185,7 @@ pub fn run(
         progress: false,
         realtime: None,
         sinks: crate::sink::SinkArgs::default(),
+        no_imu: false,
     };
     let sc = sim::scenario(&opt)?;
     let t0 = Instant::now();

@@ -91,6 +91,8 @@ pub enum LiveImu {
     OusterPackets,
     /// An autopilot's MAVLink `HIGHRES_IMU`, `SCALED_IMU` or `RAW_IMU` on this UDP port.
     Mavlink(u16),
+    /// No IMU: LiDAR-only, a constant-velocity model (`imu.source = "none"`, `--no-imu`).
+    None,
 }
 
 /// A live run's settings.
@@ -670,9 +672,14 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                         .into(),
                 ));
             }
+            ImuSource::None => LiveImu::None,
         },
         other => other.clone(),
     };
+    let lidar_only = imu == LiveImu::None;
+    if lidar_only {
+        cfg.imu.source = ImuSource::None;
+    }
     let family = cfg.preset.family();
     if imu == LiveImu::OusterPackets && family != SensorFamily::Ouster {
         return Err(PipelineError(format!(
@@ -753,7 +760,9 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
         (Some(acc), Some(gyro)) => Some(RawScale { acc: acc as f32, gyro: gyro as f32 }),
         _ => None,
     };
-    opt.setup.warn_missing_extrinsic(&cfg);
+    if !lidar_only {
+        opt.setup.warn_missing_extrinsic(&cfg);
+    }
     let own_clock = if mavlink.is_some() {
         Some("MAVLink".to_string())
     } else {
@@ -771,6 +780,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
             format!("{imu_protocol} IMU from {} at {} baud", p.display(), cfg.imu.baud)
         }
         Some((ImuPort::Fifo(_), p)) => format!("{imu_protocol} IMU from the FIFO {}", p.display()),
+        None if lidar_only => crate::run::runner::LIDAR_ONLY_MODEL.to_string(),
         None => match &mavlink {
             Some((_, port)) => {
                 format!("IMU from MAVLink (HIGHRES_IMU, SCALED_IMU or RAW_IMU) on UDP {bind}:{port}")
@@ -790,7 +800,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
     let scan_period_s = 1.0 / cfg.sensor.scan_rate_hz;
     let preset = cfg.preset;
     let imu_label = match &imu {
-        LiveImu::OusterPackets => None,
+        LiveImu::OusterPackets | LiveImu::None => None,
         LiveImu::Mavlink(_) => Some("MAVLink IMU".to_string()),
         _ => Some(format!("serial IMU ({imu_protocol})")),
     };
@@ -856,6 +866,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
 
             let times = Rc::new(RefCell::new(ScanTimes::default()));
             let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
+            runner.set_lidar_only(lidar_only);
             runner.sinks = opt.setup.sinks.build();
             runner.set_origin(t0);
             runner.sinks.set_origin(t0);
@@ -932,7 +943,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                     lidar_stall.check(now, last_lidar, lidar_timeout_ns, |s| {
                         format!("no LiDAR packets on UDP {lidar_addr} for {s:.0} s; still listening")
                     });
-                    if last_lidar != 0 {
+                    if last_lidar != 0 && !lidar_only {
                         let noise = c.imu_noise_bytes.load(Relaxed);
                         imu_stall.check(now, c.last_imu_ns.load(Relaxed), imu_timeout_ns, |s| {
                         let unsupported = c.imu_unsupported.load(Relaxed);
@@ -978,6 +989,9 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                         // "live: <status and pose>; <rates, latency, drops>": the status first.
                         let rest = line.strip_prefix("live: ").unwrap_or(&line).to_string();
                         line = format!("live: {}; {rest}", pose_phrase(runner.latest.as_ref()));
+                        if lidar_only {
+                            line = line.replacen("live: ", "live: LiDAR-only (no IMU), ", 1);
+                        }
                         if !runner.sinks.is_empty() {
                             line.push_str(&format!("; outputs: {}", runner.sinks.status_phrase()));
                         }
@@ -1002,7 +1016,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                     counts.datagrams
                 )));
             }
-            if runner.stats.imu_in == 0 {
+            if runner.stats.imu_in == 0 && !lidar_only {
                 return Err(PipelineError(format!(
                     "no IMU data arrived from {imu_source_name} during the run ({} LiDAR packets, {} scans): check the device{}",
                     counts.lidar_packets,

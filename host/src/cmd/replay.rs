@@ -31,6 +31,8 @@ pub enum ImuInput {
     Serial(PathBuf),
     /// The Ouster IMU packets in the pcap.
     OusterPackets,
+    /// No IMU: LiDAR-only, a constant-velocity model (`imu.source = "none"`).
+    None,
 }
 
 impl ImuInput {
@@ -106,7 +108,7 @@ impl ImuFeed {
 /// Runs a replay.
 pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
     let wall = Instant::now();
-    let cfg = opt.setup.load_config()?;
+    let mut cfg = opt.setup.load_config()?;
     let imu = match (&opt.imu, cfg.imu.source) {
         (Some(i), _) => i.clone(),
         (None, ImuSource::Ouster) => ImuInput::OusterPackets,
@@ -117,13 +119,17 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
                     .into(),
             ));
         }
+        (None, ImuSource::None) => ImuInput::None,
         (None, ImuSource::Serial) => {
-            return Err(PipelineError(
-                "no IMU for the replay: pass --imu FILE (an IMU CSV or a serial capture), or use an Ouster's IMU packets (--ouster-imu)"
-                    .into(),
-            ));
+            warn(
+                "no IMU for the replay (--imu FILE, --ouster-imu): LiDAR-only (no IMU), a constant-velocity model; the world is the first scan's frame",
+            );
+            ImuInput::None
         }
     };
+    if imu == ImuInput::None {
+        cfg.imu.source = ImuSource::None;
+    }
     let imu_packets_used = imu == ImuInput::OusterPackets;
     if imu_packets_used && cfg.preset.family() != SensorFamily::Ouster {
         return Err(PipelineError(format!(
@@ -140,7 +146,7 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
             let f = File::open(p).map_err(|e| PipelineError(format!("{}: {e}", p.display())))?;
             ImuFeed::Serial(Box::new(ImuFrameReader::new(BufReader::new(f))))
         }
-        ImuInput::OusterPackets => ImuFeed::None,
+        ImuInput::OusterPackets | ImuInput::None => ImuFeed::None,
     };
     let reader = crate::input::pcap::PcapReader::open(&opt.pcap)
         .map_err(|e| PipelineError(format!("{}: {e}", opt.pcap.display())))?;
@@ -166,7 +172,9 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
         done: false,
         pcap: &opt.pcap,
     };
-    opt.setup.warn_missing_extrinsic(&cfg);
+    if imu != ImuInput::None {
+        opt.setup.warn_missing_extrinsic(&cfg);
+    }
     let (stop, _signals) = crate::run::Signals::stop_flag();
     let opts = RunOptions {
         outputs: opt.setup.outputs()?,

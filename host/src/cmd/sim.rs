@@ -9,7 +9,7 @@ use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKind};
 use nalgebra::Isometry3;
 
-use crate::config::{AssociationMode, Config, KnnReach, Preset};
+use crate::config::{AssociationMode, Config, ImuSource, KnnReach, Preset};
 use crate::error::PipelineError;
 use crate::eval::{self, Trajectory};
 use crate::output::Progress;
@@ -43,6 +43,8 @@ pub struct SimOptions {
     pub realtime: Option<f64>,
     /// The live outputs.
     pub sinks: crate::sink::SinkArgs,
+    /// Leave the simulated IMU out: LiDAR-only (constant-velocity model).
+    pub no_imu: bool,
 }
 
 /// The outcome of a simulated run.
@@ -172,6 +174,9 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
     let mut cfg = scenario_config(&sc, preset_of(opt.sensor), opt.mode);
     cfg.mapping.max_points = opt.max_points;
     cfg.mapping.knn_search = opt.knn_search;
+    if opt.no_imu {
+        cfg.imu.source = ImuSource::None;
+    }
     let layout = sc.layout().clone();
     let class = StorageClass::choose(layout.rows(), layout.cols(), cfg.mapping.map_capacity)?;
     let scan_period_s = 1.0 / cfg.sensor.scan_rate_hz;
@@ -182,7 +187,8 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
         Progress::hidden()
     };
     let mut pace = opt.realtime.map(crate::input::pace::Pacer::new);
-    let mut events = sc.events().map(|ev| match ev {
+    let no_imu = opt.no_imu;
+    let mut events = sc.events().filter(|ev| !(no_imu && matches!(ev, Event::Imu(_)))).map(|ev| match ev {
         Event::Imu(s) => {
             if let Some(p) = &mut pace {
                 p.wait_for(s.t_ns);
@@ -231,7 +237,8 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
 /// The human summary of a simulated run.
 pub fn summary(opt: &SimOptions, r: &SimReport) -> String {
     let st = &r.stats;
-    let mut s = format!(
+    let mut s = runner::lidar_only_line(st);
+    s.push_str(&format!(
         "scenario {} ({} s, {}, seed {}): {} scans ({}), {} IMU samples\n",
         opt.kind.name(),
         r.sim_s,
@@ -240,7 +247,7 @@ pub fn summary(opt: &SimOptions, r: &SimReport) -> String {
         st.scans,
         runner::status_summary(st),
         st.imu_in
-    );
+    ));
     let faults = st.faults.phrase();
     if !faults.is_empty() {
         s.push_str(&format!("faults: {faults}\n"));

@@ -29,6 +29,7 @@ use loglio_core::association::{AssociationConfig, KnnScratch};
 use loglio_core::downsample::DownsampleConfig;
 use loglio_core::eskf::EskfConfig;
 use loglio_core::imu::{ImuInitConfig, ImuNoise, ImuPush, ImuSample};
+use loglio_core::motion_model::MotionModel;
 use loglio_core::odometry::{Clock, Odometry, OdometryConfig, OdometryError, OdometryStorage};
 use loglio_core::output::ScanResult;
 use loglio_core::parallel::{Job, Parallel};
@@ -38,7 +39,7 @@ use loglio_core::scan::ScanView;
 use loglio_core::standstill::StandstillConfig;
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
-use crate::config::{Config, SensorFamily};
+use crate::config::{Config, ImuSource, SensorFamily};
 use crate::error::PipelineError;
 use crate::output::MapPoint;
 
@@ -136,6 +137,7 @@ pub fn odometry_config(cfg: &Config, layout: RangeImageLayout) -> Result<Odometr
         init,
         ext_rot: UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z)),
         ext_pos: Vector3::new(t[0], t[1], t[2]),
+        motion: if cfg.imu.source == ImuSource::None { MotionModel::LIDAR_ONLY } else { MotionModel::Imu },
         blind: cfg.sensor.blind as f32,
         max_range: cfg.sensor.max_range as f32,
         association: AssociationConfig {

@@ -129,6 +129,7 @@ pub fn drive(
     let threads = if cpu_clock { 1 } else { cfg.compute.resolved_threads() };
     engine::with_engine(&core, class, threads, |engine| {
         let mut runner = Runner::new(engine, outputs, cfg.time.lidar_imu_offset);
+        runner.set_lidar_only(cfg.imu.source == crate::config::ImuSource::None);
         runner.sinks = sinks;
         if cpu_clock {
             runner.use_thread_cpu_clock();

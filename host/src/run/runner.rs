@@ -6,7 +6,7 @@ use std::fmt;
 use std::io;
 use std::time::Instant;
 
-use loglio_core::eskf::{Eskf, Predicted};
+use loglio_core::eskf::{Eskf, Predicted, PropagationFlags};
 use loglio_core::imu::{ImuPush, ImuSample};
 use loglio_core::output::{ScanResult, StageTimes, Status};
 use loglio_core::scan::{ScanPoint, ScanView};
@@ -78,6 +78,8 @@ pub struct RunStats {
     pub faults: FaultCounts,
     /// Scans at a stand, which gave zero-velocity updates.
     pub standstill: u64,
+    /// Scans predicted without IMU (LiDAR-only, constant-velocity model).
+    pub lidar_only_scans: u64,
 }
 
 /// Timing faults and IMU outliers a run met (each also said as a `warning:`).
@@ -237,6 +239,7 @@ impl RunStats {
     pub fn check_overlap(&self) -> Result<(), PipelineError> {
         match (self.lidar_span, self.imu_span) {
             (None, _) => Err(PipelineError("no LiDAR scans in the input".into())),
+            (Some(_), _) if self.lidar_only_scans > 0 => Ok(()),
             (Some(_), None) => Err(PipelineError("no IMU samples in the input".into())),
             (Some(l), Some(i)) => {
                 crate::input::time_align::check_overlap(l, i).map_err(|e| PipelineError(e.to_string()))?;
@@ -294,6 +297,8 @@ pub struct Runner<'e> {
     held_scan: Hold<(OwnedScan, u64)>,
     /// The latest scan start (LiDAR gaps).
     last_scan_start_ns: Option<u64>,
+    /// No IMU (LiDAR-only): every scan is processed as it comes.
+    lidar_only: bool,
 }
 
 impl fmt::Debug for Runner<'_> {
@@ -325,7 +330,14 @@ impl<'e> Runner<'e> {
             held_far: Hold::default(),
             held_scan: Hold::default(),
             last_scan_start_ns: None,
+            lidar_only: false,
         }
+    }
+
+    /// LiDAR-only (the core's constant-velocity model, `imu.source = "none"`): scans wait for
+    /// no IMU.
+    pub fn set_lidar_only(&mut self, on: bool) {
+        self.lidar_only = on;
     }
 
     /// Times the odometry by this thread's CPU time ([`StdClock::thread_cpu`]).
@@ -568,7 +580,7 @@ impl<'e> Runner<'e> {
     pub fn process_ready(&mut self, force: bool, older_than: Option<u64>) -> Result<(), PipelineError> {
         while let Some((front, arrival)) = self.scans.front() {
             let end = front.end_ns();
-            let covered = self.last_imu_ns.is_some_and(|t| t >= end);
+            let covered = self.lidar_only || self.last_imu_ns.is_some_and(|t| t >= end);
             let waited = older_than.is_some_and(|t| *arrival <= t);
             if !(covered || force || waited || self.scans.len() > MAX_PENDING_SCANS) {
                 break;
@@ -635,6 +647,9 @@ impl<'e> Runner<'e> {
         s.map_ns += t.map_ns;
         s.total_ns += t.total_ns;
         st.scan_ns.push(t.total_ns);
+        if res.propagation.has(PropagationFlags::LIDAR_ONLY) {
+            st.lidar_only_scans += 1;
+        }
         let index = st.scans;
         st.scans += 1;
         self.outputs.record(index, &res, t.total_ns as f64 * 1e-6, self.engine.map_voxels())?;
@@ -686,10 +701,20 @@ pub fn status_summary(st: &RunStats) -> String {
     parts.join(", ")
 }
 
+/// "LiDAR-only (no IMU): constant-velocity model" and a newline when the run had no IMU,
+/// else nothing.
+pub fn lidar_only_line(st: &RunStats) -> String {
+    if st.lidar_only_scans > 0 { format!("{LIDAR_ONLY_MODEL}\n") } else { String::new() }
+}
+
+/// How the summaries and the live status name the LiDAR-only mode.
+pub const LIDAR_ONLY_MODEL: &str = "LiDAR-only (no IMU): constant-velocity model";
+
 /// The summary of a run: scans, timing, margin, ATE and files.
 pub fn summary(stats: &RunStats, fin: &Finished, scan_period_s: f64, wall_s: f64) -> String {
     let mean = stats.mean_scan_s();
-    let mut s = format!("{} scans ({}), {} IMU samples", stats.scans, status_summary(stats), stats.imu_in);
+    let mut s = lidar_only_line(stats);
+    s.push_str(&format!("{} scans ({}), {} IMU samples", stats.scans, status_summary(stats), stats.imu_in));
     if stats.imu_dropped + stats.imu_stale > 0 {
         s.push_str(&format!(" ({} dropped, {} older than their scan)", stats.imu_dropped, stats.imu_stale));
     }

@@ -4,6 +4,7 @@
 use std::io;
 use std::path::{Path, PathBuf};
 
+use loglio_core::eskf::PropagationFlags;
 use loglio_core::output::{ScanResult, Status};
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
@@ -46,6 +47,8 @@ pub struct Outputs {
     csv: Option<ScanCsvWriter>,
     /// Every pose written (for the plots and the evaluation).
     pub poses: Vec<EstPose>,
+    /// A scan was predicted without IMU (LiDAR-only): `eval.json` says so.
+    lidar_only: bool,
 }
 
 /// What [`Outputs::finish`] produced.
@@ -69,7 +72,7 @@ impl Outputs {
             ),
             None => (None, None),
         };
-        Ok(Outputs { opt, tum, csv, poses: Vec::new() })
+        Ok(Outputs { opt, tum, csv, poses: Vec::new(), lidar_only: false })
     }
 
     /// Records one scan's result.
@@ -81,6 +84,7 @@ impl Outputs {
         map_voxels: usize,
     ) -> io::Result<()> {
         let pose = &res.pose;
+        self.lidar_only |= res.propagation.has(PropagationFlags::LIDAR_ONLY);
         let initialising = matches!(res.status, Status::Initialising(_));
         let q = pose.rotation.quaternion();
         let e = EstPose {
@@ -218,7 +222,12 @@ impl Outputs {
         }
         if let Some(r) = &out.eval {
             let p = dir.join("eval.json");
-            std::fs::write(&p, r.to_json()).map_err(|e| PipelineError(format!("{}: {e}", p.display())))?;
+            let mut json = r.to_json();
+            if self.lidar_only {
+                // The motion model first: a LiDAR-only figure is not a LiDAR-inertial one.
+                json.replace_range(..1, "{\"motion_model\": \"lidar-only (no IMU): constant velocity\", ");
+            }
+            std::fs::write(&p, json).map_err(|e| PipelineError(format!("{}: {e}", p.display())))?;
             out.files.push(p);
         }
         Ok(out)
