@@ -120,6 +120,11 @@ struct RunArgs {
     /// Velodyne calibration yaml (overrides sensor.calibration).
     #[arg(long, value_name = "FILE")]
     calibration: Option<PathBuf>,
+    /// LiDAR-IMU extrinsic from a FAST-LIO / LOG-LIO YAML (`mapping:` `extrinsic_T`,
+    /// `extrinsic_R`: the LiDAR's pose in the IMU frame); overrides the configuration's
+    /// [extrinsics] and what the data gives (a bag's /tf_static, the Ouster metadata).
+    #[arg(long, value_name = "FILE.yaml")]
+    extrinsic: Option<PathBuf>,
     /// Output directory (trajectory.tum, scans.csv, map.ply, map.pcd, plots).
     #[arg(long, value_name = "DIR", default_value = "loglio-out")]
     out: PathBuf,
@@ -141,6 +146,7 @@ impl RunArgs {
             mode: self.mode,
             metadata: self.metadata.clone(),
             calibration: self.calibration.clone(),
+            extrinsic: self.extrinsic.clone(),
             out: Some(self.out.clone()),
             gt: self.gt.clone(),
             no_map: self.no_map,
@@ -485,7 +491,8 @@ fn replay_cmd(a: ReplayArgs) -> anyhow::Result<()> {
     };
     let r = loglio_host::cmd::replay::run(&opt)?;
     print(&format!(
-        "{}: {} LiDAR packets{}\n{}",
+        "{}{}: {} LiDAR packets{}\n{}",
+        r.extrinsic.as_ref().map_or(String::new(), |e| format!("{e}\n")),
         opt.pcap.display(),
         r.stream.lidar_packets,
         if r.stream.imu_packets > 0 {

@@ -59,7 +59,7 @@ use crate::input::serial::ImuFrameReader;
 use crate::input::udp::{self, UdpSource};
 use crate::run::engine;
 use crate::run::runner::{OwnedScan, RunStats, Runner};
-use crate::run::setup::{PacketSetup, RunSetup};
+use crate::run::setup::{DataExtrinsic, PacketSetup, RunSetup};
 use crate::sink::files::{self, Finished};
 
 /// Datagrams waiting for the decode thread (about 1.4 s of a VLP-32C, 3 s of an OS1-128).
@@ -602,6 +602,8 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
             PipelineError(format!("network.bind = \"{}\" is not an IP address", cfg.network.bind))
         })?,
     };
+    let data = DataExtrinsic::of_ouster_metadata(&cfg)?;
+    let extrinsic = opt.setup.resolve_extrinsic(&mut cfg, data)?;
     let PacketSetup { dec, lidar_port, imu_port, class, core } = PacketSetup::new(&cfg)?;
     let lidar_port = opt.lidar_port.unwrap_or(lidar_port);
     let imu_port = opt.imu_port.unwrap_or(imu_port);
@@ -641,7 +643,8 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
         LiveImu::Serial(p) => Some((open_imu(p, cfg.imu.baud)?, p.clone())),
         _ => None,
     };
-    opt.setup.warn_missing_extrinsic(&cfg);
+    extrinsic.warn_if_missing();
+    let extrinsic_desc = extrinsic.line().map_or(String::new(), |l| format!("; {l}"));
     let imu_desc = match &serial {
         Some((ImuPort::Serial(_), p)) => format!("IMU from {} at {} baud", p.display(), cfg.imu.baud),
         Some((ImuPort::Fifo(_), p)) => format!("IMU from the FIFO {}", p.display()),
@@ -703,7 +706,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
             };
             drop(msg_tx);
             eprintln!(
-                "loglio live: listening for {preset} LiDAR packets on UDP {lidar_addr}, {imu_desc}; Ctrl-C to stop"
+                "loglio live: listening for {preset} LiDAR packets on UDP {lidar_addr}, {imu_desc}{extrinsic_desc}; Ctrl-C to stop"
             );
 
             let times = Rc::new(RefCell::new(ScanTimes::default()));

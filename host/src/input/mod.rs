@@ -2,6 +2,7 @@
 //! bags), decodes it and hands the run loop time-ordered IMU samples and whole scans.
 
 pub mod bag;
+pub mod extrinsic_file;
 pub mod imu_csv;
 pub mod lidar_stream;
 pub mod ouster_meta;
