@@ -124,10 +124,11 @@ impl RunSetup {
         )))
     }
 
-    /// Why the LiDAR-IMU extrinsic is identity because nothing gave one, if it is: no
+    /// Why the LiDAR-IMU extrinsic would be the identity, if it would: no `--extrinsic`, no
     /// `[extrinsics]` in the configuration file and a preset without one (the Velodyne presets:
-    /// their IMU is external; the Ouster presets carry the internal IMU's). Nothing in the
-    /// data gives one today.
+    /// their IMU is external; the Ouster presets carry the internal IMU's). The data may still
+    /// give one: [`Self::resolve_extrinsic`] takes it then (the bag looks for its `/tf_static`
+    /// only when this says none is given).
     pub fn extrinsic_missing(&self, cfg: &Config) -> Option<String> {
         if cfg.preset.family() != SensorFamily::Velodyne || self.extrinsic.is_some() {
             return None;
