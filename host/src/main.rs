@@ -681,8 +681,21 @@ fn config_cmd(a: ConfigArgs) -> anyhow::Result<()> {
     }
     if let Some(path) = a.check {
         let cfg = Config::load(&path)?;
+        // extrinsics.file is read and checked too: a robot's first run should not find it bad.
+        let extrinsic = match &cfg.extrinsics.file {
+            Some(f) => {
+                let e = loglio_host::input::extrinsic_file::load(f)?;
+                let [x, y, z] = e.translation;
+                let [w, i, j, k] = e.quat_wxyz;
+                format!(
+                    "; extrinsic from {}: t = [{x:.4}, {y:.4}, {z:.4}] m, q wxyz = [{w:.4}, {i:.4}, {j:.4}, {k:.4}]",
+                    f.display()
+                )
+            }
+            None => String::new(),
+        };
         print(&cfg.to_commented_toml())?;
-        eprintln!("{}: valid (preset {})", path.display(), cfg.preset);
+        eprintln!("{}: valid (preset {}{extrinsic})", path.display(), cfg.preset);
         return Ok(());
     }
     bail!("give --preset NAME, --check FILE, --list or --reference")
