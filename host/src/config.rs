@@ -338,6 +338,11 @@ pub struct Extrinsics {
     /// R as a unit quaternion w, x, y, z.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub rotation_quat_wxyz: Option<[f64; 4]>,
+    /// A FAST-LIO / LOG-LIO YAML file with `extrinsic_T` and `extrinsic_R` instead (relative
+    /// paths are taken from the configuration file's folder by [`Config::load`]); read by
+    /// `run::setup::RunSetup::resolve_extrinsic`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub file: Option<PathBuf>,
 }
 
 impl Extrinsics {
@@ -642,6 +647,13 @@ static SPECS: &[Spec] = &[
         "R as a unit quaternion w, x, y, z. Set this or rotation_rpy_deg, not both.",
         "[1.0, 0.0, 0.0, 0.0]",
     ),
+    opt(
+        "extrinsics.file",
+        Kind::Path,
+        "path",
+        "A FAST-LIO / LOG-LIO YAML file whose mapping section gives extrinsic_T [x, y, z] and extrinsic_R [9 numbers, row-major]: the LiDAR's pose in the IMU frame. A relative path is from this file's folder. Set this or translation and a rotation, not both; --extrinsic FILE overrides it.",
+        "\"fast_lio.yaml\"",
+    ),
     spec(
         "time.lidar_imu_offset",
         Kind::Float { min: -1.0, max: 1.0 },
@@ -755,7 +767,11 @@ const SECTIONS: [Section; 8] = [
         name: "extrinsics",
         what: "The LiDAR frame in the IMU frame.",
         code: "The fixed LiDAR-in-IMU transform of the odometry, `p_imu = R * p_lidar + t` \
-               (`Extrinsics::rotation_matrix`, `Extrinsics::translation`).",
+               (`Extrinsics::rotation_matrix`, `Extrinsics::translation`). Where it comes from, highest \
+               precedence first: `--extrinsic FILE`, then this section (`file`, or `translation` and a rotation), \
+               then the data (a bag's `/tf_static`, an Ouster metadata's `imu_to_sensor_transform`), \
+               then the Ouster presets' internal IMU, else the identity with a warning \
+               (`run::setup::RunSetup::resolve_extrinsic`; `extrinsic_file.rs`).",
     },
     Section {
         name: "time",
@@ -957,6 +973,7 @@ impl Config {
                 translation: if ouster { [-0.006253, 0.011775, -0.007645] } else { [0.0; 3] },
                 rotation_rpy_deg: Some([0.0; 3]),
                 rotation_quat_wxyz: None,
+                file: None,
             },
             time: TimeConfig {
                 lidar_imu_offset: 0.0,
@@ -980,14 +997,23 @@ impl Config {
     pub fn load(path: &Path) -> Result<Config, ConfigError> {
         let text = std::fs::read_to_string(path)
             .map_err(|e| ConfigError(format!("config: cannot read {}: {e}", path.display())))?;
-        Self::from_toml_str(&text).map_err(|e| {
+        let mut cfg = Self::from_toml_str(&text).map_err(|e| {
             // Name the file in syntax errors only; key errors already name the key.
             if e.0.starts_with("config: line ") {
                 ConfigError(e.0.replacen("config: ", &format!("config: {}: ", path.display()), 1))
             } else {
                 e
             }
-        })
+        })?;
+        // extrinsics.file is the configuration's companion: found beside it, wherever the
+        // command runs (a service's working folder is not the configuration's).
+        if let Some(f) = &cfg.extrinsics.file
+            && f.is_relative()
+            && let Some(dir) = path.parent()
+        {
+            cfg.extrinsics.file = Some(dir.join(f));
+        }
+        Ok(cfg)
     }
 
     /// Parses and validates a configuration from TOML text.
@@ -1026,6 +1052,14 @@ impl Config {
                 .or_insert_with(|| toml::Value::Table(toml::Table::new()))
                 .as_table_mut()
                 .ok_or_else(|| ConfigError(format!("config: internal: {section} is not a table")))?;
+            if section == "extrinsics"
+                && entries.contains_key("file")
+                && let Some(k) = ["translation", "rotation_rpy_deg", "rotation_quat_wxyz"]
+                    .iter()
+                    .find(|k| entries.contains_key(**k))
+            {
+                bail!("set extrinsics.file or extrinsics.{k} (and the rest of the section), not both");
+            }
             // One rotation form replaces the other unless the file sets both.
             for (a, b) in
                 [("rotation_quat_wxyz", "rotation_rpy_deg"), ("rotation_rpy_deg", "rotation_quat_wxyz")]
@@ -1311,13 +1345,14 @@ mod tests {
     }
 
     /// Optional keys that no preset sets, so a serialised preset never has them.
-    const UNSET_IN_EVERY_PRESET: [(&str, &str); 6] = [
+    const UNSET_IN_EVERY_PRESET: [(&str, &str); 7] = [
         ("sensor.calibration", "without it the datasheet beam table is used"),
         ("sensor.ouster_metadata", "without it the nominal Ouster beam table is used"),
         ("imu.csv_path", "only imu.source = \"csv\" reads it"),
         ("imu.raw_imu_acc_scale", "only MAVLink RAW_IMU needs it"),
         ("imu.raw_imu_gyro_scale", "only MAVLink RAW_IMU needs it"),
         ("extrinsics.rotation_quat_wxyz", "the presets give the rotation as rotation_rpy_deg"),
+        ("extrinsics.file", "the presets give the extrinsic as numbers"),
     ];
 
     /// The dotted keys of a serialised configuration (arrays are values, not tables).
@@ -1373,6 +1408,7 @@ mod tests {
         cfg.imu.raw_imu_acc_scale = Some(0.00980665);
         cfg.imu.raw_imu_gyro_scale = Some(0.001);
         cfg.extrinsics.rotation_quat_wxyz = Some([1.0, 0.0, 0.0, 0.0]);
+        cfg.extrinsics.file = Some("fast_lio.yaml".into());
         assert_eq!(
             dotted_keys(&cfg),
             with_preset(&specs),
@@ -1428,6 +1464,7 @@ mod tests {
             translation: [0.0; 3],
             rotation_rpy_deg: Some([10.0, -20.0, 30.0]),
             rotation_quat_wxyz: None,
+            file: None,
         };
         let r = e.rotation_matrix();
         let (a, b, c) = (10f64.to_radians(), (-20f64).to_radians(), 30f64.to_radians());
@@ -1502,6 +1539,10 @@ mod tests {
                 "preset = \"vlp16\"\n[extrinsics]\nrotation_quat_wxyz = [1.0, 0.0, 0.0, 0.0]\nrotation_rpy_deg = [0, 0, 0]\n"
             ),
             "config: set extrinsics.rotation_quat_wxyz or extrinsics.rotation_rpy_deg, not both"
+        );
+        assert_eq!(
+            err("preset = \"vlp16\"\n[extrinsics]\nfile = \"f.yaml\"\ntranslation = [0.1, 0.0, 0.0]\n"),
+            "config: set extrinsics.file or extrinsics.translation (and the rest of the section), not both"
         );
         assert_eq!(
             err("preset = \"vlp16\"\n[network]\nbind = \"localhost:80\"\n"),

@@ -124,6 +124,11 @@ struct RunArgs {
     /// Velodyne calibration yaml (overrides sensor.calibration).
     #[arg(long, value_name = "FILE")]
     calibration: Option<PathBuf>,
+    /// LiDAR-IMU extrinsic from a FAST-LIO / LOG-LIO YAML (`mapping:` `extrinsic_T`,
+    /// `extrinsic_R`: the LiDAR's pose in the IMU frame); overrides the configuration's
+    /// [extrinsics] and what the data gives (a bag's /tf_static, the Ouster metadata).
+    #[arg(long, value_name = "FILE.yaml")]
+    extrinsic: Option<PathBuf>,
     /// Output directory (trajectory.tum, scans.csv, map.ply, map.pcd, plots).
     #[arg(long, value_name = "DIR", default_value = "loglio-out")]
     out: PathBuf,
@@ -145,6 +150,7 @@ impl RunArgs {
             mode: self.mode,
             metadata: self.metadata.clone(),
             calibration: self.calibration.clone(),
+            extrinsic: self.extrinsic.clone(),
             out: Some(self.out.clone()),
             gt: self.gt.clone(),
             no_map: self.no_map,
@@ -501,7 +507,8 @@ fn replay_cmd(a: ReplayArgs) -> anyhow::Result<()> {
     };
     let r = loglio_host::cmd::replay::run(&opt)?;
     print(&format!(
-        "{}: {} LiDAR packets{}\n{}",
+        "{}{}: {} LiDAR packets{}\n{}",
+        r.extrinsic.as_ref().map_or(String::new(), |e| format!("{e}\n")),
         opt.pcap.display(),
         r.stream.lidar_packets,
         if r.stream.imu_packets > 0 {
@@ -695,8 +702,21 @@ fn config_cmd(a: ConfigArgs) -> anyhow::Result<()> {
     }
     if let Some(path) = a.check {
         let cfg = Config::load(&path)?;
+        // extrinsics.file is read and checked too: a robot's first run should not find it bad.
+        let extrinsic = match &cfg.extrinsics.file {
+            Some(f) => {
+                let e = loglio_host::input::extrinsic_file::load(f)?;
+                let [x, y, z] = e.translation;
+                let [w, i, j, k] = e.quat_wxyz;
+                format!(
+                    "; extrinsic from {}: t = [{x:.4}, {y:.4}, {z:.4}] m, q wxyz = [{w:.4}, {i:.4}, {j:.4}, {k:.4}]",
+                    f.display()
+                )
+            }
+            None => String::new(),
+        };
         print(&cfg.to_commented_toml())?;
-        eprintln!("{}: valid (preset {})", path.display(), cfg.preset);
+        eprintln!("{}: valid (preset {}{extrinsic})", path.display(), cfg.preset);
         return Ok(());
     }
     bail!("give --preset NAME, --check FILE, --list or --reference")

@@ -222,6 +222,32 @@ fn the_extrinsic_comes_from_tf_static_or_its_absence_is_said_once() {
     );
     let ate = number_after(&text, "rmse");
     assert!(ate <= 0.10, "ATE {ate} m: {text}");
+    // --extrinsic FILE (a FAST-LIO YAML) comes before /tf_static.
+    std::fs::write(
+        dir.join("fast_lio.yaml"),
+        "mapping:\n    extrinsic_T: [ 0.08, -0.04, 0.05 ]   # m\n    extrinsic_R: [ 1, 0, 0,\n                   0, 1, 0,\n                   0, 0, 1 ]\n",
+    )
+    .unwrap();
+    let out = loglio(&[
+        "bag",
+        &p("sim.bag"),
+        "--preset",
+        "vlp32c",
+        "--extrinsic",
+        &p("fast_lio.yaml"),
+        "--out",
+        &p("out-yaml"),
+        "--no-map",
+    ]);
+    let text = String::from_utf8_lossy(&out.stdout).to_string();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        text.contains(&format!(
+            "\nextrinsic from --extrinsic {}: t = [0.0800, -0.0400, 0.0500] m, q wxyz = [1.0000, 0.0000, 0.0000, 0.0000]\n",
+            p("fast_lio.yaml")
+        )),
+        "{text}"
+    );
     write_sim_bag(&dir, true);
     let out = run("out-none");
     let err = String::from_utf8_lossy(&out.stderr).to_string();

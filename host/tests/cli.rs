@@ -111,6 +111,27 @@ fn config_errors_are_one_line() {
     std::fs::write(&good, "preset = \"os1-64\"\n[mapping]\nvoxel_size = 0.3\n").unwrap();
     let text = stdout(&loglio(&["config", "--check", good.to_str().unwrap()]));
     assert_eq!(Config::from_toml_str(&text).unwrap().mapping.voxel_size, 0.3);
+    // extrinsics.file is read beside the configuration and checked.
+    let with_file = d.join("with-file.toml");
+    std::fs::write(&with_file, "preset = \"vlp32c\"\n[extrinsics]\nfile = \"velodyne.yaml\"\n").unwrap();
+    fails_with(
+        &loglio(&["config", "--check", with_file.to_str().unwrap()]),
+        1,
+        &format!("error: extrinsic file {}: ", d.join("velodyne.yaml").display()),
+    );
+    let fixture = concat!(env!("CARGO_MANIFEST_DIR"), "/../tests/data/fast-lio/velodyne.yaml");
+    std::fs::copy(fixture, d.join("velodyne.yaml")).unwrap();
+    let out = loglio(&["config", "--check", with_file.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(out.status.success(), "{err}");
+    assert_eq!(
+        err.trim_end(),
+        format!(
+            "{}: valid (preset vlp32c; extrinsic from {}: t = [-0.0500, 0.0000, 0.2800] m, q wxyz = [0.7071, 0.0000, 0.0000, 0.7071])",
+            with_file.display(),
+            d.join("velodyne.yaml").display()
+        )
+    );
     let _ = std::fs::remove_dir_all(&d);
 }
 

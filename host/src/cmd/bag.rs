@@ -18,7 +18,7 @@ use crate::input::lidar_stream::{self, Decoded, LidarStream, SensorDecoder};
 use crate::output::Progress;
 use crate::run::engine;
 use crate::run::runner::{OwnedScan, RunStats};
-use crate::run::setup::RunSetup;
+use crate::run::setup::{DataExtrinsic, RunSetup};
 use crate::run::{Event, RunOptions, Source};
 use crate::sink::files::Finished;
 
@@ -50,7 +50,7 @@ pub struct BagRunReport {
     pub bag_stats: String,
     /// The topics read.
     pub topics: String,
-    /// Where the extrinsic came from, when the bag gave it (a summary line).
+    /// Where the extrinsic came from (a summary line), unless nothing gave one.
     pub extrinsic: Option<String>,
     /// Scan period, s.
     pub scan_period_s: f64,
@@ -90,7 +90,10 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
     // configuration's, or the bag's metadata topic, read in a first pass).
     let packets = matches!(sel.lidar.1, TopicKind::VelodyneScan | TopicKind::OusterPacket);
     let mut meta = match &cfg.sensor.ouster_metadata {
-        Some(p) => Some(crate::input::ouster_meta::load(p).map_err(|e| PipelineError(e.to_string()))?),
+        Some(p) => Some((
+            crate::input::ouster_meta::load(p).map_err(|e| PipelineError(e.to_string()))?,
+            p.display().to_string(),
+        )),
         None => None,
     };
     if sel.lidar.1 == TopicKind::OusterPacket {
@@ -105,9 +108,10 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
                 BagReader::open(&opt.bag, bag_opts()?).map_err(|e| PipelineError(e.to_string()))?;
             for item in first.by_ref().take(100_000) {
                 if let Ok(crate::input::bag::BagItem { event: BagEvent::OusterMetadata(json), .. }) = item {
-                    meta = Some(
+                    meta = Some((
                         crate::input::ouster_meta::parse(&json).map_err(|e| PipelineError(e.to_string()))?,
-                    );
+                        "of the bag's metadata topic".to_string(),
+                    ));
                     break;
                 }
             }
@@ -124,34 +128,37 @@ pub fn run(opt: &BagRunOptions) -> Result<BagRunReport, PipelineError> {
             cfg.preset
         )));
     }
-    let dec =
-        if packets { Some(SensorDecoder::new(&cfg, meta.as_ref().map(|m| &m.intrinsics))?) } else { None };
+    let dec = if packets {
+        Some(SensorDecoder::new(&cfg, meta.as_ref().map(|(m, _)| &m.intrinsics))?)
+    } else {
+        None
+    };
     let layout = match &dec {
         Some(d) => d.layout(),
         None => engine::config_layout(&cfg)?,
     };
-    if let Some(m) = &meta {
+    if let Some((m, _)) = &meta {
         cfg.sensor.columns = m.intrinsics.columns_per_frame as u32;
     }
-    let extrinsic = match from_tf {
-        Some(e) => {
+    // What the data gives: the bag's /tf_static, else the Ouster metadata's IMU transform.
+    let data = match (from_tf, &meta) {
+        (Some(e), _) => {
             let t = e.imu_lidar.translation.vector;
             let q = e.imu_lidar.rotation;
-            cfg.extrinsics.translation = [t.x, t.y, t.z];
-            cfg.extrinsics.rotation_rpy_deg = None;
-            cfg.extrinsics.rotation_quat_wxyz = Some([q.w, q.i, q.j, q.k]);
-            Some(format!(
-                "extrinsic from /tf_static ({} in {}): t = [{:.4}, {:.4}, {:.4}] m, q wxyz = [{:.4}, {:.4}, {:.4}, {:.4}]",
-                e.lidar_frame, e.imu_frame, t.x, t.y, t.z, q.w, q.i, q.j, q.k
-            ))
+            Some(DataExtrinsic {
+                what: format!("/tf_static ({} in {})", e.lidar_frame, e.imu_frame),
+                translation: [t.x, t.y, t.z],
+                quat_wxyz: [q.w, q.i, q.j, q.k],
+            })
         }
-        None => {
-            if !lidar_only {
-                opt.setup.warn_missing_extrinsic(&cfg);
-            }
-            None
-        }
+        (None, Some((m, source))) => Some(DataExtrinsic::of_metadata(m, source)),
+        (None, None) => None,
     };
+    let note = opt.setup.resolve_extrinsic(&mut cfg, data)?;
+    if !lidar_only {
+        note.warn_if_missing();
+    }
+    let extrinsic = note.line().map(str::to_string);
     let n = dec.as_ref().map_or(0, |d| d.max_points());
     let (mut a, mut b) = (vec![ScanPoint::default(); n], vec![ScanPoint::default(); n]);
     let stream = dec.map(|d| LidarStream::of_kinds(&cfg, d, &mut a, &mut b));

@@ -61,7 +61,7 @@ use crate::input::time_align::{ClockEstimate, DeviceClock};
 use crate::input::udp::{self, UdpSource};
 use crate::run::engine;
 use crate::run::runner::{OwnedScan, RunStats, Runner};
-use crate::run::setup::{PacketSetup, RunSetup};
+use crate::run::setup::{DataExtrinsic, PacketSetup, RunSetup};
 use crate::sink::files::{self, Finished};
 use std::sync::Mutex;
 
@@ -711,6 +711,8 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
             PipelineError(format!("network.bind = \"{}\" is not an IP address", cfg.network.bind))
         })?,
     };
+    let data = DataExtrinsic::of_ouster_metadata(&cfg)?;
+    let extrinsic = opt.setup.resolve_extrinsic(&mut cfg, data)?;
     let PacketSetup { dec, lidar_port, imu_port, class, core } = PacketSetup::new(&cfg)?;
     let lidar_port = opt.lidar_port.unwrap_or(lidar_port);
     let imu_port = opt.imu_port.unwrap_or(imu_port);
@@ -756,13 +758,14 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
         }
         _ => None,
     };
+    if !lidar_only {
+        extrinsic.warn_if_missing();
+    }
+    let extrinsic_desc = extrinsic.line().map_or(String::new(), |l| format!("; {l}"));
     let raw_scale = match (cfg.imu.raw_imu_acc_scale, cfg.imu.raw_imu_gyro_scale) {
         (Some(acc), Some(gyro)) => Some(RawScale { acc: acc as f32, gyro: gyro as f32 }),
         _ => None,
     };
-    if !lidar_only {
-        opt.setup.warn_missing_extrinsic(&cfg);
-    }
     let own_clock = if mavlink.is_some() {
         Some("MAVLink".to_string())
     } else {
@@ -861,7 +864,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
             };
             drop(msg_tx);
             eprintln!(
-                "loglio live: listening for {preset} LiDAR packets on UDP {lidar_addr}, {imu_desc}; Ctrl-C to stop"
+                "loglio live: listening for {preset} LiDAR packets on UDP {lidar_addr}, {imu_desc}{extrinsic_desc}; Ctrl-C to stop"
             );
 
             let times = Rc::new(RefCell::new(ScanTimes::default()));

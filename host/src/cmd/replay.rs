@@ -18,7 +18,7 @@ use crate::input::pace::Pacer;
 use crate::input::serial::ImuFrameReader;
 use crate::output::Progress;
 use crate::run::runner::RunStats;
-use crate::run::setup::{PacketSetup, RunSetup};
+use crate::run::setup::{DataExtrinsic, PacketSetup, RunSetup};
 use crate::run::{Event, RunOptions, Source};
 use crate::sink::files::Finished;
 
@@ -80,6 +80,8 @@ pub struct ReplayReport {
     pub stream: lidar_stream::StreamStats,
     /// Whether the Ouster's IMU packets were the IMU (else they were counted and left out).
     pub imu_packets_used: bool,
+    /// Where the extrinsic came from (a summary line), unless nothing gave one.
+    pub extrinsic: Option<String>,
     /// The scan period, s.
     pub scan_period_s: f64,
     /// Wall time, s.
@@ -109,6 +111,8 @@ impl ImuFeed {
 pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
     let wall = Instant::now();
     let mut cfg = opt.setup.load_config()?;
+    let data = DataExtrinsic::of_ouster_metadata(&cfg)?;
+    let extrinsic = opt.setup.resolve_extrinsic(&mut cfg, data)?;
     let imu = match (&opt.imu, cfg.imu.source) {
         (Some(i), _) => i.clone(),
         (None, ImuSource::Ouster) => ImuInput::OusterPackets,
@@ -173,7 +177,7 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
         pcap: &opt.pcap,
     };
     if imu != ImuInput::None {
-        opt.setup.warn_missing_extrinsic(&cfg);
+        extrinsic.warn_if_missing();
     }
     let (stop, _signals) = crate::run::Signals::stop_flag();
     let opts = RunOptions {
@@ -206,6 +210,7 @@ pub fn run(opt: &ReplayOptions) -> Result<ReplayReport, PipelineError> {
         finished,
         stream: stream.stats,
         imu_packets_used,
+        extrinsic: extrinsic.line().map(str::to_string),
         scan_period_s: 1.0 / cfg.sensor.scan_rate_hz,
         wall_s: wall.elapsed().as_secs_f64(),
     })

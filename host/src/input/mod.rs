@@ -3,6 +3,7 @@
 
 pub mod bag;
 pub mod device_imu;
+pub mod extrinsic_file;
 pub mod imu_csv;
 pub mod lidar_stream;
 pub mod mavlink_imu;
