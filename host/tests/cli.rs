@@ -207,11 +207,10 @@ fn eval_reports_and_plots_and_bad_files_are_one_line() {
         "error: no matching timestamps within 0.01 s: ground truth spans 0.000..2.000 s, estimate 100.000..101.000 s (after offset 0 s)",
     );
     std::fs::write(&bad, "0 1 2 3 0 0 0 1\n1 1 2 3 0 0 0 1\n2 1 2 4 0 0 0 1\n").unwrap();
-    fails(
-        &loglio(&["eval", g, b]),
-        1,
-        "error: alignment is degenerate: the matched positions lie on a point or a line (3 poses)",
-    );
+    // Positions on a line leave the rotation about it open: it comes from the orientations.
+    let line = loglio(&["eval", g, b]);
+    assert!(line.status.success(), "{}", String::from_utf8_lossy(&line.stderr));
+    assert!(String::from_utf8_lossy(&line.stdout).contains("the positions lie on a line"));
     fails_with(&loglio(&["eval", g, "/nonexistent.txt"]), 1, "error: cannot read /nonexistent.txt: ");
     let _ = std::fs::remove_dir_all(&d);
 }
