@@ -572,7 +572,7 @@ fn live_mode_sends_udp_and_serial() {
         })
         .expect("no free loopback ports");
     data.set_read_timeout(Some(std::time::Duration::from_millis(500))).unwrap();
-    let cfg = loglio_firmware_sim::live::LiveConfig {
+    let cfg = loglio_firmware_sim::live_sensors::LiveConfig {
         host: std::net::Ipv4Addr::LOCALHOST,
         rate: 1.0,
         pty_link: None,
@@ -580,8 +580,9 @@ fn live_mode_sends_udp_and_serial() {
     };
     let (tx, rx) = std::sync::mpsc::channel();
     let (n, stats, bytes) = std::thread::scope(|s| {
-        let h =
-            s.spawn(|| loglio_firmware_sim::live::run(&sc, &cfg, |pty| tx.send(pty.path.clone()).unwrap()));
+        let h = s.spawn(|| {
+            loglio_firmware_sim::live_sensors::run(&sc, &cfg, |pty| tx.send(pty.path.clone()).unwrap())
+        });
         let path = rx.recv().unwrap();
         let serial = std::fs::File::open(&path).unwrap();
         let reader = s.spawn(move || {

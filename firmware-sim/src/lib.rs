@@ -1,6 +1,6 @@
 //! loglio-firmware-sim: a deterministic simulated world, vehicle motion and sensors (Velodyne,
 //! Ouster, an IMU board) that emit the real wire formats with exact ground truth, and the core
-//! built as Cortex-M firmware (`bin/loglio-fw.rs`, fed by [`replay`]).
+//! built as Cortex-M firmware (`bin/loglio-fw.rs`, fed by [`firmware_recording`]).
 //!
 //! Modules that would run on a device (the IMU chip model and board firmware, the packet
 //! emitters, trajectories, randomness) are `no_std` and allocation-free; the world, the ray
@@ -11,19 +11,19 @@
 pub mod fault;
 #[cfg(not(target_os = "none"))]
 pub mod files;
+pub mod firmware_recording;
 pub mod imu_board;
 pub mod imu_chip;
 pub mod jet;
 pub mod lidar;
 #[cfg(not(target_os = "none"))]
-pub mod live;
+pub mod live_sensors;
 #[cfg(not(target_os = "none"))]
 mod packet;
 #[cfg(not(target_os = "none"))]
 pub mod pcap_out;
 #[cfg(not(target_os = "none"))]
 pub mod raycast;
-pub mod replay;
 pub mod rng;
 #[cfg(not(target_os = "none"))]
 pub mod scenario;

@@ -20,9 +20,9 @@ use std::time::{Duration, Instant};
 
 use loglio_core::output::Status;
 use loglio_core::scan::{ScanPoint, ScanView};
+use loglio_firmware_sim::firmware_recording::{self, FW_POINTS, FirmwareStorage, Reader, Record};
 use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::lidar::ouster::LidarMode;
-use loglio_firmware_sim::replay::{self, FW_POINTS, FirmwareStorage, Reader, Record};
 use loglio_firmware_sim::scenario::{LidarConfig, Scenario, ScenarioConfig, ScenarioKind};
 
 const TARGET: &str = "thumbv7em-none-eabihf";
@@ -37,7 +37,7 @@ fn workspace() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap().to_path_buf()
 }
 
-fn record(path: &Path) -> (Scenario, replay::RecordingStats) {
+fn record(path: &Path) -> (Scenario, firmware_recording::RecordingStats) {
     let mut cfg = ScenarioConfig::new(ScenarioKind::Handheld, SensorModel::Os1_16, 11);
     cfg.duration_s = 3.0;
     if let LidarConfig::Ouster(o) = &mut cfg.lidar {
@@ -45,7 +45,7 @@ fn record(path: &Path) -> (Scenario, replay::RecordingStats) {
     }
     let sc = Scenario::from_config(cfg).unwrap();
     let file = std::io::BufWriter::new(std::fs::File::create(path).unwrap());
-    let (_, stats) = replay::record_scenario(&sc, file).unwrap();
+    let (_, stats) = firmware_recording::record_scenario(&sc, file).unwrap();
     (sc, stats)
 }
 
@@ -58,7 +58,7 @@ struct HostRun {
 
 fn run_host(bytes: &[u8]) -> HostRun {
     let (mut reader, header) = Reader::new(bytes).unwrap();
-    let cfg = replay::firmware_config(&header);
+    let cfg = firmware_recording::firmware_config(&header);
     let mut storage = HOST.lock().unwrap();
     let mut odo = storage.odometry(&cfg).unwrap();
     let mut points = vec![ScanPoint::default(); FW_POINTS];
@@ -71,7 +71,7 @@ fn run_host(bytes: &[u8]) -> HostRun {
             Record::Scan { start_ns, points: n } => {
                 let r = odo.process_scan(ScanView { start_ns, points: &points[..n] });
                 let mut line = String::new();
-                replay::write_pose_line(&mut line, run.lines.len() as u32, &r).unwrap();
+                firmware_recording::write_pose_line(&mut line, run.lines.len() as u32, &r).unwrap();
                 run.lines.push(line);
                 if !matches!(r.status, Status::Initialising(_)) {
                     let p = r.pose.position;

@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 
 use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::lidar::scanner::Firmware;
-use loglio_firmware_sim::live::{LiveConfig, LiveStats};
+use loglio_firmware_sim::live_sensors::{LiveConfig, LiveStats};
 use loglio_firmware_sim::scenario::{Scenario, ScenarioConfig, ScenarioKind};
 use loglio_host::eval::{self, EvalOptions, Format};
 
@@ -176,7 +176,7 @@ fn scenario(dir: &Path, seconds: f64) -> Scenario {
 fn stream(sc: &Scenario, offset: u16, on_ready: impl FnOnce(&str)) -> LiveStats {
     let cfg =
         LiveConfig { host: std::net::Ipv4Addr::LOCALHOST, rate: 1.0, pty_link: None, port_offset: offset };
-    loglio_firmware_sim::live::run(sc, &cfg, |pty| on_ready(pty.path.to_str().unwrap())).unwrap()
+    loglio_firmware_sim::live_sensors::run(sc, &cfg, |pty| on_ready(pty.path.to_str().unwrap())).unwrap()
 }
 
 /// The counts after `key` in the summary's "drops: socket queue A, decoder B, IMU C, scans D".
@@ -480,7 +480,7 @@ fn live_bad_input_is_one_clear_line() {
         "error: preset os1-16 reads Ouster packets, which need the sensor's metadata",
     );
     // Nothing arrives on the LiDAR port: a clear error after --lidar-timeout.
-    let pty = match loglio_firmware_sim::live::Pty::open() {
+    let pty = match loglio_firmware_sim::live_sensors::Pty::open() {
         Ok(p) => p,
         // qemu-user does not emulate the pseudo-terminal ioctls the test process needs.
         Err(e) if runner().is_some() => {
@@ -517,7 +517,7 @@ fn live_without_imu_data_warns_and_fails_clearly() {
         return;
     };
     // An IMU device that stays silent: a pseudo-terminal nobody writes.
-    let silent = loglio_firmware_sim::live::Pty::open().unwrap();
+    let silent = loglio_firmware_sim::live_sensors::Pty::open().unwrap();
     let silent_path = silent.path.to_str().unwrap().to_string();
     let out = run.dir.join("out");
     let (_, child) = run.stream(|_pty| {
@@ -797,7 +797,7 @@ fn live_survives_the_fault_injector() {
         port_offset: run.offset,
     };
     let mut child = None;
-    loglio_firmware_sim::live::run_events(events, sc.start_ns(), &cfg, |pty| {
+    loglio_firmware_sim::live_sensors::run_events(events, sc.start_ns(), &cfg, |pty| {
         let pty = pty.path.to_str().unwrap();
         child = Some(run.spawn_live(&[
             "--imu-serial",
@@ -928,20 +928,21 @@ fn live_reads_an_xsens_with_noise_on_the_line() {
     };
     let mut child = None;
     let mut stream_start_ns = 0u64;
-    let sent = loglio_firmware_sim::live::run_events(events.into_iter(), sc.start_ns(), &cfg, |pty| {
-        let pty = pty.path.to_str().unwrap();
-        child = Some(run.spawn_live(&[
-            "--imu-serial",
-            pty,
-            "--imu-protocol",
-            "xsens",
-            "--out",
-            out.to_str().unwrap(),
-        ]));
-        // The stream is paced from here: the simulator's start is now on this computer's clock.
-        stream_start_ns = loglio_host::input::udp::host_time_ns();
-    })
-    .unwrap();
+    let sent =
+        loglio_firmware_sim::live_sensors::run_events(events.into_iter(), sc.start_ns(), &cfg, |pty| {
+            let pty = pty.path.to_str().unwrap();
+            child = Some(run.spawn_live(&[
+                "--imu-serial",
+                pty,
+                "--imu-protocol",
+                "xsens",
+                "--out",
+                out.to_str().unwrap(),
+            ]));
+            // The stream is paced from here: the simulator's start is now on this computer's clock.
+            stream_start_ns = loglio_host::input::udp::host_time_ns();
+        })
+        .unwrap();
     let child = child.unwrap();
     std::thread::sleep(Duration::from_millis(300));
     child.interrupt();
@@ -1052,7 +1053,7 @@ fn live_reads_a_mavlink_imu_over_udp() {
     let mut child = None;
     let mut stream_start_ns = 0u64;
     let listen = (mav_port + run.offset).to_string();
-    loglio_firmware_sim::live::run_events(events.into_iter(), sc.start_ns(), &cfg, |_pty| {
+    loglio_firmware_sim::live_sensors::run_events(events.into_iter(), sc.start_ns(), &cfg, |_pty| {
         child = Some(run.spawn_live(&["--imu-mavlink-udp", &listen, "--out", out.to_str().unwrap()]));
         stream_start_ns = loglio_host::input::udp::host_time_ns();
     })

@@ -1,6 +1,6 @@
 //! `loglio-fw`: the loglio core as Cortex-M firmware (QEMU mps2-an386, Cortex-M4F, 16 MiB).
 //!
-//! Reads a recording (see `loglio_firmware_sim::replay`) through semihosting, runs the odometry
+//! Reads a recording (see `loglio_firmware_sim::firmware_recording`) through semihosting, runs the odometry
 //! of the firmware configuration over it with all its memory in one static pool (`.bss`, checked
 //! against `memory.x` by the linker), and prints one pose line per scan (the f64 bits in hex) and
 //! the SysTick ticks each `process_scan` took. Under `-icount shift=0` SysTick counts exactly one
@@ -38,19 +38,19 @@ mod fw {
     use cortex_m::peripheral::syst::SystClkSource;
     use cortex_m_rt::{entry, exception};
     use loglio_core::scan::{ScanPoint, ScanView};
-    use loglio_firmware_sim::replay::{self, FW_POINTS, Reader, Record};
+    use loglio_firmware_sim::firmware_recording::{self, FW_POINTS, Reader, Record};
     use semihosting::io::{Read as _, Write as _};
     use semihosting::{c, println};
     use static_cell::ConstStaticCell;
 
     #[cfg(not(feature = "oversized-pool"))]
-    type Storage = replay::FirmwareStorage;
+    type Storage = firmware_recording::FirmwareStorage;
     /// 2^17 voxels (24 MiB): more than the board has; the link must fail.
     #[cfg(feature = "oversized-pool")]
     type Storage = loglio_core::odometry::OdometryStorage<
-        { loglio_core::ring_fals::storage_pixels(replay::FW_ROWS, replay::FW_COLS) },
+        { loglio_core::ring_fals::storage_pixels(firmware_recording::FW_ROWS, firmware_recording::FW_COLS) },
         FW_POINTS,
-        { replay::FW_DOWNSAMPLE_SLOTS },
+        { firmware_recording::FW_DOWNSAMPLE_SLOTS },
         { 1 << 17 },
         { 1 << 18 },
     >;
@@ -200,7 +200,7 @@ mod fw {
 
         let storage = STORAGE.take();
         let points = POINTS.take();
-        let cfg = replay::firmware_config(&header);
+        let cfg = firmware_recording::firmware_config(&header);
         let mut odo = match storage.odometry(&cfg) {
             Ok(o) => o,
             Err(e) => fail(4, format_args!("configuration rejected: {e}")),
@@ -208,7 +208,7 @@ mod fw {
         println!(
             "loglio-fw: storage {} bytes ({} voxels), scan buffer {} bytes, ram {}",
             Storage::bytes(),
-            replay::FW_POOL_VOXELS,
+            firmware_recording::FW_POOL_VOXELS,
             core::mem::size_of::<[ScanPoint; FW_POINTS]>(),
             c!("mps2-an386 16 MiB").to_str().unwrap_or(""),
         );
@@ -228,7 +228,7 @@ mod fw {
                         odo.process_scan_timed(ScanView { start_ns, points: &points[..n] }, &mut TickClock);
                     let dt = ticks() - t0;
                     total_ticks += dt;
-                    let _ = replay::write_pose_line(&mut line, scans, &r);
+                    let _ = firmware_recording::write_pose_line(&mut line, scans, &r);
                     line.flush();
                     // Whole call in ticks, then the stages in clock units (ticks x 40).
                     let st = &r.times;

@@ -18,7 +18,7 @@ use loglio_firmware_sim::lidar::{ReturnMode, SensorModel};
 use loglio_firmware_sim::raycast::Ray;
 use loglio_firmware_sim::rng::SplitMix64;
 use loglio_firmware_sim::scenario::{Event, LidarConfig, Scenario, ScenarioConfig, ScenarioKind};
-use loglio_firmware_sim::{files, live};
+use loglio_firmware_sim::{files, live_sensors};
 
 /// Simulated LiDAR + IMU with exact ground truth, emitting the sensors' real wire formats.
 #[derive(Debug, Parser)]
@@ -53,7 +53,7 @@ enum Cmd {
         port_offset: u16,
     },
     /// Write a scenario as a replay recording for the Cortex-M firmware `loglio-fw` (IMU
-    /// samples and scans in time order; format: `loglio_firmware_sim::replay`).
+    /// samples and scans in time order; format: `loglio_firmware_sim::firmware_recording`).
     Replay {
         #[command(flatten)]
         sc: ScenarioArgs,
@@ -203,8 +203,9 @@ fn main() -> anyhow::Result<()> {
                 std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
             }
             let file = std::fs::File::create(&out).with_context(|| format!("creating {}", out.display()))?;
-            let (_, st) = loglio_firmware_sim::replay::record_scenario(&s, std::io::BufWriter::new(file))
-                .with_context(|| format!("writing {}", out.display()))?;
+            let (_, st) =
+                loglio_firmware_sim::firmware_recording::record_scenario(&s, std::io::BufWriter::new(file))
+                    .with_context(|| format!("writing {}", out.display()))?;
             println!(
                 "wrote {}: {} scans ({} points, largest {}), {} IMU samples",
                 out.display(),
@@ -216,8 +217,9 @@ fn main() -> anyhow::Result<()> {
         }
         Cmd::Live { sc, rate, pty_link, port_offset } => {
             let s = sc.build()?;
-            let cfg = live::LiveConfig { host: std::net::Ipv4Addr::LOCALHOST, rate, pty_link, port_offset };
-            let stats = live::run(&s, &cfg, |pty| {
+            let cfg =
+                live_sensors::LiveConfig { host: std::net::Ipv4Addr::LOCALHOST, rate, pty_link, port_offset };
+            let stats = live_sensors::run(&s, &cfg, |pty| {
                 println!("IMU serial: {}", pty.path.display());
                 println!("LiDAR UDP: 127.0.0.1 (ports +{port_offset}); ctrl-c to stop");
             })?;
