@@ -525,6 +525,62 @@ fn rosbag2_sqlite_round_trip_across_splits() {
     check_sequence(&run, &exp);
 }
 
+/// rosbag2's file compression (`compression_mode: FILE`): every storage file one zstd stream,
+/// split or not, sqlite3 or MCAP, given as the directory or as one `.zstd` file. Read as the
+/// uncompressed bag is, from a temporary copy that is removed when the bag is closed.
+#[test]
+fn rosbag2_file_compression_is_read() {
+    let dir = tmp("db3-zstd");
+    let (msgs, exp) = sequence(Encoding::Cdr, build::VELODYNE);
+    let half = msgs.len() / 2;
+    let compress = |plain: &Path, to: &Path| {
+        let data = std::fs::read(plain).unwrap();
+        std::fs::write(to, zstd::stream::encode_all(data.as_slice(), 3).unwrap()).unwrap();
+        std::fs::remove_file(plain).unwrap();
+    };
+    let bagdir = dir.join("run");
+    std::fs::create_dir_all(&bagdir).unwrap();
+    std::fs::write(
+        bagdir.join("metadata.yaml"),
+        "rosbag2_bagfile_information:\n  compression_format: zstd\n  compression_mode: FILE\n",
+    )
+    .unwrap();
+    for (k, part, base) in [(0, &msgs[..half], 1), (1, &msgs[half..], 7)] {
+        let plain = bagdir.join(format!("run_{k}.db3"));
+        write_db3(&plain, part, base);
+        compress(&plain, &bagdir.join(format!("run_{k}.db3.zstd")));
+    }
+    let temp_dirs = || {
+        let prefix = format!("loglio-bag-{}-", std::process::id());
+        std::fs::read_dir(std::env::temp_dir())
+            .unwrap()
+            .filter_map(|e| e.ok())
+            .filter(|e| e.file_name().to_string_lossy().starts_with(&prefix))
+            .count()
+    };
+    {
+        let bag = BagReader::open(&bagdir, opts(Preset::Vlp16)).unwrap();
+        assert_eq!(bag.format(), BagFormat::Ros2Sqlite);
+        assert_eq!(bag.total_messages(), Some(63));
+        assert!(temp_dirs() >= 1, "decompressed into a temporary directory");
+    }
+    let run = read_all(&bagdir, opts(Preset::Vlp16)).unwrap();
+    assert!(run.warnings.is_empty(), "{:?}", run.warnings);
+    check_sequence(&run, &exp);
+    // One storage file given alone, and an MCAP one.
+    let run = read_all(&bagdir.join("run_0.db3.zstd"), opts(Preset::Vlp16)).unwrap();
+    assert!(run.end.is_ok());
+    assert_eq!(run.stats.messages, half as u64);
+    let mcap = dir.join("all.mcap");
+    write_mcap(&mcap, &msgs);
+    compress(&mcap, &dir.join("all.mcap.zstd"));
+    let bag = BagReader::open(&dir.join("all.mcap.zstd"), opts(Preset::Vlp16)).unwrap();
+    assert_eq!(bag.format(), BagFormat::Mcap);
+    drop(bag);
+    let run = read_all(&dir.join("all.mcap.zstd"), opts(Preset::Vlp16)).unwrap();
+    check_sequence(&run, &exp);
+}
+
 /// `/tf_static` gives the LiDAR frame in the IMU frame: through a common parent (`base_link`),
 /// directly, or inverted; in ROS 1 and CDR bags. p_imu = R * p_lidar + t, values by hand.
 #[test]
@@ -1234,11 +1290,22 @@ fn not_bags_corrupt_databases_and_compressed_bags_are_one_line_errors() {
     );
     let z = dir.join("b.db3.zstd");
     std::fs::write(&z, [0x28, 0xb5, 0x2f, 0xfd, 0, 0]).unwrap();
-    assert_eq!(
-        open_err(&z, o()),
-        format!(
-            "{0}: a zstd-compressed file (a rosbag2 .db3.zstd or .mcap.zstd: file compression), which loglio does not read; decompress it first (`zstd -d {0}`, or `ros2 bag convert` on its directory)",
+    let e = open_err(&z, o());
+    assert!(
+        e.starts_with(&format!(
+            "{}: a zstd-compressed file (rosbag2 file compression) that does not decompress: ",
             z.display()
+        )),
+        "{e}"
+    );
+    // A zstd stream of something else.
+    let zt = dir.join("text.zstd");
+    std::fs::write(&zt, zstd::stream::encode_all(&b"hello, not a bag"[..], 3).unwrap()).unwrap();
+    assert_eq!(
+        open_err(&zt, o()),
+        format!(
+            "{}: a zstd-compressed file that holds no rosbag2 storage file (sqlite3 or MCAP)",
+            zt.display()
         )
     );
     // A rosbag2 directory that says it is compressed.
@@ -1251,18 +1318,30 @@ fn not_bags_corrupt_databases_and_compressed_bags_are_one_line_errors() {
     .unwrap();
     assert_eq!(
         open_err(&cdir, o()),
-        format!(
-            "{}: this rosbag2 is zstd-compressed (file compression), which loglio does not read; decompress it first (`ros2 bag convert` to an uncompressed bag, or `zstd -d` on each .zstd file and compression_format: \"\" in metadata.yaml)",
-            cdir.display()
-        )
+        format!("{}: no .db3 or .mcap files (not a rosbag2 directory)", cdir.display())
     );
-    // Its .db3.zstd file, without the metadata.
+    // A broken .db3.zstd file, without the metadata.
     std::fs::remove_file(cdir.join("metadata.yaml")).unwrap();
-    std::fs::write(cdir.join("c_0.db3.zstd"), [0x28, 0xb5, 0x2f, 0xfd, 0, 0]).unwrap();
+    let c0 = cdir.join("c_0.db3.zstd");
+    std::fs::write(&c0, [0x28, 0xb5, 0x2f, 0xfd, 0, 0]).unwrap();
+    let e = open_err(&cdir, o());
+    assert!(
+        e.starts_with(&format!(
+            "{}: a zstd-compressed file (rosbag2 file compression) that does not decompress: ",
+            c0.display()
+        )),
+        "{e}"
+    );
+    // Another compression format is named with the fix.
+    std::fs::write(
+        cdir.join("metadata.yaml"),
+        "rosbag2_bagfile_information:\n  compression_format: lz4\n  compression_mode: FILE\n",
+    )
+    .unwrap();
     assert_eq!(
         open_err(&cdir, o()),
         format!(
-            "{}: this rosbag2 is zstd-compressed (file compression: c_0.db3.zstd), which loglio does not read; decompress it first (`ros2 bag convert` to an uncompressed bag, or `zstd -d` on each .zstd file)",
+            "{}: this rosbag2 is lz4-compressed (file compression), which loglio does not read; decompress it first (`ros2 bag convert` to an uncompressed bag)",
             cdir.display()
         )
     );

@@ -413,6 +413,9 @@ pub struct BagReader {
     stats: BagStats,
     warned: HashSet<String>,
     total: Option<u64>,
+    /// Decompressed storage files (removed on drop: declared last, after the source that
+    /// reads them).
+    _decompressed: Option<Decompressed>,
 }
 
 impl fmt::Debug for BagReader {
@@ -429,8 +432,51 @@ fn ext(p: &Path) -> String {
     p.file_name().and_then(|n| n.to_str()).unwrap_or("").to_ascii_lowercase()
 }
 
-/// Finds the format and the storage files of a path (a file, or a rosbag2 directory).
-fn detect(path: &Path) -> Result<(BagFormat, Vec<PathBuf>), BagError> {
+/// Storage files decompressed from a rosbag2's file compression (`.db3.zstd`, `.mcap.zstd`)
+/// into a temporary directory, removed when the bag is closed.
+#[derive(Debug)]
+struct Decompressed(PathBuf);
+
+impl Drop for Decompressed {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// Decompresses `files` (zstd frames) into a new temporary directory, each under its name
+/// less `.zstd`.
+fn decompress(name: &str, files: &[PathBuf]) -> Result<(Decompressed, Vec<PathBuf>), BagError> {
+    static N: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let dir = std::env::temp_dir().join(format!("loglio-bag-{}-{n}", std::process::id()));
+    std::fs::create_dir_all(&dir)
+        .map_err(|e| BagError(format!("{name}: cannot make {} to decompress into: {e}", dir.display())))?;
+    let guard = Decompressed(dir.clone());
+    let mut out = Vec::new();
+    for f in files {
+        let file_name = f.file_name().and_then(|n| n.to_str()).unwrap_or("bag");
+        let plain = dir.join(file_name.strip_suffix(".zstd").unwrap_or(file_name));
+        let src =
+            std::fs::File::open(f).map_err(|e| BagError(format!("cannot open {}: {e}", f.display())))?;
+        let dst = std::fs::File::create(&plain)
+            .map_err(|e| BagError(format!("{name}: cannot write {}: {e}", plain.display())))?;
+        zstd::stream::copy_decode(std::io::BufReader::new(src), std::io::BufWriter::new(dst)).map_err(
+            |e| {
+                BagError(format!(
+                    "{}: a zstd-compressed file (rosbag2 file compression) that does not decompress: {}",
+                    f.display(),
+                    crate::diag::one_line(&e.to_string())
+                ))
+            },
+        )?;
+        out.push(plain);
+    }
+    Ok((guard, out))
+}
+
+/// Finds the format and the storage files of a path (a file, or a rosbag2 directory);
+/// compressed storage files are decompressed into a temporary directory first.
+fn detect(path: &Path) -> Result<(BagFormat, Vec<PathBuf>, Option<Decompressed>), BagError> {
     let name = path.display();
     let meta = std::fs::metadata(path).map_err(|e| BagError(format!("cannot open {name}: {e}")))?;
     if meta.is_dir() {
@@ -443,18 +489,13 @@ fn detect(path: &Path) -> Result<(BagFormat, Vec<PathBuf>), BagError> {
         };
         let format = value("compression_format").unwrap_or_default();
         let mode = value("compression_mode").unwrap_or_default().to_ascii_lowercase();
-        // zstd per message is decompressed as the rows are read; a compressed file is not.
-        let readable = format.is_empty() || (format == "zstd" && mode == "message");
+        // zstd per message is decompressed as the rows are read, zstd files before reading.
+        let readable = format.is_empty() || format == "zstd";
         if !readable {
             let how = if mode == "message" { "message" } else { "file" };
             return Err(BagError(format!(
                 "{name}: this rosbag2 is {format}-compressed ({how} compression), which loglio does not read; \
-                 decompress it first (`ros2 bag convert` to an uncompressed bag{})",
-                if format == "zstd" {
-                    ", or `zstd -d` on each .zstd file and compression_format: \"\" in metadata.yaml"
-                } else {
-                    ""
-                }
+                 decompress it first (`ros2 bag convert` to an uncompressed bag)"
             )));
         }
         let mut files: Vec<PathBuf> = std::fs::read_dir(path)
@@ -468,18 +509,25 @@ fn detect(path: &Path) -> Result<(BagFormat, Vec<PathBuf>), BagError> {
             (stem.rsplit('_').next().and_then(|n| n.parse().ok()).unwrap_or(0), stem)
         };
         files.sort_by_key(split_no);
+        let zstd: Vec<PathBuf> = files
+            .iter()
+            .filter(|p| ext(p).ends_with(".db3.zstd") || ext(p).ends_with(".mcap.zstd"))
+            .cloned()
+            .collect();
+        let mut temp = None;
+        if !zstd.is_empty() {
+            // File compression: every storage file is one zstd stream.
+            let (guard, plain) = decompress(&name.to_string(), &zstd)?;
+            files.retain(|p| !zstd.contains(p));
+            files.extend(plain);
+            files.sort_by_key(split_no);
+            temp = Some(guard);
+        }
         let db3: Vec<PathBuf> = files.iter().filter(|p| ext(p).ends_with(".db3")).cloned().collect();
         let mcap: Vec<PathBuf> = files.iter().filter(|p| ext(p).ends_with(".mcap")).cloned().collect();
-        if let Some(z) = files.iter().find(|p| ext(p).ends_with(".zstd")) {
-            return Err(BagError(format!(
-                "{name}: this rosbag2 is zstd-compressed (file compression: {}), which loglio does not read; \
-                 decompress it first (`ros2 bag convert` to an uncompressed bag, or `zstd -d` on each .zstd file)",
-                z.file_name().and_then(|n| n.to_str()).unwrap_or("?")
-            )));
-        }
         return match (db3.is_empty(), mcap.len()) {
-            (false, 0) => Ok((BagFormat::Ros2Sqlite, db3)),
-            (true, 1) => Ok((BagFormat::Mcap, mcap)),
+            (false, 0) => Ok((BagFormat::Ros2Sqlite, db3, temp)),
+            (true, 1) => Ok((BagFormat::Mcap, mcap, temp)),
             (true, n) if n > 1 => Err(BagError(format!(
                 "{name}: {n} MCAP splits; loglio reads one MCAP file at a time (pass a file, or merge them with `mcap merge`)"
             ))),
@@ -503,16 +551,21 @@ fn detect(path: &Path) -> Result<(BagFormat, Vec<PathBuf>), BagError> {
     };
     let head = &head[..n];
     if head.starts_with(b"#ROSBAG") {
-        Ok((BagFormat::Ros1, vec![path.to_path_buf()]))
+        Ok((BagFormat::Ros1, vec![path.to_path_buf()], None))
     } else if head.starts_with(b"\x89MCAP") {
-        Ok((BagFormat::Mcap, vec![path.to_path_buf()]))
+        Ok((BagFormat::Mcap, vec![path.to_path_buf()], None))
     } else if head.starts_with(b"SQLite format 3\0") {
-        Ok((BagFormat::Ros2Sqlite, vec![path.to_path_buf()]))
+        Ok((BagFormat::Ros2Sqlite, vec![path.to_path_buf()], None))
     } else if head.starts_with(&ros2_sqlite::ZSTD_MAGIC) {
-        Err(BagError(format!(
-            "{name}: a zstd-compressed file (a rosbag2 .db3.zstd or .mcap.zstd: file compression), which loglio does not read; \
-             decompress it first (`zstd -d {name}`, or `ros2 bag convert` on its directory)"
-        )))
+        // One storage file of a rosbag2 with file compression: decompressed, then read as
+        // what it holds (a zstd stream of anything else is no bag).
+        let (guard, plain) = decompress(&name.to_string(), &[path.to_path_buf()])?;
+        match detect(&plain[0]) {
+            Ok((format, files, _)) if format != BagFormat::Ros1 => Ok((format, files, Some(guard))),
+            _ => Err(BagError(format!(
+                "{name}: a zstd-compressed file that holds no rosbag2 storage file (sqlite3 or MCAP)"
+            ))),
+        }
     } else if n == 0 {
         Err(BagError(format!("{name}: empty file, not a bag")))
     } else {
@@ -681,12 +734,13 @@ fn select(
     Ok((roles, sel))
 }
 
-/// A bag opened: its format, its message source and its topics.
-type Opened = (BagFormat, Box<dyn RawSource>, Vec<TopicInfo>);
+/// A bag opened: its format, its message source, its topics and the temporary directory of
+/// its decompressed files.
+type Opened = (BagFormat, Box<dyn RawSource>, Vec<TopicInfo>, Option<Decompressed>);
 
 /// Opens the bag at `path` (a file, or a rosbag2 directory).
 fn open_source(path: &Path) -> Result<Opened, BagError> {
-    let (format, files) = detect(path)?;
+    let (format, files, temp) = detect(path)?;
     let (source, topics): (Box<dyn RawSource>, Vec<TopicInfo>) = match format {
         BagFormat::Ros1 => {
             let (s, t) = ros1::Ros1Source::open(&files[0])?;
@@ -701,7 +755,7 @@ fn open_source(path: &Path) -> Result<Opened, BagError> {
             (Box::new(s), t)
         }
     };
-    Ok((format, source, topics))
+    Ok((format, source, topics, temp))
 }
 
 impl BagReader {
@@ -709,7 +763,7 @@ impl BagReader {
     /// read.
     pub fn open(path: &Path, opt: BagOptions) -> Result<BagReader, BagError> {
         let name = path.display().to_string();
-        let (format, mut source, topics) = open_source(path)?;
+        let (format, mut source, topics, temp) = open_source(path)?;
         let (roles, selection) = select(&name, &topics, &opt)?;
         let chosen: Vec<usize> = (0..topics.len()).filter(|&i| roles[i].is_some()).collect();
         source.select(&chosen);
@@ -733,6 +787,7 @@ impl BagReader {
             stats: BagStats::default(),
             warned: HashSet::new(),
             total,
+            _decompressed: temp,
         })
     }
 
@@ -745,7 +800,7 @@ impl BagReader {
     /// the frames are not connected.
     pub fn static_extrinsic(path: &Path, opt: &BagOptions) -> Result<Option<StaticExtrinsic>, BagError> {
         let name = path.display().to_string();
-        let (_, mut source, topics) = open_source(path)?;
+        let (_, mut source, topics, _decompressed) = open_source(path)?;
         let Some(tf) = topics.iter().position(|t| t.name == "/tf_static" && t.kind() == TopicKind::Tf) else {
             return Ok(None);
         };
