@@ -525,6 +525,41 @@ fn rosbag2_sqlite_round_trip_across_splits() {
     check_sequence(&run, &exp);
 }
 
+/// A rosbag2 recorded into several MCAP files (split by size or duration): read as one bag,
+/// in split order, the topics merged; also when each split is zstd-compressed.
+#[test]
+fn rosbag2_mcap_splits_are_one_bag() {
+    let dir = tmp("mcap-splits");
+    let (msgs, exp) = sequence(Encoding::Cdr, build::VELODYNE);
+    let third = msgs.len() / 3;
+    let bagdir = dir.join("run");
+    std::fs::create_dir_all(&bagdir).unwrap();
+    // Written out of name order: the split number decides (run_10 after run_2).
+    write_mcap(&bagdir.join("run_10.mcap"), &msgs[2 * third..]);
+    write_mcap(&bagdir.join("run_0.mcap"), &msgs[..third]);
+    write_mcap(&bagdir.join("run_2.mcap"), &msgs[third..2 * third]);
+    let bag = BagReader::open(&bagdir, opts(Preset::Vlp16)).unwrap();
+    assert_eq!(bag.format(), BagFormat::Mcap);
+    assert_eq!(bag.total_messages(), Some(63));
+    drop(bag);
+    let run = read_all(&bagdir, opts(Preset::Vlp16)).unwrap();
+    assert!(run.warnings.is_empty(), "{:?}", run.warnings);
+    check_sequence(&run, &exp);
+    // The same splits with file compression.
+    for k in [0, 2, 10] {
+        let plain = bagdir.join(format!("run_{k}.mcap"));
+        let data = std::fs::read(&plain).unwrap();
+        std::fs::write(
+            bagdir.join(format!("run_{k}.mcap.zstd")),
+            zstd::stream::encode_all(data.as_slice(), 3).unwrap(),
+        )
+        .unwrap();
+        std::fs::remove_file(&plain).unwrap();
+    }
+    let run = read_all(&bagdir, opts(Preset::Vlp16)).unwrap();
+    check_sequence(&run, &exp);
+}
+
 /// rosbag2's file compression (`compression_mode: FILE`): every storage file one zstd stream,
 /// split or not, sqlite3 or MCAP, given as the directory or as one `.zstd` file. Read as the
 /// uncompressed bag is, from a temporary copy that is removed when the bag is closed.

@@ -150,3 +150,60 @@ impl RawSource for McapSource {
         }
     }
 }
+
+/// A rosbag2 recorded into several MCAP files (`NAME_0.mcap`, `NAME_1.mcap`, ... split by size
+/// or duration), read one after the other as one bag: topics merged by name (counts added),
+/// each file's messages with the merged topic numbers.
+pub(super) struct McapSplits {
+    /// Each file's source and, per its own topic number, the merged one.
+    parts: Vec<(McapSource, Vec<usize>)>,
+    current: usize,
+}
+
+impl McapSplits {
+    pub(super) fn open(paths: &[PathBuf]) -> Result<(Self, Vec<TopicInfo>), BagError> {
+        let mut topics: Vec<TopicInfo> = Vec::new();
+        let mut parts = Vec::with_capacity(paths.len());
+        for p in paths {
+            let (src, local) = McapSource::open(p)?;
+            let map = local
+                .into_iter()
+                .map(|t| match topics.iter().position(|g| g.name == t.name) {
+                    Some(i) => {
+                        topics[i].count = topics[i].count.zip(t.count).map(|(a, b)| a + b);
+                        i
+                    }
+                    None => {
+                        topics.push(t);
+                        topics.len() - 1
+                    }
+                })
+                .collect();
+            parts.push((src, map));
+        }
+        Ok((McapSplits { parts, current: 0 }, topics))
+    }
+}
+
+impl RawSource for McapSplits {
+    fn select(&mut self, topics: &[usize]) {
+        for (src, map) in &mut self.parts {
+            let local: Vec<usize> = (0..map.len()).filter(|&i| topics.contains(&map[i])).collect();
+            src.select(&local);
+        }
+    }
+
+    fn next_raw(&mut self) -> Option<Result<RawEvent, BagError>> {
+        while let Some((src, map)) = self.parts.get_mut(self.current) {
+            match src.next_raw() {
+                Some(Ok(RawEvent::Msg(mut m))) => {
+                    m.topic = map[m.topic];
+                    return Some(Ok(RawEvent::Msg(m)));
+                }
+                Some(other) => return Some(other),
+                None => self.current += 1,
+            }
+        }
+        None
+    }
+}

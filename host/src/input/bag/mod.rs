@@ -527,10 +527,7 @@ fn detect(path: &Path) -> Result<(BagFormat, Vec<PathBuf>, Option<Decompressed>)
         let mcap: Vec<PathBuf> = files.iter().filter(|p| ext(p).ends_with(".mcap")).cloned().collect();
         return match (db3.is_empty(), mcap.len()) {
             (false, 0) => Ok((BagFormat::Ros2Sqlite, db3, temp)),
-            (true, 1) => Ok((BagFormat::Mcap, mcap, temp)),
-            (true, n) if n > 1 => Err(BagError(format!(
-                "{name}: {n} MCAP splits; loglio reads one MCAP file at a time (pass a file, or merge them with `mcap merge`)"
-            ))),
+            (true, n) if n >= 1 => Ok((BagFormat::Mcap, mcap, temp)),
             (false, _) => Err(BagError(format!("{name}: holds both .db3 and .mcap files; pass one file"))),
             _ => Err(BagError(format!("{name}: no .db3 or .mcap files (not a rosbag2 directory)"))),
         };
@@ -748,6 +745,10 @@ fn open_source(path: &Path) -> Result<Opened, BagError> {
         }
         BagFormat::Ros2Sqlite => {
             let (s, t) = ros2_sqlite::SqliteSource::open(files)?;
+            (Box::new(s), t)
+        }
+        BagFormat::Mcap if files.len() > 1 => {
+            let (s, t) = mcap_src::McapSplits::open(&files)?;
             (Box::new(s), t)
         }
         BagFormat::Mcap => {
