@@ -656,9 +656,9 @@ static SPECS: &[Spec] = &[
     ),
     spec(
         "time.lidar_imu_offset",
-        Kind::Float { min: -1.0, max: 1.0 },
+        Kind::Float { min: -4e9, max: 4e9 },
         "s",
-        "LiDAR clock minus IMU clock: IMU stamps are moved onto the LiDAR clock by adding it.",
+        "LiDAR clock minus IMU clock: IMU stamps are moved onto the LiDAR clock by adding it (any size: an IMU counting from its power-on beside a LiDAR on GPS time is 1.7e9 s behind; `loglio replay` names the offset that lines up streams that do not overlap).",
     ),
     spec(
         "time.scan_stamp_offset",
@@ -1486,6 +1486,18 @@ mod tests {
                 assert!((r[i][j] - want[i][j]).abs() < 1e-12, "{i}{j}");
             }
         }
+    }
+
+    /// An IMU counting from its power-on beside a LiDAR on GPS time: decades apart.
+    #[test]
+    fn the_imu_offset_may_be_any_clock_difference() {
+        let c = Config::from_toml_str("preset = \"vlp16\"\n[time]\nlidar_imu_offset = 1.7e9\n").unwrap();
+        assert_eq!(c.time.lidar_imu_offset, 1.7e9);
+        let c = Config::from_toml_str("preset = \"vlp16\"\n[time]\nlidar_imu_offset = -86400.25\n").unwrap();
+        assert_eq!(c.time.lidar_imu_offset, -86400.25);
+        assert!(
+            err("preset = \"vlp16\"\n[time]\nlidar_imu_offset = 5e9\n").contains("time.lidar_imu_offset")
+        );
     }
 
     #[test]
