@@ -261,14 +261,19 @@ fn still_sample(t_ns: u64) -> ImuSample {
     ImuSample { t_ns, gyro: [0.0; 3], acc: [0.0, 0.0, G as f32] }
 }
 
-fn still_filter() -> Eskf {
-    let x = truth_state(&Motion {
+/// Level, at the origin, at rest.
+fn at_rest() -> State {
+    truth_state(&Motion {
         rot: Matrix3::identity(),
         pos: V3::zeros(),
         vel: V3::zeros(),
         acc: V3::zeros(),
         omega: V3::zeros(),
-    });
+    })
+}
+
+fn still_filter() -> Eskf {
+    let x = at_rest();
     let p = diag_cov(&[(idx::POS, 3, 0.01), (idx::ROT, 3, 0.01), (idx::VEL, 3, 0.01)]);
     Eskf::from_state(EskfConfig::default(), x, p, T0, Some(still_sample(T0)), 1.0)
 }
@@ -953,13 +958,7 @@ fn ground_plane_only_is_degenerate_in_x_y_and_yaw() {
 #[test]
 fn zero_velocity_and_zero_rate_updates_hold_a_standing_filter() {
     let run = |updates: bool| {
-        let x = truth_state(&Motion {
-            rot: Matrix3::identity(),
-            pos: V3::zeros(),
-            vel: V3::zeros(),
-            acc: V3::zeros(),
-            omega: V3::zeros(),
-        });
+        let x = at_rest();
         let p = diag_cov(&[
             (idx::POS, 3, 1e-6),
             (idx::ROT, 3, 1e-6),

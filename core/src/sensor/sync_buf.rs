@@ -50,6 +50,39 @@ impl<const N: usize> SyncBuf<N> {
     }
 }
 
+/// A streaming decoder over a [`SyncBuf`]: what [`feed`] needs of it.
+pub(crate) trait Framed {
+    /// What a decoded message gives.
+    type Sample;
+    /// Appends one byte; false when the buffer is full.
+    fn push(&mut self, b: u8) -> bool;
+    /// Decides the buffered candidates until one needs more bytes or yields a sample.
+    fn poll(&mut self) -> Option<Self::Sample>;
+    /// Forgets the candidate at the front (its sync byte) and the bytes up to the next one.
+    fn give_up_candidate(&mut self);
+}
+
+/// Consumes bytes from `input` until a sample is complete. Returns the number of bytes consumed
+/// (possibly 0 when a sample was already buffered) and the sample, if any; call it again with
+/// the rest of the input until everything is consumed and no sample comes.
+pub(crate) fn feed<F: Framed>(dec: &mut F, input: &[u8]) -> (usize, Option<F::Sample>) {
+    if let Some(s) = dec.poll() {
+        return (0, Some(s));
+    }
+    for (i, &b) in input.iter().enumerate() {
+        if !dec.push(b) {
+            // Unreachable (a candidate is decided once its length is buffered, and no length
+            // exceeds the buffer), but a full buffer must not stall the stream.
+            dec.give_up_candidate();
+            dec.push(b);
+        }
+        if let Some(s) = dec.poll() {
+            return (i + 1, Some(s));
+        }
+    }
+    (input.len(), None)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -23,7 +23,7 @@
 //! [`Decoder`] takes the byte stream in any chunking; a candidate that fails its CRC gives up
 //! only its sync byte, the search going on from the next 0xFA already read.
 
-use super::sync_buf::SyncBuf;
+use super::sync_buf::{self, Framed, SyncBuf};
 
 /// First byte of every binary message.
 pub const SYNC: u8 = 0xFA;
@@ -242,6 +242,22 @@ pub struct Decoder {
     pub stats: VectorNavStats,
 }
 
+impl Framed for Decoder {
+    type Sample = VectorNavSample;
+
+    fn push(&mut self, b: u8) -> bool {
+        self.buf.push(b)
+    }
+
+    fn poll(&mut self) -> Option<VectorNavSample> {
+        self.decide()
+    }
+
+    fn give_up_candidate(&mut self) {
+        self.stats.dropped_bytes += self.buf.skip_to_sync(SYNC, 1) as u64;
+    }
+}
+
 impl Default for Decoder {
     fn default() -> Self {
         Self::new()
@@ -268,28 +284,10 @@ impl Decoder {
     /// consumed (possibly 0 when a sample was already buffered) and the sample, if any. Call
     /// it again with the rest of the input until everything is consumed and no sample comes.
     pub fn feed(&mut self, input: &[u8]) -> (usize, Option<VectorNavSample>) {
-        if let Some(s) = self.poll() {
-            return (0, Some(s));
-        }
-        for (i, &b) in input.iter().enumerate() {
-            if !self.buf.push(b) {
-                // Unreachable (no measurable message exceeds the buffer), but a full buffer
-                // must not stall the stream.
-                self.give_up_candidate();
-                self.buf.push(b);
-            }
-            if let Some(s) = self.poll() {
-                return (i + 1, Some(s));
-            }
-        }
-        (input.len(), None)
+        sync_buf::feed(self, input)
     }
 
-    fn give_up_candidate(&mut self) {
-        self.stats.dropped_bytes += self.buf.skip_to_sync(SYNC, 1) as u64;
-    }
-
-    fn poll(&mut self) -> Option<VectorNavSample> {
+    fn decide(&mut self) -> Option<VectorNavSample> {
         loop {
             self.stats.dropped_bytes += self.buf.skip_to_sync(SYNC, 0) as u64;
             match parse_message(self.buf.bytes()) {

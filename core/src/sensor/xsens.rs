@@ -27,7 +27,7 @@
 //! from the next 0xFA in the bytes already read, so a good message right after a corrupted one
 //! (or after a stray 0xFA) is kept.
 
-use super::sync_buf::SyncBuf;
+use super::sync_buf::{self, Framed, SyncBuf};
 
 /// First byte of every message.
 pub const PREAMBLE: u8 = 0xFA;
@@ -264,6 +264,22 @@ pub struct Decoder {
     pub stats: XsensStats,
 }
 
+impl Framed for Decoder {
+    type Sample = XsensSample;
+
+    fn push(&mut self, b: u8) -> bool {
+        self.buf.push(b)
+    }
+
+    fn poll(&mut self) -> Option<XsensSample> {
+        self.decide()
+    }
+
+    fn give_up_candidate(&mut self) {
+        self.stats.dropped_bytes += self.buf.skip_to_sync(PREAMBLE, 1) as u64;
+    }
+}
+
 impl Default for Decoder {
     fn default() -> Self {
         Self::new()
@@ -294,30 +310,11 @@ impl Decoder {
     /// consumed (possibly 0 when a sample was already buffered) and the sample, if any. Call
     /// it again with the rest of the input until everything is consumed and no sample comes.
     pub fn feed(&mut self, input: &[u8]) -> (usize, Option<XsensSample>) {
-        if let Some(s) = self.poll() {
-            return (0, Some(s));
-        }
-        for (i, &b) in input.iter().enumerate() {
-            if !self.buf.push(b) {
-                // Unreachable (a candidate is decided once its length is buffered, and no
-                // length exceeds the buffer), but a full buffer must not stall the stream.
-                self.give_up_candidate();
-                self.buf.push(b);
-            }
-            if let Some(s) = self.poll() {
-                return (i + 1, Some(s));
-            }
-        }
-        (input.len(), None)
-    }
-
-    /// Forgets the candidate preamble at the front and everything up to the next preamble.
-    fn give_up_candidate(&mut self) {
-        self.stats.dropped_bytes += self.buf.skip_to_sync(PREAMBLE, 1) as u64;
+        sync_buf::feed(self, input)
     }
 
     /// Decides the buffered candidates until one needs more bytes or yields a sample.
-    fn poll(&mut self) -> Option<XsensSample> {
+    fn decide(&mut self) -> Option<XsensSample> {
         loop {
             self.stats.dropped_bytes += self.buf.skip_to_sync(PREAMBLE, 0) as u64;
             let (parsed, len) = match parse_message(self.buf.bytes()) {
