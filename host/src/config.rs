@@ -1181,8 +1181,19 @@ impl Config {
             ),
         );
         out.push_str(&format!("preset = \"{}\"\n", self.preset));
+        // A Velodyne preset knows no extrinsic (the IMU is the rig's): its identity is written
+        // commented out, so that a file made from the template without the rig's numbers still
+        // gets the run's warning that the extrinsic is missing.
+        let placeholder =
+            |section: &str| section == "extrinsics" && self.preset.family() == SensorFamily::Velodyne;
         for Section { name: section, what, .. } in SECTIONS {
             out.push_str(&format!("\n# {what}\n[{section}]\n"));
+            if placeholder(section) {
+                push_comment(
+                    &mut out,
+                    "Give the rig's LiDAR-IMU extrinsic here (or extrinsics.file, a FAST-LIO YAML): the preset has none.",
+                );
+            }
             for spec in section_specs(section) {
                 let key = &spec.key[section.len() + 1..];
                 let range = kind_range_text(spec.kind, spec.unit);
@@ -1193,6 +1204,9 @@ impl Config {
                 };
                 push_comment(&mut out, &format!("{}{tail}", spec.doc));
                 match (value, spec.example) {
+                    (Some(v), _) if placeholder(section) => {
+                        out.push_str(&format!("# {key} = {}\n", value_text(v)))
+                    }
                     (Some(v), _) => out.push_str(&format!("{key} = {}\n", value_text(v))),
                     (None, Some(ex)) => out.push_str(&format!("# {key} = {ex}\n")),
                     (None, None) => {}

@@ -162,13 +162,14 @@ impl RunSetup {
     }
 }
 
-/// Whether the configuration file at `p` has an `[extrinsics]` section (unreadable: no; its
-/// errors are [`RunSetup::load_config`]'s).
+/// Whether the configuration file at `p` gives an extrinsic: an `[extrinsics]` section with a
+/// key in it (unreadable: no; its errors are [`RunSetup::load_config`]'s).
 fn config_has_extrinsics(p: &std::path::Path) -> bool {
     std::fs::read_to_string(p)
         .ok()
         .and_then(|text| text.parse::<toml::Table>().ok())
-        .is_some_and(|table| table.contains_key("extrinsics"))
+        .and_then(|table| table.get("extrinsics").and_then(|e| e.as_table()).map(|e| !e.is_empty()))
+        .unwrap_or(false)
 }
 
 /// An extrinsic the data gives: a bag's `/tf_static`, an Ouster metadata's IMU transform.
@@ -315,6 +316,16 @@ mod tests {
         let cfg = setup.load_config().unwrap();
         let ((), said) = crate::diag::capture(|| setup.warn_missing_extrinsic(&cfg));
         assert!(said.is_empty(), "{said:?}");
+        // A file made by `loglio config --preset vlp16` and not filled in: still missing (the
+        // template writes the identity commented out); an empty [extrinsics] too.
+        let tpl = config_file("template", &crate::config::template(crate::config::Preset::Vlp16));
+        let setup = RunSetup { config: Some(tpl.clone()), ..RunSetup::default() };
+        let cfg = setup.load_config().unwrap();
+        assert!(setup.extrinsic_missing(&cfg).is_some());
+        let empty = config_file("empty", "preset = \"vlp16\"\n[extrinsics]\n");
+        let setup = RunSetup { config: Some(empty), ..RunSetup::default() };
+        let cfg = setup.load_config().unwrap();
+        assert!(setup.extrinsic_missing(&cfg).is_some());
         // An Ouster preset carries its internal IMU's extrinsic.
         let setup = RunSetup { preset: Some("os1-64".into()), ..RunSetup::default() };
         let cfg = setup.load_config().unwrap();
