@@ -9,6 +9,7 @@
 //! | `lidar_groundtruth.tum` | the LiDAR frame's exact pose at the same times |
 //! | `scenario.json` | what was simulated: scenario, seed, sensor, extrinsic, IMU figures |
 //! | `ouster_metadata.json` | (Ouster only) the sensor metadata a decoder needs |
+//! | `actors.csv` | (scenarios with moving actors: `traffic`) every actor's box at 10 Hz |
 //!
 //! The same configuration always writes the same bytes.
 
@@ -62,6 +63,9 @@ pub fn write_all(sc: &Scenario, dir: &Path) -> anyhow::Result<Summary> {
     std::fs::write(dir.join("imu.csv"), imu_csv(&frames))?;
     let times: Vec<u64> = frames.iter().map(|f| f.t_ns).collect();
     write_truth_and_meta(sc, &times, dir)?;
+    if !sc.actors().is_empty() {
+        sc.write_actors_csv(&dir.join("actors.csv"), 10.0)?;
+    }
     Ok(sum)
 }
 

@@ -8,6 +8,8 @@
 #![cfg_attr(target_os = "none", no_std)]
 
 #[cfg(not(target_os = "none"))]
+pub mod actors;
+#[cfg(not(target_os = "none"))]
 pub mod fault;
 #[cfg(not(target_os = "none"))]
 pub mod files;
@@ -30,6 +32,8 @@ pub mod scenario;
 #[cfg(not(target_os = "none"))]
 pub mod stream;
 pub mod terrain;
+#[cfg(not(target_os = "none"))]
+pub mod traffic;
 pub mod trajectory;
 #[cfg(not(target_os = "none"))]
 pub mod tum;

@@ -24,6 +24,7 @@ use nalgebra::{Isometry3, Matrix3, Vector3};
 use super::ouster::Ouster;
 use super::velodyne::Velodyne;
 use super::{Echo, EchoSource, Echoes, Firing, RangeModel, ReturnMode};
+use crate::actors::Actors;
 use crate::raycast::{Hit, Ray, Scene};
 use crate::rng;
 use crate::trajectory::Trajectory;
@@ -55,6 +56,10 @@ pub struct WorldEchoes<'a> {
     a: Vector3<f64>,
     w: Vector3<f64>,
     al: Vector3<f64>,
+    /// Moving actors, met where they are at each firing's time (none: a static world).
+    actors: Option<&'a Actors>,
+    /// Each actor's last path segment (a search hint).
+    hints: Vec<u32>,
     /// Rays cast so far.
     pub rays: u64,
 }
@@ -83,8 +88,19 @@ impl<'a> WorldEchoes<'a> {
             a: Vector3::zeros(),
             w: Vector3::zeros(),
             al: Vector3::zeros(),
+            actors: None,
+            hints: Vec::new(),
             rays: 0,
         }
+    }
+
+    /// The same source with moving actors in the world (an empty set changes nothing).
+    pub fn with_actors(mut self, actors: &'a Actors) -> Self {
+        if !actors.is_empty() {
+            self.hints = vec![0; actors.list().len()];
+            self.actors = Some(actors);
+        }
+        self
     }
 
     fn echo(&self, h: &Hit, d: [f64; 3], key: u64, stream: u64) -> Option<Echo> {
@@ -153,7 +169,18 @@ impl EchoSource for WorldEchoes<'_> {
         let o = self.r * turn(Vector3::from(f.origin)) + p;
         let d = (self.r * turn(Vector3::from(f.dir))).normalize();
         let ray = Ray { o: [o.x, o.y, o.z], d: [d.x, d.y, d.z] };
-        let res = self.scene.cast(&ray, self.range.max_range, f.key);
+        let mut res = self.scene.cast(&ray, self.range.max_range, f.key);
+        if let Some(actors) = self.actors {
+            // The actors where they are at this firing's own time.
+            let t = (f.t_ns as i128 - self.start_ns as i128) as f64 * 1e-9;
+            let best = res.hit.map_or(self.range.max_range, |h| h.t);
+            if let Some(h) = actors.cast(&ray, t, best, &mut self.hints) {
+                res.hit = Some(h);
+                if res.partial.is_some_and(|p| p.t >= h.t) {
+                    res.partial = None;
+                }
+            }
+        }
         Echoes {
             last: res.hit.and_then(|h| self.echo(&h, ray.d, f.key, S_NOISE_LAST)),
             first: res.partial.and_then(|h| self.echo(&h, ray.d, f.key, S_NOISE_FIRST)),
