@@ -244,7 +244,7 @@ struct BenchArgs {
     /// cores (at most 8).
     #[arg(long, default_value_t = 0, value_name = "N")]
     threads: usize,
-    /// Simulated scenario: vehicle, handheld, corridor, drone, rotation (default: vehicle for
+    /// Simulated scenario: vehicle, handheld, corridor, drone, rotation, traffic (default: vehicle for
     /// Velodyne presets, handheld for Ouster).
     #[arg(long, value_name = "NAME")]
     scenario: Option<String>,
