@@ -600,6 +600,26 @@ mod tests {
     }
 
     #[test]
+    fn traffic_scans_do_not_depend_on_threads_and_actors_change_only_their_rays() {
+        let mut cfg = ScenarioConfig::new(ScenarioKind::Traffic, SensorModel::Vlp16, 3);
+        cfg.threads = 1;
+        let one = Scenario::from_config(cfg.clone()).unwrap();
+        cfg.threads = 3;
+        let three = Scenario::from_config(cfg.clone()).unwrap();
+        cfg.actors = false;
+        let bare = Scenario::from_config(cfg).unwrap();
+        // Scan 240 (24 s): the car waits at the junction among cross traffic and pedestrians.
+        let (a, b, c) = (one.scan(240), three.scan(240), bare.scan(240));
+        assert_eq!(a, b);
+        assert_ne!(a, c);
+        // Same firings, same noise: the points of rays that meet no actor are identical.
+        let key = |p: &loglio_core::scan::ScanPoint| (p.row, p.col, p.ret, p.t.to_bits());
+        let bare_pts: std::collections::HashMap<_, _> = c.points.iter().map(|p| (key(p), *p)).collect();
+        let same = a.points.iter().filter(|p| bare_pts.get(&key(p)) == Some(p)).count();
+        assert!(same * 10 > a.points.len() * 9 && same < a.points.len(), "{same} of {}", a.points.len());
+    }
+
+    #[test]
     fn packet_helpers_match_the_sensor_kind() {
         let v = Scenario::new(ScenarioKind::Corridor, SensorModel::Vlp16, 1);
         let (bytes, truth) = v.velodyne_packet(3).unwrap();
