@@ -16,6 +16,9 @@
 //! surfaces (max_range * sqrt(reflectivity * cos(incidence) / 80), at least 30 %). All random
 //! numbers are hashes of (seed, firing key), so packets and direct scans of the same seed carry
 //! identical points.
+//!
+//! Moving actors ([`crate::actors`], the traffic scenario) are met where they are at each
+//! firing's own time, after the static world: the nearer surface wins.
 
 use loglio_core::range_image::RangeImageLayout;
 use loglio_core::scan::ScanPoint;
