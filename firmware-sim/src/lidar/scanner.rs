@@ -63,6 +63,8 @@ pub struct WorldEchoes<'a> {
     actors: Option<&'a Actors>,
     /// Each actor's last path segment (a search hint).
     hints: Vec<u32>,
+    /// Spheres holding each actor over the current pose step (a cheap first rejection).
+    spheres: Vec<[f64; 4]>,
     /// Rays cast so far.
     pub rays: u64,
 }
@@ -93,6 +95,7 @@ impl<'a> WorldEchoes<'a> {
             al: Vector3::zeros(),
             actors: None,
             hints: Vec::new(),
+            spheres: Vec::new(),
             rays: 0,
         }
     }
@@ -147,6 +150,11 @@ impl EchoSource for WorldEchoes<'_> {
             return;
         }
         self.t0 = base;
+        if let Some(actors) = self.actors {
+            // Every firing until the next begin_sequence is at most 1.1 ms after the grid point.
+            let t = (base as i128 - self.start_ns as i128) as f64 * 1e-9;
+            actors.spheres(t, (POSE_STEP_NS + 200_000) as f64 * 1e-9, &mut self.spheres);
+        }
         let k = self.traj.eval((base - self.start_ns) as f64 * 1e-9).attached(&self.t_il);
         self.r = *k.rotation.matrix();
         self.p = k.position;
@@ -177,7 +185,7 @@ impl EchoSource for WorldEchoes<'_> {
             // The actors where they are at this firing's own time.
             let t = (f.t_ns as i128 - self.start_ns as i128) as f64 * 1e-9;
             let best = res.hit.map_or(self.range.max_range, |h| h.t);
-            if let Some(h) = actors.cast(&ray, t, best, &mut self.hints) {
+            if let Some(h) = actors.cast_near(&ray, t, best, &mut self.hints, Some(&self.spheres)) {
                 res.hit = Some(h);
                 if res.partial.is_some_and(|p| p.t >= h.t) {
                     res.partial = None;
