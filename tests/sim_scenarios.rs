@@ -615,3 +615,84 @@ fn live_mode_sends_udp_and_serial() {
         assert_eq!(f.sample(), direct[f.seq as usize]);
     }
 }
+
+/// Scan `j` of `sc` with each point in the world at its firing time, pushed `nudge` metres
+/// further along its beam (so a point on a surface lies just inside the solid), with its time.
+fn world_points(sc: &Scenario, j: u64, nudge: f64) -> Vec<([f64; 3], u64)> {
+    let scan = sc.scan(j);
+    scan.points
+        .iter()
+        .map(|p| {
+            let t_ns = scan.start_ns + (p.t as f64 * 1e9).round() as u64;
+            let pose = sc.lidar_pose_at(t_ns);
+            let w = pose * Point3::new(p.xyz[0] as f64, p.xyz[1] as f64, p.xyz[2] as f64);
+            let d = (w.coords - pose.translation.vector).normalize();
+            let q = w.coords + d * nudge;
+            ([q.x, q.y, q.z], t_ns)
+        })
+        .collect()
+}
+
+fn noise_free_traffic(actors: bool) -> Scenario {
+    let mut c = ScenarioConfig::new(ScenarioKind::Traffic, SensorModel::Vlp32c, 5);
+    c.lidar.range_mut().sigma = 0.0;
+    c.actors = actors;
+    Scenario::from_config(c).unwrap()
+}
+
+/// The traffic scenario: its scans see the actors where they are at each firing's time (the
+/// truck ahead and oncoming cars early on, the cross traffic and pedestrians at the stop, the bus
+/// alongside later), the same drive without actors sees none of them, and the ego car stands
+/// exactly still at the junction.
+#[test]
+fn traffic_scans_see_the_moving_actors_and_the_car_waits_at_the_junction() {
+    let sc = noise_free_traffic(true);
+    let bare = noise_free_traffic(false);
+    assert_eq!(sc.config().duration_s, 60.0);
+    assert_eq!(ScenarioKind::from_name("traffic"), Some(ScenarioKind::Traffic));
+    assert_eq!(sc.actors().list().len(), 13);
+    assert!(bare.actors().is_empty());
+    assert_eq!(sc.world().scene.prims(), bare.world().scene.prims(), "the same world either way");
+    // 10 scans/s: scan j spans [j/10, (j+1)/10) s.
+    for (j, min_ids) in [(50u64, 2usize), (240, 3), (500, 1)] {
+        let pts = world_points(&sc, j, 0.02);
+        let mut per_actor: HashMap<u32, usize> = HashMap::new();
+        for (p, t) in &pts {
+            if let Some(id) = sc.inside_actor(*p, *t) {
+                *per_actor.entry(id).or_default() += 1;
+            }
+        }
+        let on_actors: usize = per_actor.values().sum();
+        assert!(on_actors > 500, "scan {j}: {on_actors} points on actors {per_actor:?}");
+        assert!(per_actor.len() >= min_ids, "scan {j}: {per_actor:?}");
+        // Without the actors, the same rays reach the world behind them: no point in a box but
+        // the ground under them (boxes stand on the ground's height at their centre).
+        let pts0 = world_points(&bare, j, 0.02);
+        let above_ground = |p: &[f64; 3]| p[2] > bare.world().ground_height(p[0], p[1]) + 0.25;
+        let in0 = pts0.iter().filter(|(p, t)| above_ground(p) && sc.inside_actor(*p, *t).is_some()).count();
+        assert!(in0 * 50 < on_actors, "scan {j}: {in0} points inside boxes without actors");
+        // A point on an actor lies in the volume the actor swept over its scan.
+        let scan_t = (sc.start_ns() + j * 100_000_000, sc.start_ns() + (j + 1) * 100_000_000 + 1_000_000);
+        let (p, t) = pts.iter().find(|(p, t)| sc.inside_actor(*p, *t).is_some()).unwrap();
+        let id = sc.inside_actor(*p, *t);
+        assert_eq!(sc.inside_actor_swept(*p, scan_t.0, scan_t.1), id);
+    }
+    // At 4 s (scan 40) the truck drives 14 m ahead (centre to centre): its back is hit.
+    let pts = world_points(&sc, 40, 0.02);
+    let truck = pts.iter().filter(|(p, t)| sc.inside_actor(*p, *t) == Some(0)).count();
+    assert!(truck > 200, "{truck}");
+    // The stop: exactly still from 20 s to 29 s (inside the rounding of the boundaries).
+    let k0 = sc.kinematics_at(sc.start_ns() + 20_001_000_000);
+    for i in 0..=899u64 {
+        let k = sc.kinematics_at(sc.start_ns() + 20_001_000_000 + i * 10_000_000);
+        assert_eq!(k.position, k0.position);
+        assert_eq!(k.velocity, Vector3::zeros());
+        assert_eq!(k.angular_velocity, Vector3::zeros());
+    }
+    assert!(sc.kinematics_at(sc.start_ns() + 10_000_000_000).velocity.norm() > 3.0);
+    assert!(sc.kinematics_at(sc.start_ns() + 40_000_000_000).velocity.norm() > 3.0);
+    // Where the actors are is ground truth at any time.
+    let at = sc.actors_at(sc.start_ns() + 25_000_000_000);
+    assert!(at.iter().any(|a| a.kind == loglio_firmware_sim::actors::ActorKind::Pedestrian));
+    assert!(at.iter().all(|a| a.size == a.kind.size()));
+}

@@ -9,6 +9,7 @@
 //! | `lidar_groundtruth.tum` | the LiDAR frame's exact pose at the same times |
 //! | `scenario.json` | what was simulated: scenario, seed, sensor, extrinsic, IMU figures |
 //! | `ouster_metadata.json` | (Ouster only) the sensor metadata a decoder needs |
+//! | `actors.csv` | (scenarios with moving actors: `traffic`) every actor's box at 10 Hz |
 //!
 //! The same configuration always writes the same bytes.
 
@@ -23,7 +24,7 @@ use crate::lidar::ouster::{self, Ouster};
 use crate::lidar::scanner::Firmware;
 use crate::lidar::velodyne;
 use crate::pcap_out::{Endpoint, PcapWriter};
-use crate::scenario::{LidarConfig, Scenario};
+use crate::scenario::{LidarConfig, Scenario, ScenarioKind};
 use crate::stream::{Wire, WireStream, decode_serial};
 use crate::tum;
 
@@ -62,6 +63,9 @@ pub fn write_all(sc: &Scenario, dir: &Path) -> anyhow::Result<Summary> {
     std::fs::write(dir.join("imu.csv"), imu_csv(&frames))?;
     let times: Vec<u64> = frames.iter().map(|f| f.t_ns).collect();
     write_truth_and_meta(sc, &times, dir)?;
+    if !sc.actors().is_empty() {
+        sc.write_actors_csv(&dir.join("actors.csv"), 10.0)?;
+    }
     Ok(sum)
 }
 
@@ -138,7 +142,7 @@ pub fn scenario_json(sc: &Scenario) -> serde_json::Value {
             "max_range_m": o.range.max_range,
         }),
     };
-    json!({
+    let mut v = json!({
         "scenario": c.kind.name(),
         "seed": c.seed,
         "duration_s": c.duration_s,
@@ -162,7 +166,15 @@ pub fn scenario_json(sc: &Scenario) -> serde_json::Value {
             "accel_bias_random_walk_m_s3_sqrt_hz": n.density.acc_bias_walk,
             "serial_frame": "loglio_core::sensor::imu_frame (postcard + CRC-32 + COBS)",
         },
-    })
+    });
+    if c.kind == ScenarioKind::Traffic {
+        // Only here: the static scenarios' descriptions stay as they were.
+        v["actors"] = json!({
+            "count": sc.actors().list().len(),
+            "ground_truth": if sc.actors().is_empty() { "none (--no-actors)" } else { "actors.csv" },
+        });
+    }
+    v
 }
 
 /// Ouster sensor metadata (firmware 2.x style, flat keys) describing the simulated unit.

@@ -4,9 +4,12 @@
 //!
 //! Modules that would run on a device (the IMU chip model and board firmware, the packet
 //! emitters, trajectories, randomness) are `no_std` and allocation-free; the world, the ray
-//! caster, scenarios, files and live streaming need `std` and are gated on a hosted target.
+//! caster, scenarios (the traffic scenario's moving actors included), files and live streaming
+//! need `std` and are gated on a hosted target.
 #![cfg_attr(target_os = "none", no_std)]
 
+#[cfg(not(target_os = "none"))]
+pub mod actors;
 #[cfg(not(target_os = "none"))]
 pub mod fault;
 #[cfg(not(target_os = "none"))]
@@ -30,6 +33,8 @@ pub mod scenario;
 #[cfg(not(target_os = "none"))]
 pub mod stream;
 pub mod terrain;
+#[cfg(not(target_os = "none"))]
+pub mod traffic;
 pub mod trajectory;
 #[cfg(not(target_os = "none"))]
 pub mod tum;

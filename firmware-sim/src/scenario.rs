@@ -29,12 +29,15 @@ use loglio_core::imu::ImuSample;
 use loglio_core::range_image::RangeImageLayout;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
+use crate::actors::{ActorPose, Actors};
 use crate::imu_board::{BoardConfig, Discard, ImuBoard};
 use crate::imu_chip::{ChipNoise, I2C_ADDRESS, Icm42688, MockI2c};
 use crate::lidar::ouster::{Ouster, OusterConfig};
 use crate::lidar::scanner::{DirectScanner, Firmware, SimScan, WorldEchoes};
 use crate::lidar::velodyne::{Velodyne, VelodyneConfig};
 use crate::lidar::{RangeModel, SensorModel};
+use crate::terrain::Terrain;
+use crate::traffic::Traffic;
 use crate::trajectory::{DRONE_START, Kinematics, Trajectory};
 use crate::world::{SceneKind, World};
 
@@ -54,17 +57,20 @@ pub enum ScenarioKind {
     Drone,
     /// Fast handheld rotation (up to ~180 deg/s) in the hall.
     FastRotation,
+    /// The vehicle's car in the town among moving vehicles and pedestrians, with a stop at a
+    /// junction (see [`crate::traffic`]).
+    Traffic,
 }
 
 impl ScenarioKind {
     /// Every scenario.
-    pub const ALL: [ScenarioKind; 5] =
-        [Self::Vehicle, Self::Handheld, Self::Corridor, Self::Drone, Self::FastRotation];
+    pub const ALL: [ScenarioKind; 6] =
+        [Self::Vehicle, Self::Handheld, Self::Corridor, Self::Drone, Self::FastRotation, Self::Traffic];
 
     /// The world it happens in.
     pub fn scene(&self) -> SceneKind {
         match self {
-            Self::Vehicle | Self::Drone => SceneKind::Town,
+            Self::Vehicle | Self::Drone | Self::Traffic => SceneKind::Town,
             Self::Handheld | Self::FastRotation => SceneKind::Hall,
             Self::Corridor => SceneKind::Corridor,
         }
@@ -74,11 +80,13 @@ impl ScenarioKind {
     pub fn default_duration_s(&self) -> f64 {
         match self {
             Self::FastRotation => 30.0,
+            Self::Traffic => crate::traffic::DURATION_S,
             _ => 40.0,
         }
     }
 
-    /// Name for the command line (`vehicle`, `handheld`, `corridor`, `drone`, `rotation`).
+    /// Name for the command line (`vehicle`, `handheld`, `corridor`, `drone`, `rotation`,
+    /// `traffic`).
     pub fn name(&self) -> &'static str {
         match self {
             Self::Vehicle => "vehicle",
@@ -86,6 +94,7 @@ impl ScenarioKind {
             Self::Corridor => "corridor",
             Self::Drone => "drone",
             Self::FastRotation => "rotation",
+            Self::Traffic => "traffic",
         }
     }
 
@@ -154,6 +163,9 @@ pub struct ScenarioConfig {
     pub imu_phase_ns: u64,
     /// Worker threads for scan generation (the output does not depend on it).
     pub threads: usize,
+    /// The scenario's moving actors (the traffic scenario's; false: the same drive through the
+    /// same world with nobody else on the road).
+    pub actors: bool,
 }
 
 impl ScenarioConfig {
@@ -171,6 +183,7 @@ impl ScenarioConfig {
             imu_board: BoardConfig::default(),
             imu_phase_ns: 1_250_000,
             threads: std::thread::available_parallelism().map_or(1, |n| n.get().min(4)),
+            actors: true,
         }
     }
 }
@@ -231,6 +244,7 @@ pub struct Scenario {
     traj: Trajectory,
     firmware: Firmware,
     layout: RangeImageLayout,
+    actors: Actors,
 }
 
 impl Scenario {
@@ -244,7 +258,13 @@ impl Scenario {
         if !(cfg.duration_s > 0.0 && cfg.duration_s <= 600.0) {
             return Err(ScenarioError::Duration);
         }
-        let world = World::build(cfg.kind.scene(), cfg.seed);
+        let (world, actors) = if cfg.kind == ScenarioKind::Traffic {
+            let traffic = Traffic::new(&Terrain::town());
+            let world = traffic.world(cfg.seed);
+            (world, if cfg.actors { traffic.actors } else { Actors::default() })
+        } else {
+            (World::build(cfg.kind.scene(), cfg.seed), Actors::default())
+        };
         let traj = match cfg.kind {
             ScenarioKind::Vehicle => Trajectory::Vehicle { terrain: world.terrain.clone() },
             ScenarioKind::Handheld => Trajectory::Handheld,
@@ -253,6 +273,7 @@ impl Scenario {
                 Trajectory::Drone { ground_z: world.ground_height(DRONE_START[0], DRONE_START[1]) }
             }
             ScenarioKind::FastRotation => Trajectory::FastRotation,
+            ScenarioKind::Traffic => Trajectory::Traffic { terrain: world.terrain.clone() },
         };
         let firmware = match cfg.lidar {
             LidarConfig::Velodyne(c) => {
@@ -263,7 +284,7 @@ impl Scenario {
             }
         };
         let layout = firmware.layout();
-        Ok(Scenario { cfg, world, traj, firmware, layout })
+        Ok(Scenario { cfg, world, traj, firmware, layout, actors })
     }
 
     /// The configuration.
@@ -274,6 +295,34 @@ impl Scenario {
     /// The world.
     pub fn world(&self) -> &World {
         &self.world
+    }
+
+    /// The moving actors (empty but in the traffic scenario).
+    pub fn actors(&self) -> &Actors {
+        &self.actors
+    }
+
+    /// Where every actor is at an absolute time.
+    pub fn actors_at(&self, t_ns: u64) -> Vec<ActorPose> {
+        self.actors.at(self.seconds(t_ns))
+    }
+
+    /// The id of an actor whose box contains a world point at an absolute time.
+    pub fn inside_actor(&self, p: [f64; 3], t_ns: u64) -> Option<u32> {
+        self.actors.inside(p, self.seconds(t_ns))
+    }
+
+    /// The id of an actor whose swept volume over [t0_ns, t1_ns] contains a world point (for the
+    /// share of map points left behind by moving objects).
+    pub fn inside_actor_swept(&self, p: [f64; 3], t0_ns: u64, t1_ns: u64) -> Option<u32> {
+        self.actors.inside_swept(p, self.seconds(t0_ns), self.seconds(t1_ns))
+    }
+
+    /// Writes the actors' ground truth at `hz` over the scenario as CSV (see
+    /// [`Actors::write_csv`]).
+    pub fn write_actors_csv(&self, path: &std::path::Path, hz: f64) -> std::io::Result<()> {
+        let f = std::io::BufWriter::new(std::fs::File::create(path)?);
+        self.actors.write_csv(f, self.cfg.start_unix_ns, 0.0, self.cfg.duration_s, hz)
     }
 
     /// The trajectory of the IMU frame (time in seconds since [`Self::start_ns`]).
@@ -341,6 +390,7 @@ impl Scenario {
             self.cfg.seed ^ 0x11DA_2000,
             range,
         )
+        .with_actors(&self.actors)
     }
 
     /// A direct scanner over this scenario's LiDAR.
@@ -547,6 +597,26 @@ mod tests {
             ev.iter().filter_map(|e| if let Event::Scan(s) = e { Some(s) } else { None }).collect();
         assert_eq!(scans.len(), 26);
         assert_eq!(*scans[24], one.scan(24));
+    }
+
+    #[test]
+    fn traffic_scans_do_not_depend_on_threads_and_actors_change_only_their_rays() {
+        let mut cfg = ScenarioConfig::new(ScenarioKind::Traffic, SensorModel::Vlp16, 3);
+        cfg.threads = 1;
+        let one = Scenario::from_config(cfg.clone()).unwrap();
+        cfg.threads = 3;
+        let three = Scenario::from_config(cfg.clone()).unwrap();
+        cfg.actors = false;
+        let bare = Scenario::from_config(cfg).unwrap();
+        // Scan 240 (24 s): the car waits at the junction among cross traffic and pedestrians.
+        let (a, b, c) = (one.scan(240), three.scan(240), bare.scan(240));
+        assert_eq!(a, b);
+        assert_ne!(a, c);
+        // Same firings, same noise: the points of rays that meet no actor are identical.
+        let key = |p: &loglio_core::scan::ScanPoint| (p.row, p.col, p.ret, p.t.to_bits());
+        let bare_pts: std::collections::HashMap<_, _> = c.points.iter().map(|p| (key(p), *p)).collect();
+        let same = a.points.iter().filter(|p| bare_pts.get(&key(p)) == Some(p)).count();
+        assert!(same * 10 > a.points.len() * 9 && same < a.points.len(), "{same} of {}", a.points.len());
     }
 
     #[test]

@@ -94,6 +94,12 @@ pub enum Trajectory {
     },
     /// Fast handheld rotation (up to about 180 deg/s) on the spot, in the hall.
     FastRotation,
+    /// The vehicle's car on the same road, with a stop: it brakes from [`TRAFFIC_BRAKE_S`],
+    /// stands exactly still from [`TRAFFIC_STOP_S`] to [`TRAFFIC_GO_S`] and drives on.
+    Traffic {
+        /// The ground it drives on.
+        terrain: Terrain,
+    },
 }
 
 /// Vehicle loop: a rounded square of "radius" A with corner sharpness K and an asymmetry B.
@@ -105,6 +111,52 @@ const VEH_SPEED: f64 = 6.7;
 const VEH_RAMP_S: f64 = 5.0;
 /// Height of the vehicle's IMU above the road, metres.
 pub const VEH_IMU_HEIGHT: f64 = 1.75;
+/// The traffic drive: time the car starts braking for its stop, seconds.
+pub const TRAFFIC_BRAKE_S: f64 = 15.0;
+/// The traffic drive: time the car drives on after its stop, seconds.
+pub const TRAFFIC_GO_S: f64 = 29.0;
+
+/// The traffic drive: time the car comes to a standstill (braking takes the ramp time), seconds.
+pub const TRAFFIC_STOP_S: f64 = TRAFFIC_BRAKE_S + VEH_RAMP_S;
+
+/// The traffic drive's path angle on the vehicle loop at `t` seconds (see [`road_point`]).
+pub fn traffic_theta(t: f64) -> f64 {
+    traffic_theta_jet(Jet::c(t)).v
+}
+
+/// A point of the vehicle loop (the town's road centre line) at path angle `theta`: (x, y) and
+/// the derivative (dx/dtheta, dy/dtheta).
+pub fn road_point(theta: f64) -> [f64; 4] {
+    let (x, y, dx, dy) = vehicle_path(Jet::c(theta));
+    [x.v, y.v, dx.v, dy.v]
+}
+
+/// The traffic drive's path angle: three smooth speed ramps (start, brake, go) and, between the
+/// standstill and [`TRAFFIC_GO_S`], a constant (so position, velocity and rate are exactly still).
+fn traffic_theta_jet(tj: Jet) -> Jet {
+    let rate = VEH_SPEED / VEH_A;
+    let t = tj.v;
+    if (TRAFFIC_STOP_S..=TRAFFIC_GO_S).contains(&t) {
+        return Jet::c(VEH_THETA0 + rate * (TRAFFIC_BRAKE_S - REST_S));
+    }
+    let r = 1.0 / VEH_RAMP_S;
+    let ramps = smoothstep_integral((tj - REST_S) * r) - smoothstep_integral((tj - TRAFFIC_BRAKE_S) * r)
+        + smoothstep_integral((tj - TRAFFIC_GO_S) * r);
+    Jet::c(VEH_THETA0) + ramps * (rate * VEH_RAMP_S)
+}
+
+/// The car on the loop at path angle `th`: position and (roll, pitch, yaw) on the ground.
+fn vehicle_on_road(terrain: &Terrain, th: Jet) -> ([Jet; 3], [Jet; 3]) {
+    let (x, y, dx, dy) = vehicle_path(th);
+    let yaw = dy.atan2(dx);
+    let (zg, gx, gy) = terrain.height_jet(x, y);
+    let (cy, sy) = (yaw.cos(), yaw.sin());
+    let slope_fwd = gx * cy + gy * sy;
+    let slope_left = gy * cy - gx * sy;
+    let pitch = -slope_fwd.atan();
+    let roll = slope_left.atan();
+    ([x, y, zg + VEH_IMU_HEIGHT], [roll, pitch, yaw])
+}
 
 const WALK_SPEED: f64 = 1.25;
 /// Height of the handheld sensor above the floor, metres.
@@ -144,16 +196,9 @@ impl Trajectory {
             Trajectory::Vehicle { terrain } => {
                 let th = Jet::c(VEH_THETA0)
                     + smoothstep_integral(moving * (1.0 / VEH_RAMP_S)) * (VEH_SPEED / VEH_A * VEH_RAMP_S);
-                let (x, y, dx, dy) = vehicle_path(th);
-                let yaw = dy.atan2(dx);
-                let (zg, gx, gy) = terrain.height_jet(x, y);
-                let (cy, sy) = (yaw.cos(), yaw.sin());
-                let slope_fwd = gx * cy + gy * sy;
-                let slope_left = gy * cy - gx * sy;
-                let pitch = -slope_fwd.atan();
-                let roll = slope_left.atan();
-                ([x, y, zg + VEH_IMU_HEIGHT], [roll, pitch, yaw])
+                vehicle_on_road(terrain, th)
             }
+            Trajectory::Traffic { terrain } => vehicle_on_road(terrain, traffic_theta_jet(tj)),
             Trajectory::Handheld => {
                 let th = Jet::c(-0.4) + smoothstep_integral(moving * (1.0 / 2.5)) * (WALK_SPEED / 12.0 * 2.5);
                 let (x, y, dx, dy) = walk_path(th);
@@ -371,6 +416,40 @@ mod tests {
         let c = Trajectory::Corridor;
         let end = c.eval(40.0).position;
         assert!(end.x > 140.0 && end.x < 180.0 && end.y.abs() < 0.3, "{end:?}");
+    }
+
+    #[test]
+    fn traffic_drive_stands_exactly_still_at_its_stop() {
+        let traj = Trajectory::Traffic { terrain: Terrain::town() };
+        let k0 = traj.eval(TRAFFIC_STOP_S);
+        let mut t = TRAFFIC_STOP_S;
+        while t <= TRAFFIC_GO_S {
+            let k = traj.eval(t);
+            assert_eq!(k.position, k0.position, "{t}");
+            assert_eq!(k.rotation, k0.rotation, "{t}");
+            assert_eq!(k.velocity, Vector3::zeros(), "{t}");
+            assert_eq!(k.acceleration, Vector3::zeros(), "{t}");
+            assert_eq!(k.angular_velocity, Vector3::zeros(), "{t}");
+            assert_eq!(k.angular_acceleration, Vector3::zeros(), "{t}");
+            t += 0.01;
+        }
+        // It drives before and after, continuously into and out of the stop.
+        assert!(traj.eval(10.0).velocity.norm() > 4.0);
+        assert!(traj.eval(40.0).velocity.norm() > 4.0);
+        let (a, b) = (traj.eval(TRAFFIC_STOP_S - 1e-6), traj.eval(TRAFFIC_GO_S + 1e-6));
+        assert!((a.position - k0.position).norm() < 1e-6 && (b.position - k0.position).norm() < 1e-6);
+        // Same road as the vehicle drive, same derivatives as its finite differences.
+        let h = 1e-4;
+        for i in 0..600 {
+            let t = 0.1 * i as f64 + 0.013;
+            let (k, kp, km) = (traj.eval(t), traj.eval(t + h), traj.eval(t - h));
+            let v = (kp.position - km.position) / (2.0 * h);
+            assert!((v - k.velocity).norm() < 1e-6 * (1.0 + k.velocity.norm()), "v at {t}");
+            let w = log_so3(&(km.rotation.inverse() * kp.rotation)) / (2.0 * h);
+            assert!((w - k.angular_velocity).norm() < 1e-6 * (1.0 + k.angular_velocity.norm()), "w at {t}");
+            let [x, y, ..] = road_point(traffic_theta(t));
+            assert!((x - k.position.x).abs() < 1e-9 && (y - k.position.y).abs() < 1e-9);
+        }
     }
 
     #[test]

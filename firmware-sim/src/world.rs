@@ -71,12 +71,12 @@ fn path_samples(traj: &Trajectory, until: f64, dt: f64) -> Vec<[f64; 3]> {
 }
 
 /// Smallest xy distance from a shape's footprint to any path sample.
-fn clearance(shape: &Shape, path: &[[f64; 3]]) -> f64 {
+pub fn clearance(shape: &Shape, path: &[[f64; 3]]) -> f64 {
     path.iter().map(|p| shape.xy_distance([p[0], p[1]])).fold(f64::INFINITY, f64::min)
 }
 
 /// Whether two footprints (as boxes) overlap, with a margin, by separating axes.
-fn footprints_overlap(a: &Shape, b: &Shape, margin: f64) -> bool {
+pub fn footprints_overlap(a: &Shape, b: &Shape, margin: f64) -> bool {
     let rect = |s: &Shape| -> ([f64; 2], [f64; 2], f64, f64) {
         match *s {
             Shape::Box { c, h, cos, sin } => ([c[0], c[1]], [h[0] + margin, h[1] + margin], cos, sin),
@@ -130,6 +130,30 @@ impl World {
 }
 
 fn town(seed: u64) -> World {
+    let (prims, terrain) = town_prims(seed);
+    town_scene(prims, terrain, seed)
+}
+
+impl World {
+    /// The town of `seed` without the primitives `remove` selects (the traffic scenario clears
+    /// a cross street and the actors' way); everything else is the same town.
+    pub fn town_without(seed: u64, remove: impl Fn(&Prim) -> bool) -> World {
+        let (mut prims, terrain) = town_prims(seed);
+        prims.retain(|p| !remove(p));
+        town_scene(prims, terrain, seed)
+    }
+}
+
+fn town_scene(prims: Vec<Prim>, terrain: Terrain, seed: u64) -> World {
+    let half = TOWN_HALF;
+    let g = Heightfield::new(-half, -half, 1.0, (2.0 * half) as usize, (2.0 * half) as usize, 18, |x, y| {
+        terrain.height(x, y)
+    });
+    let scene = Scene::new(prims, Some(g), seed, [-half, -half], [half, half], 4.0);
+    World { kind: SceneKind::Town, seed, terrain, scene }
+}
+
+fn town_prims(seed: u64) -> (Vec<Prim>, Terrain) {
     let terrain = Terrain::town();
     let mut b = Builder { prims: Vec::new(), rng: SplitMix64::new(seed, 1) };
     let road = path_samples(&Trajectory::Vehicle { terrain: terrain.clone() }, 95.0, 0.25);
@@ -339,12 +363,7 @@ fn town(seed: u64) -> World {
         b.push(Shape::boxed([x, y, (g0 - 0.5 + g1 + h) * 0.5], [len, 0.25, g1 + h - g0 + 0.5], yaw), 40);
         buildings.push(foot);
     }
-    let half = TOWN_HALF;
-    let g = Heightfield::new(-half, -half, 1.0, (2.0 * half) as usize, (2.0 * half) as usize, 18, |x, y| {
-        terrain.height(x, y)
-    });
-    let scene = Scene::new(b.prims, Some(g), seed, [-half, -half], [half, half], 4.0);
-    World { kind: SceneKind::Town, seed, terrain, scene }
+    (b.prims, terrain)
 }
 
 fn hall(seed: u64) -> World {

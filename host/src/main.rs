@@ -65,9 +65,12 @@ enum Command {
 #[cfg(feature = "sim")]
 #[derive(Debug, Args)]
 struct SimArgs {
-    /// Scenario: vehicle, handheld, corridor, drone, rotation.
+    /// Scenario: vehicle, handheld, corridor, drone, rotation, traffic.
     #[arg(long, default_value = "vehicle", value_name = "NAME")]
     scenario: String,
+    /// Leave the scenario's moving actors out (traffic: the same drive in an empty street).
+    #[arg(long)]
+    no_actors: bool,
     /// Simulated LiDAR: vlp16, vlp32c, hdl32e, os1-16, os1-64.
     #[arg(long, default_value = "vlp32c", value_name = "NAME")]
     sensor: String,
@@ -255,7 +258,7 @@ struct BenchArgs {
     /// cores (at most 8).
     #[arg(long, default_value_t = 0, value_name = "N")]
     threads: usize,
-    /// Simulated scenario: vehicle, handheld, corridor, drone, rotation (default: vehicle for
+    /// Simulated scenario: vehicle, handheld, corridor, drone, rotation, traffic (default: vehicle for
     /// Velodyne presets, handheld for Ouster).
     #[arg(long, value_name = "NAME")]
     scenario: Option<String>,
@@ -630,6 +633,7 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
         max_points: a.max_points,
         knn_search: a.knn_search,
         out: a.out,
+        no_actors: a.no_actors,
         progress: !a.realtime,
         realtime: a.realtime.then_some(a.rate),
         sinks: a.outputs,
@@ -658,6 +662,7 @@ fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
         max_points: 0,
         knn_search: KnnReach::Exact,
         out: Some(a.out),
+        no_actors: false,
         progress: !a.realtime,
         realtime: a.realtime.then_some(a.rate),
         sinks: a.outputs,

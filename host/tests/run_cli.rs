@@ -141,6 +141,38 @@ fn sim_hdl32e_runs_on_a_wider_image() {
     sim_tracks("vehicle", "hdl32e", 4, 39, 0.02, 25);
 }
 
+/// `loglio sim --scenario traffic --out` writes the actors' ground truth beside the ego's;
+/// `--no-actors` runs the same drive without them and writes none.
+#[test]
+fn sim_traffic_writes_the_actors_ground_truth() {
+    for bare in [false, true] {
+        let dir = scratch(if bare { "traffic-bare" } else { "traffic" });
+        let d = dir.to_str().unwrap();
+        let mut args = vec!["sim", "--scenario", "traffic", "--seconds", "4", "--out", d];
+        if bare {
+            args.push("--no-actors");
+        }
+        let text = stdout(&loglio(&args));
+        assert!(text.contains("scenario traffic (4 s, vlp32c, seed 1)"), "{text}");
+        assert!(number_after(&text, "rmse") < 0.02, "{text}");
+        assert!(dir.join("groundtruth.tum").exists());
+        let csv = dir.join("actors.csv");
+        assert_eq!(csv.exists(), !bare, "{text}");
+        if bare {
+            continue;
+        }
+        assert!(text.contains("actors.csv"), "{text}");
+        let csv = std::fs::read_to_string(&csv).unwrap();
+        let lines: Vec<&str> = csv.lines().collect();
+        assert_eq!(lines[0], "t_ns,t_s,id,kind,x,y,z,yaw,length,width,height,vx,vy,vz");
+        // 41 stamps at 10 Hz; in the first 4 s exist the truck, two oncoming cars and five
+        // pedestrians.
+        assert_eq!(lines.len(), 1 + 41 * 8);
+        assert!(lines[1].starts_with("1714565400000000000,0.000,0,truck,"), "{}", lines[1]);
+        assert!(lines.last().unwrap().starts_with("1714565404000000000,4.000,12,pedestrian,"));
+    }
+}
+
 #[test]
 fn sim_and_demo_bad_arguments_are_one_line() {
     fails_with(&loglio(&["sim", "--scenario", "moon"]), "error: unknown scenario \"moon\" (known: vehicle,");

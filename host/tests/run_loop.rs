@@ -33,6 +33,7 @@ fn handheld(seconds: f64) -> SimOptions {
         max_points: 0,
         knn_search: KnnReach::Exact,
         out: None,
+        no_actors: false,
         progress: false,
         realtime: None,
         sinks: Default::default(),

@@ -71,11 +71,14 @@ enum Cmd {
     },
 }
 
-#[derive(Debug, Args)]
+#[derive(Clone, Debug, Args)]
 struct ScenarioArgs {
-    /// vehicle, handheld, corridor, drone or rotation.
+    /// vehicle, handheld, corridor, drone, rotation or traffic.
     #[arg(long, default_value = "vehicle")]
     scenario: String,
+    /// Leave the scenario's moving actors out (traffic: the same drive in an empty street).
+    #[arg(long)]
+    no_actors: bool,
     /// vlp16, vlp32c, hdl32e, os1-16 or os1-64.
     #[arg(long, default_value = "vlp32c")]
     sensor: String,
@@ -118,6 +121,7 @@ impl ScenarioArgs {
         if let Some(d) = self.duration {
             cfg.duration_s = d;
         }
+        cfg.actors = !self.no_actors;
         match &mut cfg.lidar {
             LidarConfig::Velodyne(v) => {
                 if let Some(r) = self.rpm {
@@ -247,6 +251,26 @@ fn main() -> anyhow::Result<()> {
                 rays as f64 / wall / 1e6,
                 points as f64 / n as f64
             );
+            if !s.actors().is_empty() {
+                // The same scans without the actors, in the same run.
+                let mut bare = ScenarioArgs { no_actors: true, ..sc.clone() };
+                bare.threads = 1;
+                let s0 = bare.build()?;
+                let c0 = thread_cpu_s();
+                let mut points0 = 0usize;
+                for i in 0..n {
+                    let j = i * (total / n).max(1);
+                    points0 += scanner.scan(j, || s0.echo_source()).points.len();
+                }
+                let cpu0 = thread_cpu_s() - c0;
+                println!(
+                    "cast without the {} actors: {:.2} M rays per CPU-second, {:.0} points/scan (with them: {:.1} % slower)",
+                    s.actors().list().len(),
+                    rays as f64 / cpu0 / 1e6,
+                    points0 as f64 / n as f64,
+                    (cpu / cpu0 - 1.0) * 100.0
+                );
+            }
             // Baseline in the same run: the same random rays cast with and without the grid.
             let rays_b: Vec<Ray> = {
                 let mut rng = SplitMix64::new(7, 7);

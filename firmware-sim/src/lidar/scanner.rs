@@ -16,6 +16,9 @@
 //! surfaces (max_range * sqrt(reflectivity * cos(incidence) / 80), at least 30 %). All random
 //! numbers are hashes of (seed, firing key), so packets and direct scans of the same seed carry
 //! identical points.
+//!
+//! Moving actors ([`crate::actors`], the traffic scenario) are met where they are at each
+//! firing's own time, after the static world: the nearer surface wins.
 
 use loglio_core::range_image::RangeImageLayout;
 use loglio_core::scan::ScanPoint;
@@ -24,6 +27,7 @@ use nalgebra::{Isometry3, Matrix3, Vector3};
 use super::ouster::Ouster;
 use super::velodyne::Velodyne;
 use super::{Echo, EchoSource, Echoes, Firing, RangeModel, ReturnMode};
+use crate::actors::Actors;
 use crate::raycast::{Hit, Ray, Scene};
 use crate::rng;
 use crate::trajectory::Trajectory;
@@ -55,6 +59,12 @@ pub struct WorldEchoes<'a> {
     a: Vector3<f64>,
     w: Vector3<f64>,
     al: Vector3<f64>,
+    /// Moving actors, met where they are at each firing's time (none: a static world).
+    actors: Option<&'a Actors>,
+    /// Each actor's last path segment (a search hint).
+    hints: Vec<u32>,
+    /// Spheres holding each actor over the current pose step (a cheap first rejection).
+    spheres: Vec<[f64; 4]>,
     /// Rays cast so far.
     pub rays: u64,
 }
@@ -83,8 +93,20 @@ impl<'a> WorldEchoes<'a> {
             a: Vector3::zeros(),
             w: Vector3::zeros(),
             al: Vector3::zeros(),
+            actors: None,
+            hints: Vec::new(),
+            spheres: Vec::new(),
             rays: 0,
         }
+    }
+
+    /// The same source with moving actors in the world (an empty set changes nothing).
+    pub fn with_actors(mut self, actors: &'a Actors) -> Self {
+        if !actors.is_empty() {
+            self.hints = vec![0; actors.list().len()];
+            self.actors = Some(actors);
+        }
+        self
     }
 
     fn echo(&self, h: &Hit, d: [f64; 3], key: u64, stream: u64) -> Option<Echo> {
@@ -128,6 +150,11 @@ impl EchoSource for WorldEchoes<'_> {
             return;
         }
         self.t0 = base;
+        if let Some(actors) = self.actors {
+            // Every firing until the next begin_sequence is at most 1.1 ms after the grid point.
+            let t = (base as i128 - self.start_ns as i128) as f64 * 1e-9;
+            actors.spheres(t, (POSE_STEP_NS + 200_000) as f64 * 1e-9, &mut self.spheres);
+        }
         let k = self.traj.eval((base - self.start_ns) as f64 * 1e-9).attached(&self.t_il);
         self.r = *k.rotation.matrix();
         self.p = k.position;
@@ -153,7 +180,18 @@ impl EchoSource for WorldEchoes<'_> {
         let o = self.r * turn(Vector3::from(f.origin)) + p;
         let d = (self.r * turn(Vector3::from(f.dir))).normalize();
         let ray = Ray { o: [o.x, o.y, o.z], d: [d.x, d.y, d.z] };
-        let res = self.scene.cast(&ray, self.range.max_range, f.key);
+        let mut res = self.scene.cast(&ray, self.range.max_range, f.key);
+        if let Some(actors) = self.actors {
+            // The actors where they are at this firing's own time.
+            let t = (f.t_ns as i128 - self.start_ns as i128) as f64 * 1e-9;
+            let best = res.hit.map_or(self.range.max_range, |h| h.t);
+            if let Some(h) = actors.cast_near(&ray, t, best, &mut self.hints, Some(&self.spheres)) {
+                res.hit = Some(h);
+                if res.partial.is_some_and(|p| p.t >= h.t) {
+                    res.partial = None;
+                }
+            }
+        }
         Echoes {
             last: res.hit.and_then(|h| self.echo(&h, ray.d, f.key, S_NOISE_LAST)),
             first: res.partial.and_then(|h| self.echo(&h, ray.d, f.key, S_NOISE_FIRST)),

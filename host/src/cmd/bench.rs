@@ -182,6 +182,7 @@ pub fn run(
         max_points,
         knn_search,
         out: None,
+        no_actors: false,
         progress: false,
         realtime: None,
         sinks: crate::sink::SinkArgs::default(),

@@ -18,6 +18,9 @@ use crate::run::runner::{self, OwnedScan, RunStats, Runner};
 use crate::run::{self, RunOptions};
 use crate::sink::files::{self, EstPose, Finished, OutputOptions};
 
+/// The moving actors' ground truth beside the ego's (`loglio sim --out`, traffic scenario).
+pub const ACTORS_CSV: &str = "actors.csv";
+
 /// What to simulate and where to write.
 #[derive(Clone, Debug)]
 pub struct SimOptions {
@@ -37,6 +40,8 @@ pub struct SimOptions {
     pub knn_search: KnnReach,
     /// Output directory (`None`: write nothing).
     pub out: Option<PathBuf>,
+    /// Leave the scenario's moving actors out (the traffic scenario's drive in an empty street).
+    pub no_actors: bool,
     /// Show a progress bar (on a terminal).
     pub progress: bool,
     /// Pace the run by the simulated time at this speed-up (`None`: as fast as possible).
@@ -126,6 +131,7 @@ pub fn scenario(opt: &SimOptions) -> Result<Scenario, PipelineError> {
     if let Some(d) = opt.duration_s {
         sc_cfg.duration_s = d;
     }
+    sc_cfg.actors = !opt.no_actors;
     Scenario::from_config(sc_cfg).map_err(|e| PipelineError(format!("scenario: {e}")))
 }
 
@@ -220,6 +226,10 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
             let gt = ground_truth(&sc, &runner.outputs.poses);
             if let Some(dir) = &opt.out {
                 files::write_tum(&dir.join("groundtruth.tum"), &gt)?;
+                if !sc.actors().is_empty() {
+                    sc.write_actors_csv(&dir.join(ACTORS_CSV), 10.0)
+                        .map_err(|e| PipelineError(format!("{}: {e}", dir.join(ACTORS_CSV).display())))?;
+                }
             }
             runner.outputs.set_ground_truth(Some(to_trajectory(&gt)));
             Ok(())
@@ -230,6 +240,9 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
     let mut finished = finished;
     if let Some(dir) = &opt.out {
         finished.files.push(dir.join("groundtruth.tum"));
+        if !sc.actors().is_empty() {
+            finished.files.push(dir.join(ACTORS_CSV));
+        }
     }
     Ok(SimReport { stats, finished, sim_s, wall_s: wall.elapsed().as_secs_f64(), scan_period_s, class })
 }

@@ -43,7 +43,8 @@ struct Cli {
     /// Output directory (one folder per scenario is created in it).
     #[arg(long)]
     out: PathBuf,
-    /// Scenarios (vehicle, handheld, corridor, drone, rotation); default: all five.
+    /// Scenarios (vehicle, handheld, corridor, drone, rotation, traffic); default: the five static
+    /// ones (not traffic).
     #[arg(long)]
     scenario: Vec<String>,
     /// LiDAR model: vlp16, vlp32c or hdl32e (Velodyne layout clouds).
@@ -70,7 +71,7 @@ fn main() -> anyhow::Result<()> {
     let sensor = SensorModel::from_name(&cli.sensor).with_context(|| format!("unknown sensor {:?}", cli.sensor))?;
     anyhow::ensure!(sensor.is_velodyne(), "only Velodyne models are exported (Velodyne cloud layout)");
     let kinds: Vec<ScenarioKind> = if cli.scenario.is_empty() {
-        ScenarioKind::ALL.to_vec()
+        ScenarioKind::ALL.into_iter().filter(|k| *k != ScenarioKind::Traffic).collect()
     } else {
         cli.scenario
             .iter()
