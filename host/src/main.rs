@@ -98,6 +98,9 @@ struct SimArgs {
     /// world is the first scan's frame).
     #[arg(long)]
     no_imu: bool,
+    /// Zero-velocity and zero-rate updates while the platform stands (`filter.standstill`).
+    #[arg(long)]
+    standstill: bool,
     /// Pace the run by the simulated time (real time), e.g. to watch it live in Foxglove.
     #[arg(long)]
     realtime: bool,
@@ -638,6 +641,7 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
         realtime: a.realtime.then_some(a.rate),
         sinks: a.outputs,
         no_imu: a.no_imu,
+        standstill: a.standstill,
     })
 }
 
@@ -667,6 +671,7 @@ fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
         realtime: a.realtime.then_some(a.rate),
         sinks: a.outputs,
         no_imu: false,
+        standstill: false,
     })
 }
 

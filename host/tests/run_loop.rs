@@ -38,6 +38,7 @@ fn handheld(seconds: f64) -> SimOptions {
         realtime: None,
         sinks: Default::default(),
         no_imu: false,
+        standstill: false,
     }
 }
 

@@ -187,6 +187,7 @@ pub fn run(
         realtime: None,
         sinks: crate::sink::SinkArgs::default(),
         no_imu: false,
+        standstill: false,
     };
     let sc = sim::scenario(&opt)?;
     let t0 = Instant::now();

@@ -42,6 +42,8 @@ pub struct SimOptions {
     pub out: Option<PathBuf>,
     /// Leave the scenario's moving actors out (the traffic scenario's drive in an empty street).
     pub no_actors: bool,
+    /// Zero-velocity and zero-rate updates at stands (`filter.standstill`).
+    pub standstill: bool,
     /// Show a progress bar (on a terminal).
     pub progress: bool,
     /// Pace the run by the simulated time at this speed-up (`None`: as fast as possible).
@@ -180,6 +182,7 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
     let mut cfg = scenario_config(&sc, preset_of(opt.sensor), opt.mode);
     cfg.mapping.max_points = opt.max_points;
     cfg.mapping.knn_search = opt.knn_search;
+    cfg.filter.standstill = opt.standstill;
     if opt.no_imu {
         cfg.imu.source = ImuSource::None;
     }
