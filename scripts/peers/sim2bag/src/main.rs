@@ -32,8 +32,8 @@ use clap::Parser;
 use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKind};
 use loglio_firmware_sim::{files, tum};
-use loglio_host::bag::msg::{self, Imu};
-use loglio_host::bag::ros1_writer::Ros1BagWriter;
+use loglio_host::input::bag::msg::{self, Imu};
+use loglio_host::input::bag::ros1_writer::Ros1BagWriter;
 use serde_json::json;
 
 /// Writes simulated scenarios as ROS 1 bags (PointCloud2 + Imu) with exact ground truth.
@@ -127,10 +127,10 @@ fn export(sc: &Scenario, dir: &Path) -> anyhow::Result<(u64, u64)> {
                 let pts = &scan.points;
                 let cloud = msg::PointCloud2 {
                     is_dense: true,
-                    ..loglio_host::bag::cloud::build::cloud(
+                    ..loglio_host::input::bag::cloud::build::cloud(
                         scan.start_ns,
                         LIDAR_FRAME,
-                        loglio_host::bag::cloud::build::VELODYNE,
+                        loglio_host::input::bag::cloud::build::VELODYNE,
                         1,
                         pts.len() as u32,
                         Some(32),
