@@ -166,6 +166,10 @@ pub struct ScenarioConfig {
     /// The scenario's moving actors (the traffic scenario's; false: the same drive through the
     /// same world with nobody else on the road).
     pub actors: bool,
+    /// The IMU board's clock minus the true time (the LiDAR's clock), ns: its samples are
+    /// stamped this much later (earlier when negative) than they were taken, as an IMU on a
+    /// clock of its own. 0: one clock.
+    pub imu_clock_offset_ns: i64,
 }
 
 impl ScenarioConfig {
@@ -184,6 +188,7 @@ impl ScenarioConfig {
             imu_phase_ns: 1_250_000,
             threads: std::thread::available_parallelism().map_or(1, |n| n.get().min(4)),
             actors: true,
+            imu_clock_offset_ns: 0,
         }
     }
 }
@@ -474,6 +479,7 @@ pub struct ImuStream<W: embedded_io::Write> {
     end_ns: u64,
     k: u64,
     board: ImuBoard<MockI2c, W>,
+    clock_offset_ns: i64,
 }
 
 impl<W: embedded_io::Write> ImuStream<W> {
@@ -492,6 +498,7 @@ impl<W: embedded_io::Write> ImuStream<W> {
             end_ns: sc.end_ns(),
             k: 0,
             board,
+            clock_offset_ns: sc.cfg.imu_clock_offset_ns,
         }
     }
 
@@ -523,8 +530,9 @@ impl<W: embedded_io::Write> Iterator for ImuStream<W> {
         let f: Vector3<f64> = kin.specific_force();
         self.board.bus_mut().chip_mut().sample([w.x, w.y, w.z], [f.x, f.y, f.z]);
         // The chip was just given a sample and the sink accepts everything: the handler can only
-        // fail on a serial error, which ends the stream.
-        self.board.on_data_ready(t_ns).ok().map(|fr| fr.sample())
+        // fail on a serial error, which ends the stream. The board latches its own clock.
+        let t_board = t_ns.saturating_add_signed(self.clock_offset_ns);
+        self.board.on_data_ready(t_board).ok().map(|fr| fr.sample())
     }
 }
 

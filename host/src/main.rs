@@ -101,6 +101,14 @@ struct SimArgs {
     /// Zero-velocity and zero-rate updates while the platform stands (`filter.standstill`).
     #[arg(long)]
     standstill: bool,
+    /// The simulated IMU's clock runs this far ahead of the LiDAR's, ms (a sensor-realism
+    /// switch: its samples are stamped late).
+    #[arg(long, default_value_t = 0.0, value_name = "MS", allow_negative_numbers = true)]
+    imu_clock_offset_ms: f64,
+    /// `time.lidar_imu_offset`: seconds added to the IMU stamps (e.g. -0.02 for
+    /// --imu-clock-offset-ms 20).
+    #[arg(long, default_value_t = 0.0, value_name = "S", allow_negative_numbers = true)]
+    lidar_imu_offset: f64,
     /// Pace the run by the simulated time (real time), e.g. to watch it live in Foxglove.
     #[arg(long)]
     realtime: bool,
@@ -627,6 +635,12 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
     {
         bail!("--seconds must be in (0, 600], not {s}");
     }
+    if !(a.imu_clock_offset_ms.abs() <= 1000.0) {
+        bail!("--imu-clock-offset-ms must be within ±1000 ms, not {}", a.imu_clock_offset_ms);
+    }
+    if !(a.lidar_imu_offset.abs() <= 4e9) {
+        bail!("--lidar-imu-offset must be within ±4e9 s, not {}", a.lidar_imu_offset);
+    }
     sim_run(loglio_host::cmd::sim::SimOptions {
         kind,
         sensor,
@@ -642,6 +656,8 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
         sinks: a.outputs,
         no_imu: a.no_imu,
         standstill: a.standstill,
+        imu_clock_offset_ns: (a.imu_clock_offset_ms * 1e6).round() as i64,
+        lidar_imu_offset_s: a.lidar_imu_offset,
     })
 }
 
@@ -672,6 +688,8 @@ fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
         sinks: a.outputs,
         no_imu: false,
         standstill: false,
+        imu_clock_offset_ns: 0,
+        lidar_imu_offset_s: 0.0,
     })
 }
 

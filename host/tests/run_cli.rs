@@ -173,6 +173,32 @@ fn sim_traffic_writes_the_actors_ground_truth() {
     }
 }
 
+/// An IMU on a clock of its own, 20 ms ahead of the LiDAR's (a sensor-realism switch of the
+/// simulator): the error grows; `time.lidar_imu_offset = -0.02` (here `--lidar-imu-offset`)
+/// puts the stamps back exactly, and the trajectory is the one-clock run's, bit for bit.
+#[test]
+fn sim_imu_clock_offset_and_its_compensation() {
+    let run = |name: &str, extra: &[&str]| {
+        let dir = scratch(name);
+        let d = dir.to_str().unwrap().to_string();
+        let mut args = vec!["sim", "--scenario", "vehicle", "--seconds", "10", "--out", &d];
+        args.extend_from_slice(extra);
+        let text = stdout(&loglio(&args));
+        (number_after(&text, "rmse"), std::fs::read_to_string(dir.join("trajectory.tum")).unwrap())
+    };
+    let (one_clock, tum) = run("clock-one", &[]);
+    let (late, _) = run("clock-late", &["--imu-clock-offset-ms", "20"]);
+    let (fixed, tum_fixed) =
+        run("clock-fixed", &["--imu-clock-offset-ms", "20", "--lidar-imu-offset", "-0.02"]);
+    assert_eq!(tum, tum_fixed, "the compensated run is the one-clock run");
+    assert_eq!(fixed, one_clock);
+    assert!(late > 1.3 * one_clock, "20 ms off: {late} m against {one_clock} m");
+    fails_with(
+        &loglio(&["sim", "--imu-clock-offset-ms", "5000"]),
+        "error: --imu-clock-offset-ms must be within",
+    );
+}
+
 #[test]
 fn sim_and_demo_bad_arguments_are_one_line() {
     fails_with(&loglio(&["sim", "--scenario", "moon"]), "error: unknown scenario \"moon\" (known: vehicle,");

@@ -188,6 +188,8 @@ pub fn run(
         sinks: crate::sink::SinkArgs::default(),
         no_imu: false,
         standstill: false,
+        imu_clock_offset_ns: 0,
+        lidar_imu_offset_s: 0.0,
     };
     let sc = sim::scenario(&opt)?;
     let t0 = Instant::now();

@@ -44,6 +44,10 @@ pub struct SimOptions {
     pub no_actors: bool,
     /// Zero-velocity and zero-rate updates at stands (`filter.standstill`).
     pub standstill: bool,
+    /// The simulated IMU's clock ahead of the LiDAR's by this, ns (a sensor-realism switch).
+    pub imu_clock_offset_ns: i64,
+    /// `time.lidar_imu_offset`, s: what the run adds to the IMU stamps.
+    pub lidar_imu_offset_s: f64,
     /// Show a progress bar (on a terminal).
     pub progress: bool,
     /// Pace the run by the simulated time at this speed-up (`None`: as fast as possible).
@@ -134,6 +138,7 @@ pub fn scenario(opt: &SimOptions) -> Result<Scenario, PipelineError> {
         sc_cfg.duration_s = d;
     }
     sc_cfg.actors = !opt.no_actors;
+    sc_cfg.imu_clock_offset_ns = opt.imu_clock_offset_ns;
     Scenario::from_config(sc_cfg).map_err(|e| PipelineError(format!("scenario: {e}")))
 }
 
@@ -183,6 +188,7 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
     cfg.mapping.max_points = opt.max_points;
     cfg.mapping.knn_search = opt.knn_search;
     cfg.filter.standstill = opt.standstill;
+    cfg.time.lidar_imu_offset = opt.lidar_imu_offset_s;
     if opt.no_imu {
         cfg.imu.source = ImuSource::None;
     }
