@@ -635,10 +635,10 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
     {
         bail!("--seconds must be in (0, 600], not {s}");
     }
-    if !(a.imu_clock_offset_ms.abs() <= 1000.0) {
+    if a.imu_clock_offset_ms.is_nan() || a.imu_clock_offset_ms.abs() > 1000.0 {
         bail!("--imu-clock-offset-ms must be within ±1000 ms, not {}", a.imu_clock_offset_ms);
     }
-    if !(a.lidar_imu_offset.abs() <= 4e9) {
+    if a.lidar_imu_offset.is_nan() || a.lidar_imu_offset.abs() > 4e9 {
         bail!("--lidar-imu-offset must be within ±4e9 s, not {}", a.lidar_imu_offset);
     }
     sim_run(loglio_host::cmd::sim::SimOptions {
