@@ -38,6 +38,7 @@ pub mod association;
 pub mod clock;
 pub mod downsample;
 pub mod eskf;
+pub mod free_space;
 pub mod imu;
 pub mod imu_guard;
 pub mod math;

@@ -81,6 +81,7 @@ pub use crate::clock::{Clock, NoClock};
 use crate::association::{AssociationConfig, Correspondence, KNN_CHUNK, KnnScratch, ScanAssociation};
 use crate::downsample::{DownsampleConfig, INVALID_NORMAL, VoxelDownsampler, normal_is_valid};
 use crate::eskf::{Eskf, EskfConfig, Predicted, PropagationFlags, UpdateOutcome, UpdateResult, idx};
+use crate::free_space::{FreeSpaceConfig, FreeSpaceImage};
 use crate::imu::{
     ImuDrop, ImuInitConfig, ImuInitializer, ImuPush, ImuQueue, ImuSample, InitStatus, WaitReason,
 };
@@ -203,6 +204,8 @@ pub struct OdometryConfig {
     pub integrity: IntegrityConfig,
     /// Zero-velocity and zero-rate updates while the platform stands still.
     pub standstill: StandstillConfig,
+    /// Removal of map voxels each scan sees through (moving objects' ghost trails).
+    pub free_space: FreeSpaceConfig,
     /// IMU from LiDAR rotation.
     pub ext_rot: UnitQuaternion<f64>,
     /// LiDAR origin in the IMU frame, m.
@@ -232,6 +235,7 @@ impl OdometryConfig {
             imu_guard: ImuGuardConfig::DEFAULT,
             integrity: IntegrityConfig::DEFAULT,
             standstill: StandstillConfig::DEFAULT,
+            free_space: FreeSpaceConfig::DEFAULT,
             ext_rot: UnitQuaternion::identity(),
             ext_pos: Vector3::zeros(),
             motion: MotionModel::Imu,
@@ -309,6 +313,8 @@ pub struct ScanStorage<const PIX: usize, const PTS: usize, const DS: usize> {
     imu: ImuQueue<IMU_QUEUE>,
     trajectory: ImuTrajectory<TRAJECTORY_KNOTS>,
     corr: [Correspondence; DS],
+    /// The scan's nearest returns per coarse cell ([`crate::free_space`]).
+    free: FreeSpaceImage<PIX>,
     queries: [[f32; 3]; KNN_CHUNK],
     neighbours: [Neighbours; KNN_CHUNK],
 }
@@ -370,6 +376,7 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> ScanStorage<PIX, PTS, 
             imu: ImuQueue::new(),
             trajectory: ImuTrajectory::new(),
             corr: [Correspondence::NONE; DS],
+            free: FreeSpaceImage::new(),
             queries: [[0.0; 3]; KNN_CHUNK],
             neighbours: [Neighbours::new(); KNN_CHUNK],
         }
@@ -459,6 +466,8 @@ pub struct OdometryStats {
     pub relocalisations: u32,
     /// Scans that stood still and gave zero-velocity updates ([`crate::standstill`]).
     pub standstill: u32,
+    /// Map voxels removed because a scan saw through them ([`crate::free_space`]).
+    pub cleared: u64,
 }
 
 /// The LiDAR-inertial odometry over caller-owned storage.
@@ -538,6 +547,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             return Err(OdometryError::InvalidConfig("extrinsic"));
         }
         scan.table.build(&cfg.layout, &cfg.ring_fals).map_err(OdometryError::RingTable)?;
+        // A layout the image cannot hold judges nothing: the map then keeps everything.
+        let _ = scan.free.set_layout(&cfg.layout, cfg.free_space.columns);
         scan.imu.clear();
         let map = map.map(cfg.map).map_err(OdometryError::Map)?;
         Ok(Self {
@@ -1078,6 +1089,24 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 };
                 MapPoint { xyz: [q.x as f32, q.y as f32, q.z as f32], normal }
             });
+            // Before the scan goes in: what it sees through leaves the map.
+            let fs = self.cfg.free_space;
+            if fs.enabled && !building && update.outcome == UpdateOutcome::Updated {
+                st.free.fill(&st.points[..kept]);
+                // World to sensor in f32: the map's points are f32, the margins decimetres.
+                let rt: [[f32; 3]; 3] =
+                    core::array::from_fn(|i| core::array::from_fn(|j| r_wl[(j, i)] as f32));
+                let (free, fsc) = (&st.free, &fs);
+                // Every voxel at least every 4 scans on a small map; a fixed cost on a large one.
+                let budget = (fs.voxels_per_scan as usize).min(self.map.len().div_ceil(4));
+                let cleared = self.map.clear_seen_through(origin, fs.max_range, budget, |q, slack| {
+                    let d = [q[0] - origin[0], q[1] - origin[1], q[2] - origin[2]];
+                    let l: [f32; 3] =
+                        core::array::from_fn(|i| rt[i][0] * d[0] + rt[i][1] * d[1] + rt[i][2] * d[2]);
+                    free.verdict_with_slack(l, slack, fsc)
+                });
+                self.stats.cleared = self.stats.cleared.saturating_add(u64::from(cleared));
+            }
             self.stamp = self.stamp.saturating_add(1);
             // Cannot fail: the origin is finite (the state is) and stamps only increase.
             let _ = self.map.insert(pts, origin, self.stamp);

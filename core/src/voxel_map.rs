@@ -88,6 +88,7 @@
 
 use crate::surfel;
 
+mod clear;
 mod config;
 mod distribution;
 mod evict;
@@ -167,6 +168,8 @@ pub struct MapCounters {
     pub evicted_full: u64,
     /// Points dropped because the pool was full.
     pub dropped_full: u64,
+    /// Voxels removed because a scan saw through them ([`VoxelMap::clear_seen_through`]).
+    pub cleared: u64,
 }
 
 /// The voxel map over caller-owned storage. See the module documentation.
@@ -179,6 +182,8 @@ pub struct VoxelMap<'a> {
     cfg: MapConfig,
     d: Derived,
     cursor: usize,
+    /// Where [`VoxelMap::clear_seen_through`] goes on.
+    clear_cursor: usize,
     stamp: u32,
     has_stamp: bool,
     counters: MapCounters,
@@ -241,6 +246,7 @@ impl<'a> VoxelMap<'a> {
             cfg: config,
             d,
             cursor: 0,
+            clear_cursor: 0,
             stamp: 0,
             has_stamp: false,
             counters: MapCounters::default(),
@@ -266,6 +272,7 @@ impl<'a> VoxelMap<'a> {
         self.index.fill(IndexSlot::EMPTY);
         self.len = 0;
         self.cursor = 0;
+        self.clear_cursor = 0;
         self.has_stamp = false;
         self.stamp = 0;
     }

@@ -88,7 +88,10 @@ fn main() -> anyhow::Result<()> {
             }
         }
     }
-    let (mut above, mut inside) = (0usize, 0usize);
+    let (mut above, mut inside, mut standing) = (0usize, 0usize, 0usize);
+    // Where the actors are at the end of the run (within 0.3 s of it), their points are the
+    // objects as they stand, not trails.
+    let end = sc.end_ns();
     let mut per_kind: HashMap<&str, usize> = HashMap::new();
     for p in &pts {
         let q = t_w_est * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
@@ -101,11 +104,15 @@ fn main() -> anyhow::Result<()> {
             list.iter().find(|(i, t0, t1)| sc.actors().list()[*i].swept_contains([q.x, q.y, q.z], *t0, *t1))
         {
             inside += 1;
+            let p = [q.x, q.y, q.z];
+            if (0..=3).any(|k| sc.inside_actor(p, end - k * 100_000_000).is_some()) {
+                standing += 1;
+            }
             *per_kind.entry(sc.actors().list()[i].kind.name()).or_default() += 1;
         }
     }
     println!(
-        "{}: {} map points, {above} more than 0.3 m above the ground, {inside} of them in the actors' swept volumes ({:.3} %); by kind {per_kind:?}",
+        "{}: {} map points, {above} more than 0.3 m above the ground, {inside} of them in the actors' swept volumes ({:.3} %; {standing} of these where the actors stand in the last 0.3 s); by kind {per_kind:?}",
         dir.display(),
         pts.len(),
         100.0 * inside as f64 / above.max(1) as f64

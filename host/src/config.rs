@@ -413,6 +413,13 @@ pub struct MappingConfig {
     /// Nearest-neighbour search of the association.
     #[serde(default)]
     pub knn_search: KnnReach,
+    /// Remove the map voxels each scan sees through (moving objects' ghost trails).
+    #[serde(default = "yes")]
+    pub clear_free_space: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 /// `[filter]`.
@@ -709,6 +716,12 @@ static SPECS: &[Spec] = &[
         "exact = the k nearest map points within the 27 voxels around each point; block = the point's 2x2x2 octant block first (0.9x the association's time, same errors on well-structured scenes, but worse along a featureless corridor: see docs/estimation.md).",
     ),
     spec(
+        "mapping.clear_free_space",
+        Kind::Bool,
+        "",
+        "Remove the map voxels that a scan sees through (the beams around them hit farther): the ghost trails moving cars and people leave (see docs/estimation.md).",
+    ),
+    spec(
         "filter.max_iterations",
         Kind::Int { min: 1, max: 20 },
         "passes",
@@ -987,6 +1000,7 @@ impl Config {
                 max_points: 0,
                 association: AssociationMode::Full,
                 knn_search: KnnReach::Exact,
+                clear_free_space: true,
             },
             filter: FilterConfig { max_iterations: 4, standstill: false },
             compute: ComputeConfig::default(),
@@ -1580,7 +1594,7 @@ mod tests {
     fn unknown_keys_and_presets_are_errors() {
         assert_eq!(
             err("preset = \"vlp16\"\n[mapping]\nvoxl_size = 0.4\n"),
-            "config: unknown key mapping.voxl_size (keys of [mapping]: voxel_size, scan_voxel_size, map_capacity, max_points, association, knn_search)"
+            "config: unknown key mapping.voxl_size (keys of [mapping]: voxel_size, scan_voxel_size, map_capacity, max_points, association, knn_search, clear_free_space)"
         );
         assert_eq!(
             err("preset = \"vlp16\"\n[maping]\nvoxel_size = 0.4\n"),

@@ -101,6 +101,10 @@ struct SimArgs {
     /// Zero-velocity and zero-rate updates while the platform stands (`filter.standstill`).
     #[arg(long)]
     standstill: bool,
+    /// Keep in the map what the scans see through (`mapping.clear_free_space = false`): the
+    /// moving actors' ghost trails stay.
+    #[arg(long)]
+    keep_free_space: bool,
     /// The simulated IMU's clock runs this far ahead of the LiDAR's, ms (a sensor-realism
     /// switch: its samples are stamped late).
     #[arg(long, default_value_t = 0.0, value_name = "MS", allow_negative_numbers = true)]
@@ -656,6 +660,7 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
         sinks: a.outputs,
         no_imu: a.no_imu,
         standstill: a.standstill,
+        keep_free_space: a.keep_free_space,
         imu_clock_offset_ns: (a.imu_clock_offset_ms * 1e6).round() as i64,
         lidar_imu_offset_s: a.lidar_imu_offset,
     })
@@ -688,6 +693,7 @@ fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
         sinks: a.outputs,
         no_imu: false,
         standstill: false,
+        keep_free_space: false,
         imu_clock_offset_ns: 0,
         lidar_imu_offset_s: 0.0,
     })

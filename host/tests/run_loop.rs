@@ -39,6 +39,7 @@ fn handheld(seconds: f64) -> SimOptions {
         sinks: Default::default(),
         no_imu: false,
         standstill: false,
+        keep_free_space: false,
         imu_clock_offset_ns: 0,
         lidar_imu_offset_s: 0.0,
     }

@@ -188,6 +188,7 @@ pub fn run(
         sinks: crate::sink::SinkArgs::default(),
         no_imu: false,
         standstill: false,
+        keep_free_space: false,
         imu_clock_offset_ns: 0,
         lidar_imu_offset_s: 0.0,
     };

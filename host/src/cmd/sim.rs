@@ -44,6 +44,8 @@ pub struct SimOptions {
     pub no_actors: bool,
     /// Zero-velocity and zero-rate updates at stands (`filter.standstill`).
     pub standstill: bool,
+    /// Keep what the scans see through in the map (`mapping.clear_free_space = false`).
+    pub keep_free_space: bool,
     /// The simulated IMU's clock ahead of the LiDAR's by this, ns (a sensor-realism switch).
     pub imu_clock_offset_ns: i64,
     /// `time.lidar_imu_offset`, s: what the run adds to the IMU stamps.
@@ -188,6 +190,7 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
     cfg.mapping.max_points = opt.max_points;
     cfg.mapping.knn_search = opt.knn_search;
     cfg.filter.standstill = opt.standstill;
+    cfg.mapping.clear_free_space = !opt.keep_free_space;
     cfg.time.lidar_imu_offset = opt.lidar_imu_offset_s;
     if opt.no_imu {
         cfg.imu.source = ImuSource::None;

@@ -28,6 +28,7 @@ use std::time::Instant;
 use loglio_core::association::{AssociationConfig, KnnScratch};
 use loglio_core::downsample::DownsampleConfig;
 use loglio_core::eskf::EskfConfig;
+use loglio_core::free_space::FreeSpaceConfig;
 use loglio_core::imu::{ImuInitConfig, ImuNoise, ImuPush, ImuSample};
 use loglio_core::motion_model::MotionModel;
 use loglio_core::odometry::{Clock, Odometry, OdometryConfig, OdometryError, OdometryStorage};
@@ -146,6 +147,7 @@ pub fn odometry_config(cfg: &Config, layout: RangeImageLayout) -> Result<Odometr
             ..base.association
         },
         standstill: StandstillConfig { enabled: cfg.filter.standstill, ..base.standstill },
+        free_space: FreeSpaceConfig { enabled: cfg.mapping.clear_free_space, ..base.free_space },
         ..base
     })
 }

@@ -1,0 +1,406 @@
+//! Free space: map points that the current scan sees through are gone.
+//!
+//! A car, a bus or a pedestrian that moves leaves its surfaces in the voxel map (a "ghost
+//! trail"): the map only ever adds, and a moving box's points then pull the association of later
+//! scans. A LiDAR return says more than where a surface is: the beam crossed empty space on its
+//! way there. So each scan, after the update, the map's representatives near the sensor are put
+//! in the scan's own coarse range image, and a voxel whose representatives lie well in front of
+//! what the beams around them hit (the beams went through) is removed.
+//!
+//! The test is conservative, because a wrong removal costs a static surface:
+//! - the image holds the *nearest* return of each cell (beam row x 1 degree of azimuth), and a
+//!   representative counts as seen through only if its own cell and at least
+//!   `min_beyond` of the 3 x 3 cells around it saw farther by the margin, and none of them saw
+//!   it (a return within the margin) or anything in front of it (an edge, an occluder);
+//! - the margin grows with range (the beam's footprint and the pose's error);
+//! - a ground point between two beams is never seen through: the beam below hits the ground
+//!   nearer (grazing surfaces are safe by the same rule);
+//! - only representatives within [`FreeSpaceConfig::max_range`] are judged (beyond, the downsampled
+//!   returns are too sparse to fill the cells).
+//!
+//! The image lives in the caller's storage (`N` cells of 2 bytes, at most the range image's
+//! pixels); each scan judges a fixed share of the map's voxels round robin
+//! ([`crate::voxel_map::VoxelMap::clear_seen_through`]), so a ghost is gone within a few scans of
+//! the sensor seeing through it while the cost stays fixed.
+
+// `!(x > t)` rejects NaN as well as small values, on purpose.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
+use crate::range_image::RangeImageLayout;
+use crate::scan::ScanPoint;
+
+/// Elevation bins of the row lookup table.
+const ELEV_BINS: usize = 1024;
+/// No row for this elevation (the table holds row + 1, so that empty storage is all zeros and a
+/// `static` of it lands in `.bss`).
+const NO_ROW: u8 = 0;
+
+/// Settings of the free-space clearing.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct FreeSpaceConfig {
+    /// Remove seen-through voxels (on by default).
+    pub enabled: bool,
+    /// Representatives farther from the sensor than this (metres) are not judged.
+    pub max_range: f32,
+    /// A return must lie this far (metres) beyond a representative, plus `margin_per_m` times
+    /// its range, to see through it.
+    pub margin: f32,
+    /// The margin's growth with range (metres per metre).
+    pub margin_per_m: f32,
+    /// Map voxels judged each scan, round robin.
+    pub voxels_per_scan: u32,
+    /// Azimuth cells of the image per revolution (fewer if the storage is smaller).
+    pub columns: u16,
+    /// Cells of the 3 x 3 neighbourhood that must see beyond a representative (and have a
+    /// return: empty cells say nothing).
+    pub min_beyond: u8,
+}
+
+impl FreeSpaceConfig {
+    /// The defaults: 25 m, 0.4 m + 2 %, 24576 voxels per scan, 1-degree cells, 8 of 9 cells
+    /// beyond (6 removed static voxels on the drone's flight: its ATE moved).
+    pub const DEFAULT: Self = Self {
+        enabled: true,
+        max_range: 25.0,
+        margin: 0.4,
+        margin_per_m: 0.02,
+        voxels_per_scan: 24576,
+        columns: 360,
+        min_beyond: 8,
+    };
+    /// Off: the map keeps everything it was given.
+    pub const OFF: Self = Self { enabled: false, ..Self::DEFAULT };
+}
+
+impl Default for FreeSpaceConfig {
+    fn default() -> Self {
+        Self::DEFAULT
+    }
+}
+
+/// What a scan says about a point of the map.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Verdict {
+    /// The beams around it hit farther: the space is empty now.
+    SeenThrough,
+    /// A beam hit it (within the margin).
+    Seen,
+    /// Out of reach, out of the field of view, occluded or not enough returns around it.
+    Unknown,
+}
+
+/// `atan2(y, x)` to 2.1e-4 rad (a cell is 0.017 rad, an elevation bin about 7e-4 rad): libm's
+/// is exact and several times slower, and every map voxel near the sensor takes two per scan.
+#[inline]
+fn atan2_fast(y: f32, x: f32) -> f32 {
+    use core::f32::consts::{FRAC_PI_2, PI};
+    let (ax, ay) = (libm::fabsf(x), libm::fabsf(y));
+    let (mx, mn) = if ax > ay { (ax, ay) } else { (ay, ax) };
+    if !(mx > 0.0) {
+        return 0.0;
+    }
+    let a = mn / mx;
+    let s = a * a;
+    let mut r = ((-0.046_496_475 * s + 0.159_314_22) * s - 0.327_622_76) * s * a + a;
+    if ay > ax {
+        r = FRAC_PI_2 - r;
+    }
+    if x < 0.0 {
+        r = PI - r;
+    }
+    if y < 0.0 { -r } else { r }
+}
+
+/// The scan's nearest return per (beam row, azimuth cell), in centimetres (0: none), in the
+/// caller's storage.
+pub struct FreeSpaceImage<const N: usize> {
+    range_cm: [u16; N],
+    rows: u16,
+    cols: u16,
+    elev_row: [u8; ELEV_BINS],
+    elev_lo: f32,
+    elev_scale: f32,
+    col_scale: f32,
+}
+
+impl<const N: usize> core::fmt::Debug for FreeSpaceImage<N> {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.debug_struct("FreeSpaceImage").field("rows", &self.rows).field("cols", &self.cols).finish()
+    }
+}
+
+impl<const N: usize> Default for FreeSpaceImage<N> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl<const N: usize> FreeSpaceImage<N> {
+    /// Empty storage (no layout: every verdict is [`Verdict::Unknown`]).
+    pub const fn new() -> Self {
+        Self {
+            range_cm: [0; N],
+            rows: 0,
+            cols: 0,
+            elev_row: [NO_ROW; ELEV_BINS],
+            elev_lo: 0.0,
+            elev_scale: 0.0,
+            col_scale: 0.0,
+        }
+    }
+
+    /// Sets the beams from `layout` and the azimuth cells (`columns`, fewer where `N` is
+    /// smaller). Returns false (and judges nothing) for a layout of more than 254 rows or
+    /// fewer than 8 cells per row.
+    pub fn set_layout(&mut self, layout: &RangeImageLayout, columns: u16) -> bool {
+        self.rows = 0;
+        self.cols = 0;
+        let rows = layout.rows();
+        if rows == 0 || rows >= usize::from(u8::MAX) {
+            return false;
+        }
+        let cols = usize::from(columns).min(N / rows);
+        if cols < 8 {
+            return false;
+        }
+        let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+        for r in 0..rows {
+            lo = lo.min(layout.elevation(r));
+            hi = hi.max(layout.elevation(r));
+        }
+        // Half a typical beam spacing beyond the outer beams still belongs to them.
+        let pad = if rows > 1 { 0.5 * (hi - lo) / (rows - 1) as f32 } else { 0.01 };
+        let pad = pad.clamp(0.002, 0.05);
+        let (lo, hi) = (lo - pad, hi + pad);
+        self.elev_lo = lo;
+        self.elev_scale = ELEV_BINS as f32 / (hi - lo).max(1e-3);
+        for (b, slot) in self.elev_row.iter_mut().enumerate() {
+            let e = lo + (b as f32 + 0.5) / self.elev_scale;
+            let mut best = (NO_ROW, f32::INFINITY);
+            for r in 0..rows {
+                let d = libm::fabsf(layout.elevation(r) - e);
+                if d < best.1 {
+                    best = (r as u8 + 1, d);
+                }
+            }
+            *slot = best.0;
+        }
+        self.rows = rows as u16;
+        self.cols = cols as u16;
+        self.col_scale = cols as f32 / core::f32::consts::TAU;
+        true
+    }
+
+    /// The cell of a point in the sensor frame and its range, or `None` outside the beams.
+    #[inline]
+    fn cell(&self, p: [f32; 3]) -> Option<(usize, usize, f32)> {
+        let h2 = p[0] * p[0] + p[1] * p[1];
+        let r = crate::math::sqrtf(h2 + p[2] * p[2]);
+        let e = atan2_fast(p[2], crate::math::sqrtf(h2));
+        let b = (e - self.elev_lo) * self.elev_scale;
+        if !(b >= 0.0 && b < ELEV_BINS as f32) {
+            return None;
+        }
+        let row = self.elev_row[b as usize];
+        if row == NO_ROW {
+            return None;
+        }
+        let row = row - 1;
+        let a = atan2_fast(p[1], p[0]) + core::f32::consts::PI;
+        let c = (a * self.col_scale) as usize;
+        let c = if c >= usize::from(self.cols) { 0 } else { c };
+        Some((usize::from(row), c, r))
+    }
+
+    /// Fills the image from a scan's points (sensor frame).
+    pub fn fill(&mut self, points: &[ScanPoint]) {
+        let cells = usize::from(self.rows) * usize::from(self.cols);
+        self.range_cm[..cells].fill(0);
+        if cells == 0 {
+            return;
+        }
+        let cols = usize::from(self.cols);
+        for p in points {
+            // The beam's own row where the decoder gave it (cheaper, and right at the rows'
+            // borders); otherwise by elevation.
+            let cell = if p.row < self.rows {
+                let [x, y, z] = p.xyz;
+                let a = atan2_fast(y, x) + core::f32::consts::PI;
+                let c = (a * self.col_scale) as usize;
+                let c = if c >= cols { 0 } else { c };
+                Some((usize::from(p.row), c, crate::math::sqrtf(x * x + y * y + z * z)))
+            } else {
+                self.cell(p.xyz)
+            };
+            if let Some((row, col, r)) = cell {
+                let cm = (r * 100.0).clamp(1.0, 65535.0) as u16;
+                let slot = &mut self.range_cm[row * cols + col];
+                if *slot == 0 || cm < *slot {
+                    *slot = cm;
+                }
+            }
+        }
+    }
+
+    /// What the filled image says about a point `p` in the sensor frame.
+    pub fn verdict(&self, p: [f32; 3], cfg: &FreeSpaceConfig) -> Verdict {
+        self.verdict_with_slack(p, 0.0, cfg)
+    }
+
+    /// [`Self::verdict`] for anything within `slack` metres of `p` (a voxel by its centre).
+    pub fn verdict_with_slack(&self, p: [f32; 3], slack: f32, cfg: &FreeSpaceConfig) -> Verdict {
+        if self.rows == 0 {
+            return Verdict::Unknown;
+        }
+        let Some((row, col, r)) = self.cell(p) else { return Verdict::Unknown };
+        if !(r <= cfg.max_range) || r < 0.5 {
+            return Verdict::Unknown;
+        }
+        let (rows, cols) = (usize::from(self.rows), usize::from(self.cols));
+        let own = self.range_cm[row * cols + col];
+        let margin = cfg.margin + cfg.margin_per_m * r + slack;
+        let (near, far) = (r - margin, r + margin);
+        if own == 0 || f32::from(own) * 0.01 <= far {
+            return if own != 0 && f32::from(own) * 0.01 >= near { Verdict::Seen } else { Verdict::Unknown };
+        }
+        let mut beyond = 0u8;
+        for rr in row.saturating_sub(1)..(row + 2).min(rows) {
+            for dc in [cols - 1, 0, 1] {
+                let c = (col + dc) % cols;
+                let v = self.range_cm[rr * cols + c];
+                if v == 0 {
+                    continue;
+                }
+                let d = f32::from(v) * 0.01;
+                if d > far {
+                    beyond += 1;
+                } else if d >= near {
+                    return Verdict::Seen;
+                } else {
+                    return Verdict::Unknown;
+                }
+            }
+        }
+        if beyond >= cfg.min_beyond { Verdict::SeenThrough } else { Verdict::Unknown }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// 16 beams 2 degrees apart from -15 to +15 degrees, 1800 columns.
+    fn layout() -> RangeImageLayout {
+        let el: [f32; 16] = core::array::from_fn(|i| (15.0 - 2.0 * i as f32).to_radians());
+        RangeImageLayout::from_elevations(&el, 1800, true).unwrap()
+    }
+
+    fn pt(xyz: [f32; 3], row: u16) -> ScanPoint {
+        ScanPoint { xyz, t: 0.0, row, col: 0, intensity: 0, ret: 0, flags: 0 }
+    }
+
+    /// A sensor 1.8 m above a flat ground with a wall at x = 20 m: the returns of every beam
+    /// over every azimuth cell in front (|azimuth| < 40 degrees).
+    fn scene(wall_x: f32) -> [ScanPoint; 16 * 400] {
+        let lay = layout();
+        core::array::from_fn(|i| {
+            let (row, k) = (i / 400, i % 400);
+            let az = (-40.0 + 0.2 * k as f32).to_radians();
+            let el = lay.elevation(row);
+            let d = [libm::cosf(el) * libm::cosf(az), libm::cosf(el) * libm::sinf(az), libm::sinf(el)];
+            let t_wall = wall_x / d[0];
+            let t_ground = if d[2] < 0.0 { -1.8 / d[2] } else { f32::INFINITY };
+            let t = t_wall.min(t_ground);
+            // Every other point without its beam: the row comes from its elevation.
+            let beam = if i % 2 == 0 { row as u16 } else { crate::scan::NO_PIXEL };
+            pt([d[0] * t, d[1] * t, d[2] * t], beam)
+        })
+    }
+
+    fn image(wall_x: f32) -> FreeSpaceImage<{ 16 * 1800 }> {
+        let mut img = FreeSpaceImage::new();
+        assert!(img.set_layout(&layout(), 360));
+        img.fill(&scene(wall_x));
+        img
+    }
+
+    #[test]
+    fn a_point_in_front_of_the_wall_is_seen_through_and_the_wall_is_seen() {
+        let img = image(20.0);
+        let cfg = FreeSpaceConfig::DEFAULT;
+        // 1 m above the ground, 8 m ahead: beams at that elevation reach the wall at 20 m.
+        assert_eq!(img.verdict([8.0, 0.3, -0.8], &cfg), Verdict::SeenThrough);
+        // On the wall itself.
+        assert_eq!(img.verdict([20.0, 1.0, 0.5], &cfg), Verdict::Seen);
+        // Behind the wall: occluded.
+        assert_eq!(img.verdict([24.0, 1.0, 0.5], &cfg), Verdict::Unknown);
+        // Beyond the judged range.
+        assert_eq!(
+            img.verdict([30.0, 0.0, 0.0], &FreeSpaceConfig { max_range: 25.0, ..cfg }),
+            Verdict::Unknown
+        );
+        // Behind the sensor: no returns there.
+        assert_eq!(img.verdict([-8.0, 0.0, 0.0], &cfg), Verdict::Unknown);
+        // Above the highest beam.
+        assert_eq!(img.verdict([5.0, 0.0, 4.0], &cfg), Verdict::Unknown);
+    }
+
+    #[test]
+    fn ground_between_two_beams_is_never_seen_through() {
+        let img = image(20.0);
+        let cfg = FreeSpaceConfig::DEFAULT;
+        // Every ground point from 3 to 19 m, in 5 cm steps, on and between the beams' rings.
+        let mut x = 3.0f32;
+        while x < 19.0 {
+            for y in [-2.0f32, 0.0, 3.0] {
+                assert_ne!(img.verdict([x, y, -1.8], &cfg), Verdict::SeenThrough, "ground at {x} {y}");
+            }
+            x += 0.05;
+        }
+    }
+
+    #[test]
+    fn a_wall_moved_back_leaves_its_old_place_seen_through() {
+        // The map saw a wall at 12 m (a truck's back); it has moved on to 20 m.
+        let img = image(20.0);
+        let cfg = FreeSpaceConfig::DEFAULT;
+        let mut through = 0;
+        let mut n = 0;
+        for k in 0..20 {
+            for z in [-1.0f32, -0.5, 0.0, 0.5] {
+                n += 1;
+                if img.verdict([12.0, -1.0 + 0.1 * k as f32, z], &cfg) == Verdict::SeenThrough {
+                    through += 1;
+                }
+            }
+        }
+        assert_eq!(through, n, "every point of the old wall is seen through");
+    }
+
+    #[test]
+    fn the_fast_arctangent_is_within_3e_4_rad() {
+        let mut worst = 0.0f32;
+        for i in 0..3600 {
+            let a = (i as f32 * 0.1).to_radians();
+            for r in [0.01f32, 1.0, 150.0] {
+                let (y, x) = (r * libm::sinf(a), r * libm::cosf(a));
+                worst = worst.max(libm::fabsf(atan2_fast(y, x) - libm::atan2f(y, x)));
+            }
+        }
+        assert!(worst < 3e-4, "worst error {worst} rad");
+        assert_eq!(atan2_fast(0.0, 0.0), 0.0);
+    }
+
+    #[test]
+    fn small_storage_shrinks_the_cells_and_no_layout_judges_nothing() {
+        let mut img: FreeSpaceImage<{ 16 * 100 }> = FreeSpaceImage::new();
+        assert_eq!(img.verdict([5.0, 0.0, 0.0], &FreeSpaceConfig::DEFAULT), Verdict::Unknown);
+        assert!(img.set_layout(&layout(), 360));
+        assert_eq!(img.cols, 100);
+        let mut tiny: FreeSpaceImage<64> = FreeSpaceImage::new();
+        assert!(!tiny.set_layout(&layout(), 360));
+        tiny.fill(&[pt([1.0, 0.0, 0.0], 0)]);
+        assert_eq!(tiny.verdict([0.5, 0.0, 0.0], &FreeSpaceConfig::DEFAULT), Verdict::Unknown);
+    }
+}
