@@ -227,6 +227,17 @@ fn write_drive(dir: &Path, seconds: f64) -> (usize, usize, String) {
     (scans, imus, tf)
 }
 
+/// Kills the loglio run if the test fails before it stopped it.
+struct KillOnDrop(Option<u32>);
+
+impl Drop for KillOnDrop {
+    fn drop(&mut self) {
+        if let Some(pid) = self.0 {
+            let _ = Command::new("kill").arg("-KILL").arg(pid.to_string()).status();
+        }
+    }
+}
+
 fn domain() -> String {
     (1 + (std::process::id() * 3 + 7) % 200).to_string()
 }
@@ -270,6 +281,7 @@ fn ros2_topics_from_a_cyclone_dds_publisher_drive_the_odometry() {
     .stderr(Stdio::piped())
     .spawn()
     .unwrap();
+    let mut guard = KillOnDrop(Some(loglio.id()));
     let mut publisher = Command::new(&python)
         .arg(p("pub.py"))
         .arg(&domain)
@@ -292,6 +304,7 @@ fn ros2_topics_from_a_cyclone_dds_publisher_drive_the_odometry() {
     let killed = Command::new("kill").arg("-TERM").arg(loglio.id().to_string()).status().unwrap();
     assert!(killed.success());
     let out = loglio.wait_with_output().unwrap();
+    guard.0 = None;
     let text = String::from_utf8_lossy(&out.stdout).to_string();
     let err = String::from_utf8_lossy(&out.stderr).to_string();
     let wall_s = wall.elapsed().as_secs_f64();
@@ -315,9 +328,10 @@ fn ros2_topics_from_a_cyclone_dds_publisher_drive_the_odometry() {
     assert!(!err.contains("no LiDAR-IMU extrinsic"), "{err}");
     // Every scan published was processed.
     assert!(text.contains(&format!("\n{scans} scans (")), "{text}");
-    // `loglio bag` on the same 4 s drive gets <= 0.10 m (bag_run.rs); measured here: see the
-    // figure printed above.
-    assert!(ate < 0.05, "ATE {ate} m: {text}");
+    // Measured 2026-11-27: 0.008 m (`loglio sim` on the same drive, without the clouds' float32
+    // times and the messages: 0.004 m); the extrinsic is too small to move the ATE (identity:
+    // 0.009 m), so the line above checks that it was used.
+    assert!(ate < 0.02, "ATE {ate} m: {text}");
     let tum = std::fs::read_to_string(dir.join("out/trajectory.tum")).unwrap();
     assert!(tum.lines().filter(|l| !l.starts_with('#')).count() >= scans / 2, "{tum}");
     assert!(wall_s < 60.0, "the test took {wall_s:.1} s");

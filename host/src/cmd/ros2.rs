@@ -219,7 +219,10 @@ impl Convert {
                 } else {
                     s.start_ns
                 };
-                let scan = OwnedScan { start_ns: stamp.saturating_add_signed(self.scan_offset_ns), points: s.points };
+                let scan = OwnedScan {
+                    start_ns: stamp.saturating_add_signed(self.scan_offset_ns),
+                    points: s.points,
+                };
                 if sh.started.load(Relaxed) && sh.scans_queued.load(Relaxed) >= live::MAX_QUEUED_SCANS {
                     sh.scan_drops.fetch_add(1, Relaxed);
                     return true;
@@ -295,7 +298,9 @@ pub fn run(opt: &Ros2RunOptions) -> Result<Ros2Report, PipelineError> {
     let lidar_only = opt.imu_topic.is_none();
     if lidar_only {
         if cfg.imu.source != ImuSource::None {
-            warn("no --imu-topic: LiDAR-only (no IMU), a constant-velocity model; the world is the first scan's frame");
+            warn(
+                "no --imu-topic: LiDAR-only (no IMU), a constant-velocity model; the world is the first scan's frame",
+            );
         }
         cfg.imu.source = ImuSource::None;
     }
@@ -328,11 +333,8 @@ pub fn run(opt: &Ros2RunOptions) -> Result<Ros2Report, PipelineError> {
     let mut sub = Ros2Subscriber::start(&sub_opt, move |r| conv.handle(r))?;
     let imu_name = opt.imu_topic.clone().unwrap_or_else(|| "none".into());
     let topics = format!("LiDAR {}, IMU {imu_name}, domain {domain}", opt.lidar_topic);
-    let qos_hint = if opt.best_effort {
-        ""
-    } else {
-        "; a best-effort publisher (sensor-data QoS) needs --best-effort"
-    };
+    let qos_hint =
+        if opt.best_effort { "" } else { "; a best-effort publisher (sensor-data QoS) needs --best-effort" };
     eprintln!(
         "loglio ros2: subscribed to {} (sensor_msgs/PointCloud2) and {imu_name} (sensor_msgs/Imu) on ROS_DOMAIN_ID {domain}; Ctrl-C to stop",
         opt.lidar_topic
@@ -343,7 +345,10 @@ pub fn run(opt: &Ros2RunOptions) -> Result<Ros2Report, PipelineError> {
     let mut both_at: Option<u64> = None;
     let data = loop {
         if stop_signal.load(Relaxed) {
-            return Err(PipelineError(format!("stopped by a signal before a cloud arrived on {}", opt.lidar_topic)));
+            return Err(PipelineError(format!(
+                "stopped by a signal before a cloud arrived on {}",
+                opt.lidar_topic
+            )));
         }
         let now = since(t0);
         {
@@ -416,7 +421,7 @@ pub fn run(opt: &Ros2RunOptions) -> Result<Ros2Report, PipelineError> {
         let wait_ns = live::IMU_WAIT.as_nanos() as u64;
         let (mut lidar_stall, mut imu_stall) = (Stall::default(), Stall::default());
         let mut stopped: Option<StopReason> = None;
-        let mut last_status = (since(t0), 0u64); // (time, IMU messages)
+        let mut last_status = (since(t0), shared.imu_messages.load(Relaxed)); // (time, IMU messages)
         loop {
             match msg_rx.recv_timeout(Duration::from_millis(100)) {
                 Ok(Msg::Imu(s)) => runner.imu(s)?,

@@ -207,7 +207,8 @@ impl Ros2Subscriber {
             .build()
             .map_err(|e| dds(&format!("cannot join domain {}", opt.domain), &e))?;
         let reliable = !opt.best_effort;
-        let subscriber = participant.create_subscriber(&qos(10, reliable, false)).map_err(|e| dds("subscriber", &e))?;
+        let subscriber =
+            participant.create_subscriber(&qos(10, reliable, false)).map_err(|e| dds("subscriber", &e))?;
         let reader = |name: &str, ty: &str, q: QosPolicies| -> Result<Reader, PipelineError> {
             let t = participant
                 .create_topic(name.into(), ty.into(), &q, TopicKind::NoKey)

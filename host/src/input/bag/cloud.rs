@@ -104,13 +104,18 @@ pub fn note_warnings(topic: &str, n: &CloudNotes, opt: &CloudOptions) -> Vec<(St
         ));
     }
     if let Some(unit) = n.time_unit {
-        out.push((format!("unit {topic}"), format!("{topic}: the point time field reads as {unit} (taken so)")));
+        out.push((
+            format!("unit {topic}"),
+            format!("{topic}: the point time field reads as {unit} (taken so)"),
+        ));
     }
     if n.ring_out_of_range > 0 {
         let rows = opt.layout.rows();
         out.push((
             format!("rings {topic}"),
-            format!("{topic}: rings past the layout's {rows} rows (kept without a pixel); check the sensor preset"),
+            format!(
+                "{topic}: rings past the layout's {rows} rows (kept without a pixel); check the sensor preset"
+            ),
         ));
     }
     out

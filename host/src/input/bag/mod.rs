@@ -615,11 +615,7 @@ pub(crate) fn imu_sample(m: &Imu, t_ns: u64) -> Result<ImuSample, String> {
 
 /// The pose of `child` in `parent` from static transforms (child -> (parent, pose in parent)):
 /// both frames walked up to their roots, joined at the first frame they share.
-pub(crate) fn chain(
-    parents: &StaticFrames,
-    parent: &str,
-    child: &str,
-) -> Option<nalgebra::Isometry3<f64>> {
+pub(crate) fn chain(parents: &StaticFrames, parent: &str, child: &str) -> Option<nalgebra::Isometry3<f64>> {
     // Each frame's ancestors with the frame's pose in them, the frame itself first.
     let up = |f: &str| {
         let mut out = vec![(f.to_string(), nalgebra::Isometry3::identity())];
