@@ -213,6 +213,8 @@ struct Case {
     imu_topic: &'static str,
     lidar_frame: &'static str,
     imu_frame: &'static str,
+    /// More arguments of the run.
+    extra: &'static [&'static str],
 }
 
 /// Writes `drive.bin` (the publisher's numbers) and `gt.tum` of the case's drive; returns
@@ -342,6 +344,7 @@ fn run(case: &Case, salt: u32) -> Option<Outcome> {
     if case.best_effort {
         args.push("--best-effort");
     }
+    args.extend(case.extra);
     let loglio = common::loglio_command(&args)
         .env("ROS_DOMAIN_ID", &domain)
         .stdout(Stdio::piped())
@@ -404,6 +407,7 @@ fn velodyne_driver_topics_from_a_cyclone_dds_publisher_drive_the_odometry() {
         imu_topic: "/imu/data",
         lidar_frame: "velodyne",
         imu_frame: "imu_link",
+        extra: &[],
     };
     let Some(Outcome { scans, imus, text, err, ate, dir }) = run(&case, 0) else { return };
     assert!(
@@ -432,7 +436,7 @@ fn velodyne_driver_topics_from_a_cyclone_dds_publisher_drive_the_odometry() {
 
 /// ouster-ros's clouds (`t` in ns, `ring` from the highest beam, 48-byte points) and IMU,
 /// best-effort as its default sensor-data QoS, read with `--best-effort`; the extrinsic from
-/// `/tf_static` over the Ouster preset's own.
+/// `/tf_static` over the Ouster preset's own; `--ros2` publishing beside the readers.
 #[test]
 fn ouster_driver_topics_best_effort_drive_the_odometry() {
     let case = Case {
@@ -447,13 +451,44 @@ fn ouster_driver_topics_best_effort_drive_the_odometry() {
         imu_topic: "/ouster/imu",
         lidar_frame: "os_lidar",
         imu_frame: "os_imu",
+        // Its poses out over DDS too: a second participant in the process.
+        extra: &["--ros2"],
     };
     let Some(Outcome { scans, imus, text, err, ate, dir }) = run(&case, 1) else { return };
     assert!(text.contains(&format!("; {scans} clouds, {imus} IMU messages, 1 /tf_static messages; drops: malformed 0, IMU 0, scans 0\n")), "{text}");
     assert!(text.contains("\nextrinsic from /tf_static (os_lidar in os_imu): "), "{text}");
+    assert!(text.contains("ros2 domain "), "the --ros2 output's line: {text}");
     assert!(!err.contains("warning"), "{err}");
     assert!(text.contains(&format!("\n{scans} scans (")), "{text}");
     // Measured 2026-11-27: 0.002 m, max 0.006 m, as `loglio sim` on the same drive.
     assert!(ate < 0.005, "ATE {ate} m: {text}");
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Without a publisher: one error line after `--lidar-timeout` that names the topic, the
+/// domain and the QoS hint; a bad topic name is one error line (no peers needed).
+#[test]
+fn no_publisher_or_a_bad_topic_is_one_error_line() {
+    let t = Instant::now();
+    let out = common::loglio_command(&["ros2", "--lidar-topic", "/nothing", "--lidar-timeout", "1"])
+        .env("ROS_DOMAIN_ID", (1 + (std::process::id() * 3 + 11) % 200).to_string())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(!out.status.success());
+    assert!(t.elapsed() < std::time::Duration::from_secs(10));
+    let errors: Vec<&str> = err.lines().filter(|l| l.starts_with("error: ")).collect();
+    assert_eq!(errors.len(), 1, "{err}");
+    assert!(
+        errors[0].starts_with("error: no sensor_msgs/PointCloud2 on /nothing within 1 s (ROS_DOMAIN_ID ")
+            && errors[0].contains("--best-effort"),
+        "{err}"
+    );
+    let out = common::loglio_command(&["ros2", "--lidar-topic", "/bad topic"]).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(!out.status.success());
+    assert_eq!(
+        err.trim_end(),
+        "error: --lidar-topic \"/bad topic\" is not a ROS 2 topic name (tokens of letters, digits and '_', separated by '/')"
+    );
 }
