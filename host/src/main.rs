@@ -53,9 +53,9 @@ enum Command {
     /// Run the odometry over a ROS bag: ROS 1 (.bag), rosbag2 (directory, .db3) or MCAP, with
     /// PointCloud2 (Velodyne or Ouster driver) or raw Velodyne/Ouster packets, and sensor_msgs/Imu.
     Bag(BagArgs),
-    /// Run live on ROS 2 topics over DDS (no ROS installation): sensor_msgs/PointCloud2
-    /// (Velodyne or Ouster driver) and sensor_msgs/Imu, the extrinsic from /tf_static; the
-    /// status line, stops and outputs of `live`.
+    /// Run live on ROS 2 topics over DDS (no ROS installation; the domain from ROS_DOMAIN_ID):
+    /// sensor_msgs/PointCloud2 (Velodyne or Ouster driver) and sensor_msgs/Imu, the extrinsic
+    /// from /tf_static; the status line, stops and outputs of `live`.
     Ros2(Ros2Args),
     #[cfg(feature = "sim")]
     /// Run a simulated scenario (firmware-sim) end to end and report the ATE against its ground truth.
@@ -314,9 +314,6 @@ struct Ros2Args {
     /// No IMU: LiDAR-only odometry with a constant-velocity model.
     #[arg(long)]
     no_imu: bool,
-    /// The DDS domain (default: ROS_DOMAIN_ID, else 0).
-    #[arg(long, value_name = "ID", value_parser = clap::value_parser!(u16).range(0..=232))]
-    domain: Option<u16>,
     /// Best-effort readers, for publishers with the sensor-data QoS (e.g. ouster-ros's
     /// default); reliable readers (the default) do not match them.
     #[arg(long)]
@@ -650,7 +647,6 @@ fn ros2_cmd(a: Ros2Args) -> anyhow::Result<()> {
     }
     let mut opt = Ros2RunOptions::new(a.run.setup(), &a.lidar_topic);
     opt.imu_topic = (!a.no_imu).then_some(a.imu_topic);
-    opt.domain = a.domain;
     opt.best_effort = a.best_effort;
     opt.seconds = a.seconds;
     opt.lidar_timeout_s = a.lidar_timeout;

@@ -54,7 +54,7 @@ pub struct Ros2RunOptions {
     pub setup: RunSetup,
     /// The `sensor_msgs/PointCloud2` topic.
     pub lidar_topic: String,
-    /// The `sensor_msgs/Imu` topic (`None`: LiDAR-only, with a warning).
+    /// The `sensor_msgs/Imu` topic (`None`: LiDAR-only, a constant-velocity model).
     pub imu_topic: Option<String>,
     /// The DDS domain (`None`: `ROS_DOMAIN_ID`, default 0).
     pub domain: Option<u16>,
@@ -169,6 +169,7 @@ struct Convert {
     capture_stamps: bool,
     scan_offset_ns: i64,
     lidar_topic: String,
+    imu_topic: String,
     warned: HashSet<String>,
     tx: SyncSender<Msg>,
     shared: Arc<Shared>,
@@ -256,7 +257,8 @@ impl Convert {
                         Err(TrySendError::Disconnected(_)) => false,
                     },
                     Err(why) => {
-                        self.malformed("the IMU topic", &why);
+                        let topic = self.imu_topic.clone();
+                        self.malformed(&topic, &why);
                         true
                     }
                 }
@@ -295,15 +297,12 @@ pub fn run(opt: &Ros2RunOptions) -> Result<Ros2Report, PipelineError> {
         None => crate::sink::ros2::domain_from_env(std::env::var("ROS_DOMAIN_ID").ok().as_deref())
             .map_err(|e| PipelineError(e.0))?,
     };
-    let lidar_only = opt.imu_topic.is_none();
+    // `--no-imu`, or `imu.source = "none"` in the configuration: LiDAR-only.
+    let lidar_only = opt.imu_topic.is_none() || cfg.imu.source == ImuSource::None;
     if lidar_only {
-        if cfg.imu.source != ImuSource::None {
-            warn(
-                "no --imu-topic: LiDAR-only (no IMU), a constant-velocity model; the world is the first scan's frame",
-            );
-        }
         cfg.imu.source = ImuSource::None;
     }
+    let imu_topic = opt.imu_topic.clone().filter(|_| !lidar_only);
     let want_tf = !lidar_only && opt.setup.data_extrinsic_used(&cfg);
     let cloud = CloudOptions::from_config(&cfg)?;
     let layout = engine::config_layout(&cfg)?;
@@ -318,6 +317,7 @@ pub fn run(opt: &Ros2RunOptions) -> Result<Ros2Report, PipelineError> {
         capture_stamps: cfg.time.lidar_time_source == LidarTimeSource::Capture,
         scan_offset_ns: (cfg.time.scan_stamp_offset * 1e9).round() as i64,
         lidar_topic: opt.lidar_topic.clone(),
+        imu_topic: imu_topic.clone().unwrap_or_default(),
         warned: HashSet::new(),
         tx: msg_tx,
         shared: Arc::clone(&shared),
@@ -326,17 +326,21 @@ pub fn run(opt: &Ros2RunOptions) -> Result<Ros2Report, PipelineError> {
     let sub_opt = Ros2InputOptions {
         domain,
         lidar_topic: opt.lidar_topic.clone(),
-        imu_topic: opt.imu_topic.clone(),
+        imu_topic: imu_topic.clone(),
         tf_static: want_tf,
         best_effort: opt.best_effort,
     };
     let mut sub = Ros2Subscriber::start(&sub_opt, move |r| conv.handle(r))?;
-    let imu_name = opt.imu_topic.clone().unwrap_or_else(|| "none".into());
+    let imu_name = imu_topic.clone().unwrap_or_else(|| "none".into());
     let topics = format!("LiDAR {}, IMU {imu_name}, domain {domain}", opt.lidar_topic);
     let qos_hint =
         if opt.best_effort { "" } else { "; a best-effort publisher (sensor-data QoS) needs --best-effort" };
+    let imu_desc = match &imu_topic {
+        Some(t) => format!("{t} (sensor_msgs/Imu)"),
+        None => crate::run::runner::LIDAR_ONLY_MODEL.to_string(),
+    };
     eprintln!(
-        "loglio ros2: subscribed to {} (sensor_msgs/PointCloud2) and {imu_name} (sensor_msgs/Imu) on ROS_DOMAIN_ID {domain}; Ctrl-C to stop",
+        "loglio ros2: subscribed to {} (sensor_msgs/PointCloud2), {imu_desc}, on ROS_DOMAIN_ID {domain}; Ctrl-C to stop",
         opt.lidar_topic
     );
 
