@@ -573,3 +573,151 @@ pub fn summary(r: &Ros2Report) -> String {
     s.push_str(&crate::run::runner::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s));
     s
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::{Config, Preset};
+    use crate::input::bag::msg::{Imu, PointCloud2, PointField, Transform, datatype};
+
+    /// A Velodyne driver cloud of three points, times 0, 0.05 and 0.1 s after the stamp.
+    fn cloud(stamp_ns: u64) -> PointCloud2 {
+        let f = |name: &str, offset, dt| PointField { name: name.into(), offset, datatype: dt, count: 1 };
+        let mut data = Vec::new();
+        for (i, t) in [0.0f32, 0.05, 0.1].iter().enumerate() {
+            for v in [5.0f32, i as f32, 0.5, 10.0] {
+                data.extend_from_slice(&v.to_le_bytes());
+            }
+            data.extend_from_slice(&7u16.to_le_bytes());
+            data.extend_from_slice(&t.to_le_bytes());
+        }
+        PointCloud2 {
+            stamp_ns,
+            frame_id: "/velodyne".into(),
+            height: 1,
+            width: 3,
+            fields: vec![
+                f("x", 0, datatype::FLOAT32),
+                f("y", 4, datatype::FLOAT32),
+                f("z", 8, datatype::FLOAT32),
+                f("intensity", 12, datatype::FLOAT32),
+                f("ring", 16, datatype::UINT16),
+                f("time", 18, datatype::FLOAT32),
+            ],
+            is_bigendian: false,
+            point_step: 22,
+            row_step: 66,
+            data,
+            is_dense: true,
+        }
+    }
+
+    fn convert(capture: bool) -> (Convert, mpsc::Receiver<Msg>, Arc<Shared>) {
+        let cfg = Config::preset(Preset::Vlp16);
+        let (tx, rx) = mpsc::sync_channel(100);
+        let shared = Arc::new(Shared::default());
+        let c = Convert {
+            cloud: CloudOptions::from_config(&cfg).unwrap(),
+            capture_stamps: capture,
+            scan_offset_ns: 0,
+            lidar_topic: "/points".into(),
+            imu_topic: "/imu".into(),
+            warned: HashSet::new(),
+            tx,
+            shared: Arc::clone(&shared),
+            t0: Instant::now(),
+        };
+        (c, rx, shared)
+    }
+
+    fn got(msg: Ros2Message, capture_ns: u64) -> Received {
+        Received { msg, capture_ns }
+    }
+
+    #[test]
+    fn clouds_and_imu_become_scans_and_samples_with_their_frames() {
+        let (mut c, rx, sh) = convert(false);
+        assert!(c.handle(got(Ros2Message::Cloud(cloud(1_000_000_000)), 9_000_000_000)));
+        let imu = Imu {
+            stamp_ns: 1_000_500_000,
+            orientation_xyzw: [0.0, 0.0, 0.0, 1.0],
+            angular_velocity: [0.1, 0.0, 0.0],
+            linear_acceleration: [0.0, 0.0, 9.8],
+        };
+        assert!(c.handle(got(Ros2Message::Imu(imu, "imu_link".into()), 9_000_000_000)));
+        let tf = Transform {
+            parent: "imu_link".into(),
+            child: "velodyne".into(),
+            translation: [0.1, 0.0, 0.0],
+            rotation_xyzw: [0.0, 0.0, 0.0, 1.0],
+        };
+        assert!(c.handle(got(Ros2Message::TfStatic(vec![tf]), 0)));
+        // The header stamps: the scan starts at its earliest point.
+        match rx.try_recv() {
+            Ok(Msg::Scan { scan, .. }) => {
+                assert_eq!(scan.start_ns, 1_000_000_000);
+                assert_eq!(scan.points.len(), 3);
+            }
+            _ => panic!("no scan"),
+        }
+        match rx.try_recv() {
+            Ok(Msg::Imu(s)) => assert_eq!((s.t_ns, s.acc[2]), (1_000_500_000, 9.8)),
+            _ => panic!("no IMU sample"),
+        }
+        let f = sh.frames.lock().unwrap();
+        assert_eq!((f.lidar.as_deref(), f.imu.as_deref()), (Some("velodyne"), Some("imu_link")));
+        let e = chain(&f.tf, "imu_link", "velodyne").unwrap();
+        assert!((e.translation.vector.x - 0.1).abs() < 1e-12);
+        assert_eq!(
+            (sh.clouds.load(Relaxed), sh.imu_messages.load(Relaxed), sh.tf_messages.load(Relaxed)),
+            (1, 1, 1)
+        );
+    }
+
+    #[test]
+    fn capture_stamps_take_the_arrival_as_the_scan_end() {
+        let (mut c, rx, _) = convert(true);
+        assert!(c.handle(got(Ros2Message::Cloud(cloud(1_000_000_000)), 9_000_000_000)));
+        match rx.try_recv() {
+            Ok(Msg::Scan { scan, .. }) => {
+                assert_eq!(scan.start_ns, 9_000_000_000 - (0.1f32 as f64 * 1e9) as u64)
+            }
+            _ => panic!("no scan"),
+        }
+    }
+
+    #[test]
+    fn scans_queue_freely_before_the_start_then_at_most_four_wait() {
+        let (mut c, rx, sh) = convert(false);
+        for i in 0..6 {
+            assert!(c.handle(got(Ros2Message::Cloud(cloud(1_000_000_000 + i * 100_000_000)), 0)));
+        }
+        assert_eq!((sh.scans_queued.load(Relaxed), sh.scan_drops.load(Relaxed)), (6, 0));
+        sh.started.store(true, Relaxed);
+        assert!(c.handle(got(Ros2Message::Cloud(cloud(2_000_000_000)), 0)));
+        assert_eq!(sh.scan_drops.load(Relaxed), 1);
+        // Malformed messages are counted (one warning each topic), nothing is sent.
+        let mut bad = cloud(3_000_000_000);
+        bad.data.truncate(10);
+        let bad_imu = Imu {
+            stamp_ns: 1,
+            orientation_xyzw: [0.0; 4],
+            angular_velocity: [f64::NAN, 0.0, 0.0],
+            linear_acceleration: [0.0; 3],
+        };
+        let ((), warnings) = crate::diag::capture(|| {
+            assert!(c.handle(got(Ros2Message::Cloud(bad.clone()), 0)));
+            assert!(c.handle(got(Ros2Message::Cloud(bad), 0)));
+            assert!(c.handle(got(Ros2Message::Imu(bad_imu, "imu".into()), 0)));
+        });
+        assert_eq!(sh.malformed.load(Relaxed), 3);
+        assert_eq!(warnings.len(), 2, "{warnings:?}");
+        assert!(warnings[0].starts_with("warning: /points: a message could not be read ("), "{warnings:?}");
+        assert!(warnings[1].starts_with("warning: /imu: a message could not be read ("), "{warnings:?}");
+        assert_eq!(rx.try_iter().count(), 6);
+        // The odometry gone: the reading thread ends.
+        drop(rx);
+        sh.scans_queued.store(0, Relaxed);
+        assert!(!c.handle(got(Ros2Message::Cloud(cloud(4_000_000_000)), 0)));
+    }
+}
