@@ -53,6 +53,10 @@ enum Command {
     /// Run the odometry over a ROS bag: ROS 1 (.bag), rosbag2 (directory, .db3) or MCAP, with
     /// PointCloud2 (Velodyne or Ouster driver) or raw Velodyne/Ouster packets, and sensor_msgs/Imu.
     Bag(BagArgs),
+    /// Run live on ROS 2 topics over DDS (no ROS installation; the domain from ROS_DOMAIN_ID):
+    /// sensor_msgs/PointCloud2 (Velodyne or Ouster driver) and sensor_msgs/Imu, the extrinsic
+    /// from /tf_static; the status line, stops and outputs of `live`.
+    Ros2(Ros2Args),
     #[cfg(feature = "sim")]
     /// Run a simulated scenario (firmware-sim) end to end and report the ATE against its ground truth.
     Sim(SimArgs),
@@ -303,6 +307,37 @@ struct BagArgs {
     run: RunArgs,
 }
 
+#[derive(Debug, Args)]
+struct Ros2Args {
+    /// The sensor_msgs/PointCloud2 topic (e.g. /velodyne_points, /ouster/points).
+    #[arg(long, value_name = "TOPIC")]
+    lidar_topic: String,
+    /// The sensor_msgs/Imu topic.
+    #[arg(long, value_name = "TOPIC", default_value = "/imu/data", conflicts_with = "no_imu")]
+    imu_topic: String,
+    /// No IMU: LiDAR-only odometry with a constant-velocity model.
+    #[arg(long)]
+    no_imu: bool,
+    /// Best-effort readers, for publishers with the sensor-data QoS (e.g. ouster-ros's
+    /// default); reliable readers (the default) do not match them.
+    #[arg(long)]
+    best_effort: bool,
+    /// Stop after this many seconds (as Ctrl-C does).
+    #[arg(long, value_name = "S")]
+    seconds: Option<f64>,
+    /// Fail when no cloud arrives within this many seconds of the start.
+    #[arg(long, value_name = "S", default_value_t = 10.0)]
+    lidar_timeout: f64,
+    /// Warn when no IMU message arrives for this many seconds.
+    #[arg(long, value_name = "S", default_value_t = 3.0)]
+    imu_timeout: f64,
+    /// No status line.
+    #[arg(long)]
+    quiet: bool,
+    #[command(flatten)]
+    run: RunArgs,
+}
+
 #[cfg(feature = "sim")]
 #[derive(Debug, Args)]
 struct DemoArgs {
@@ -499,6 +534,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Live(a) => live_cmd(a),
         Command::Replay(a) => replay_cmd(a),
         Command::Bag(a) => bag_cmd(a),
+        Command::Ros2(a) => ros2_cmd(a),
         #[cfg(feature = "sim")]
         Command::Sim(a) => sim_cmd(a),
         #[cfg(feature = "sim")]
@@ -606,6 +642,21 @@ fn bag_cmd(a: BagArgs) -> anyhow::Result<()> {
         r.bag_stats,
         loglio_host::run::runner::summary(&r.stats, &r.finished, r.scan_period_s, r.wall_s)
     ))
+}
+
+fn ros2_cmd(a: Ros2Args) -> anyhow::Result<()> {
+    use loglio_host::cmd::ros2::{Ros2RunOptions, run, summary};
+    if !(a.imu_timeout > 0.0 && a.imu_timeout.is_finite()) {
+        bail!("--imu-timeout must be a positive number of seconds, not {}", a.imu_timeout);
+    }
+    let mut opt = Ros2RunOptions::new(a.run.setup(), &a.lidar_topic);
+    opt.imu_topic = (!a.no_imu).then_some(a.imu_topic);
+    opt.best_effort = a.best_effort;
+    opt.seconds = a.seconds;
+    opt.lidar_timeout_s = a.lidar_timeout;
+    opt.imu_timeout_s = a.imu_timeout;
+    opt.status = !a.quiet;
+    print(&summary(&run(&opt)?))
 }
 
 #[cfg(feature = "sim")]

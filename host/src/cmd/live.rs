@@ -256,12 +256,12 @@ struct Datagram {
 }
 
 /// What the odometry thread receives.
-enum Msg {
+pub(crate) enum Msg {
     Imu(ImuSample),
     Scan { scan: OwnedScan, arrival_ns: u64 },
 }
 
-fn since(t0: Instant) -> u64 {
+pub(crate) fn since(t0: Instant) -> u64 {
     t0.elapsed().as_nanos().max(1) as u64
 }
 
@@ -574,7 +574,7 @@ fn decode(s: DecodeSetup, rx: Receiver<Datagram>, tx: SyncSender<Msg>, c: Arc<Co
 }
 
 /// Sets the stop flag when dropped (every way out of the run stops the threads).
-struct StopOnDrop(Arc<AtomicBool>);
+pub(crate) struct StopOnDrop(pub(crate) Arc<AtomicBool>);
 
 impl Drop for StopOnDrop {
     fn drop(&mut self) {
@@ -583,13 +583,13 @@ impl Drop for StopOnDrop {
 }
 
 /// The status line: redrawn in place on a terminal, one line a second otherwise.
-struct StatusLine {
+pub(crate) struct StatusLine {
     bar: Option<indicatif::ProgressBar>,
     enabled: bool,
 }
 
 impl StatusLine {
-    fn new(enabled: bool) -> StatusLine {
+    pub(crate) fn new(enabled: bool) -> StatusLine {
         use std::io::IsTerminal;
         let bar = (enabled && io::stderr().is_terminal()).then(|| {
             let bar = indicatif::ProgressBar::with_draw_target(
@@ -605,7 +605,7 @@ impl StatusLine {
         StatusLine { bar, enabled }
     }
 
-    fn show(&self, line: String) {
+    pub(crate) fn show(&self, line: String) {
         match &self.bar {
             Some(bar) => bar.set_message(line),
             None if self.enabled => eprintln!("{line}"),
@@ -625,26 +625,26 @@ impl Drop for StatusLine {
 
 /// Per-scan figures of the odometry thread.
 #[derive(Debug, Default)]
-struct ScanTimes {
+pub(crate) struct ScanTimes {
     /// (latency, processing) of each scan since the last status line, ns.
-    window: Vec<(u64, u64)>,
-    latency_sum_ns: u64,
-    latency_max_ns: u64,
-    scans: u64,
+    pub(crate) window: Vec<(u64, u64)>,
+    pub(crate) latency_sum_ns: u64,
+    pub(crate) latency_max_ns: u64,
+    pub(crate) scans: u64,
     /// Last packet to result of every scan, beside its processing time (the summary's).
-    result: crate::sink::WireLatency,
+    pub(crate) result: crate::sink::WireLatency,
 }
 
 /// A stall warning that is given once per silence.
 #[derive(Debug, Default)]
-struct Stall {
+pub(crate) struct Stall {
     warned: bool,
 }
 
 impl Stall {
     /// `last`: the last arrival, ns since the start (0: none yet); warns when it is older than
     /// `timeout`.
-    fn check(&mut self, now: u64, last: u64, timeout: u64, what: impl FnOnce(f64) -> String) {
+    pub(crate) fn check(&mut self, now: u64, last: u64, timeout: u64, what: impl FnOnce(f64) -> String) {
         let since_last = now.saturating_sub(last);
         if since_last > timeout {
             if !self.warned {
@@ -1108,19 +1108,24 @@ fn status_line(
     scan_period_s: f64,
     c: &LiveCounts,
 ) -> String {
-    let n = window.len().max(1) as f64;
-    let (lat, proc_) = window.iter().fold((0u64, 0u64), |(a, b), (l, p)| (a + l, b + p));
-    let (lat_ms, proc_s) = (lat as f64 * 1e-6 / n, proc_ as f64 * 1e-9 / n);
-    let timing = if window.is_empty() {
-        "latency -, margin -".to_string()
-    } else {
-        format!("latency {lat_ms:.0} ms, margin {:.1}x", scan_period_s / proc_s.max(1e-9))
-    };
+    let timing = timing_phrase(window, scan_period_s);
     format!("live: {scan_hz:.1} scans/s, {pkt_hz:.0} packets/s, {timing}, {}", drops(c))
 }
 
+/// `latency 50 ms, margin 4.0x` of the scans of a status interval: (latency, processing) ns.
+pub(crate) fn timing_phrase(window: &[(u64, u64)], scan_period_s: f64) -> String {
+    let n = window.len().max(1) as f64;
+    let (lat, proc_) = window.iter().fold((0u64, 0u64), |(a, b), (l, p)| (a + l, b + p));
+    let (lat_ms, proc_s) = (lat as f64 * 1e-6 / n, proc_ as f64 * 1e-9 / n);
+    if window.is_empty() {
+        "latency -, margin -".to_string()
+    } else {
+        format!("latency {lat_ms:.0} ms, margin {:.1}x", scan_period_s / proc_s.max(1e-9))
+    }
+}
+
 /// The latest pose and the status for the status line: `ok, at (12.3, -4.0, 0.5) m, yaw 35 deg`.
-fn pose_phrase(p: Option<&crate::sink::PoseSample>) -> String {
+pub(crate) fn pose_phrase(p: Option<&crate::sink::PoseSample>) -> String {
     let Some(p) = p else { return "no scan yet".into() };
     if !p.status.is_tracking() {
         return p.status.to_string();

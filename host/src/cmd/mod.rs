@@ -7,5 +7,6 @@ pub mod bench;
 pub mod live;
 pub mod normals;
 pub mod replay;
+pub mod ros2;
 #[cfg(feature = "sim")]
 pub mod sim;

@@ -10,6 +10,7 @@ pub mod mavlink_imu;
 pub mod ouster_meta;
 pub mod pace;
 pub mod pcap;
+pub mod ros2;
 pub mod serial;
 pub mod time_align;
 pub mod udp;

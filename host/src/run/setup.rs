@@ -124,6 +124,15 @@ impl RunSetup {
         )))
     }
 
+    /// Whether an extrinsic the data gives would be used ([`Self::resolve_extrinsic`]): no
+    /// `--extrinsic`, no `extrinsics.file` and no `[extrinsics]` in the configuration file (a
+    /// live source waits for its `/tf_static` only then).
+    pub fn data_extrinsic_used(&self, cfg: &Config) -> bool {
+        self.extrinsic.is_none()
+            && cfg.extrinsics.file.is_none()
+            && !self.config.as_ref().is_some_and(|p| config_has_extrinsics(p))
+    }
+
     /// Why the LiDAR-IMU extrinsic would be the identity, if it would: no `--extrinsic`, no
     /// `[extrinsics]` in the configuration file and a preset without one (the Velodyne presets:
     /// their IMU is external; the Ouster presets carry the internal IMU's). The data may still

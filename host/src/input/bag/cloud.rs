@@ -83,6 +83,44 @@ pub struct CloudNotes {
     pub ring_out_of_range: u32,
 }
 
+/// The warnings a cloud's notes call for on `topic`, as (key, text): the caller says each key
+/// once per run (the notes repeat on every cloud of a driver).
+pub fn note_warnings(topic: &str, n: &CloudNotes, opt: &CloudOptions) -> Vec<(String, String)> {
+    let mut out = Vec::new();
+    if n.rows_from_elevation {
+        out.push((
+            format!("ring {topic}"),
+            format!("{topic}: clouds have no `ring` field; rows are computed from each point's elevation (nearest beam of the layout)"),
+        ));
+    }
+    if n.times_from_azimuth {
+        let why = n.time_field_problem.map_or("no time field (t, time or timestamp)".to_string(), |p| {
+            format!("its time field is unusable ({p})")
+        });
+        let hz = opt.scan_rate_hz;
+        out.push((
+            format!("time {topic}"),
+            format!("{topic}: clouds have {why}; point times are computed from azimuth at {hz} Hz"),
+        ));
+    }
+    if let Some(unit) = n.time_unit {
+        out.push((
+            format!("unit {topic}"),
+            format!("{topic}: the point time field reads as {unit} (taken so)"),
+        ));
+    }
+    if n.ring_out_of_range > 0 {
+        let rows = opt.layout.rows();
+        out.push((
+            format!("rings {topic}"),
+            format!(
+                "{topic}: rings past the layout's {rows} rows (kept without a pixel); check the sensor preset"
+            ),
+        ));
+    }
+    out
+}
+
 /// A converted scan.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct CloudScan {

@@ -587,13 +587,35 @@ pub struct StaticExtrinsic {
     pub imu_lidar: nalgebra::Isometry3<f64>,
 }
 
+/// Static transforms by child frame: (parent frame, the child's pose in the parent).
+pub(crate) type StaticFrames = std::collections::HashMap<String, (String, nalgebra::Isometry3<f64>)>;
+
+/// Adds a `/tf_static` message's transforms to `parents` (frame names without a leading `/`).
+pub(crate) fn add_static(parents: &mut StaticFrames, ts: &[msg::Transform]) {
+    for t in ts {
+        let [x, y, z, w] = t.rotation_xyzw;
+        let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, x, y, z));
+        let iso = nalgebra::Isometry3::from_parts(nalgebra::Translation3::from(t.translation), q);
+        parents.insert(
+            t.child.trim_start_matches('/').to_string(),
+            (t.parent.trim_start_matches('/').to_string(), iso),
+        );
+    }
+}
+
+/// A `sensor_msgs/Imu` as a sample at `t_ns` (an error for non-finite rates or accelerations).
+pub(crate) fn imu_sample(m: &Imu, t_ns: u64) -> Result<ImuSample, String> {
+    let v: Vec<f64> = m.angular_velocity.iter().chain(&m.linear_acceleration).copied().collect();
+    if v.iter().any(|x| !x.is_finite()) {
+        return Err("non-finite angular velocity or acceleration".into());
+    }
+    let f = |a: [f64; 3]| a.map(|x| x as f32);
+    Ok(ImuSample { t_ns, gyro: f(m.angular_velocity), acc: f(m.linear_acceleration) })
+}
+
 /// The pose of `child` in `parent` from static transforms (child -> (parent, pose in parent)):
 /// both frames walked up to their roots, joined at the first frame they share.
-fn chain(
-    parents: &std::collections::HashMap<String, (String, nalgebra::Isometry3<f64>)>,
-    parent: &str,
-    child: &str,
-) -> Option<nalgebra::Isometry3<f64>> {
+pub(crate) fn chain(parents: &StaticFrames, parent: &str, child: &str) -> Option<nalgebra::Isometry3<f64>> {
     // Each frame's ancestors with the frame's pose in them, the frame itself first.
     let up = |f: &str| {
         let mut out = vec![(f.to_string(), nalgebra::Isometry3::identity())];
@@ -818,8 +840,7 @@ impl BagReader {
             Some(f.trim_start_matches('/').to_string())
         };
         let (mut lidar_frame, mut imu_frame) = (None, None);
-        let mut parents: std::collections::HashMap<String, (String, nalgebra::Isometry3<f64>)> =
-            std::collections::HashMap::new();
+        let mut parents = StaticFrames::new();
         // /tf_static is latched: recorded once per publisher, at the start. Reading stops
         // TF_SETTLE messages after the last one once both frames are known.
         let mut since_tf: Option<usize> = None;
@@ -841,15 +862,7 @@ impl BagReader {
             } else if m.topic == tf
                 && let Ok(ts) = msg::decode_tf(&m.data, enc)
             {
-                for t in ts {
-                    let [x, y, z, w] = t.rotation_xyzw;
-                    let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(w, x, y, z));
-                    let iso = nalgebra::Isometry3::from_parts(nalgebra::Translation3::from(t.translation), q);
-                    parents.insert(
-                        t.child.trim_start_matches('/').to_string(),
-                        (t.parent.trim_start_matches('/').to_string(), iso),
-                    );
-                }
+                add_static(&mut parents, &ts);
             }
             if let (Some(l), Some(i)) = (&lidar_frame, &imu_frame)
                 && let Some(e) = chain(&parents, i, l)
@@ -906,33 +919,8 @@ impl BagReader {
             Some(Role::Lidar(TopicKind::PointCloud2)) => {
                 let c = PointCloud2::decode(&raw.data, enc).map_err(e)?;
                 let s = cloud_to_scan(&c, &self.opt.cloud)?;
-                let n = s.notes;
-                if n.rows_from_elevation {
-                    self.warn_once(&format!("ring {name}"), || {
-                        format!("{name}: clouds have no `ring` field; rows are computed from each point's elevation (nearest beam of the layout)")
-                    });
-                }
-                if n.times_from_azimuth {
-                    let why = n
-                        .time_field_problem
-                        .map_or("no time field (t, time or timestamp)".to_string(), |p| {
-                            format!("its time field is unusable ({p})")
-                        });
-                    let hz = self.opt.cloud.scan_rate_hz;
-                    self.warn_once(&format!("time {name}"), || {
-                        format!("{name}: clouds have {why}; point times are computed from azimuth at {hz} Hz")
-                    });
-                }
-                if let Some(unit) = n.time_unit {
-                    self.warn_once(&format!("unit {name}"), || {
-                        format!("{name}: the point time field reads as {unit} (taken so)")
-                    });
-                }
-                if n.ring_out_of_range > 0 {
-                    let rows = self.opt.cloud.layout.rows();
-                    self.warn_once(&format!("rings {name}"), || {
-                        format!("{name}: rings past the layout's {rows} rows (kept without a pixel); check the sensor preset")
-                    });
+                for (key, text) in cloud::note_warnings(&name, &s.notes, &self.opt.cloud) {
+                    self.warn_once(&key, || text);
                 }
                 self.stats.skipped_points += s.skipped as u64;
                 let stamp_ns = if rec {
@@ -966,16 +954,7 @@ impl BagReader {
             }
             Some(Role::Imu(TopicKind::Imu)) => {
                 let m = Imu::decode(&raw.data, enc).map_err(e)?;
-                let v: Vec<f64> = m.angular_velocity.iter().chain(&m.linear_acceleration).copied().collect();
-                if v.iter().any(|x| !x.is_finite()) {
-                    return Err("non-finite angular velocity or acceleration".into());
-                }
-                let f = |a: [f64; 3]| a.map(|x| x as f32);
-                vec![BagEvent::Imu(ImuSample {
-                    t_ns: if rec { raw.record_ns } else { m.stamp_ns },
-                    gyro: f(m.angular_velocity),
-                    acc: f(m.linear_acceleration),
-                })]
+                vec![BagEvent::Imu(imu_sample(&m, if rec { raw.record_ns } else { m.stamp_ns })?)]
             }
             Some(Role::Imu(_)) => {
                 let bytes = decode_packet_msg(&raw.data, enc).map_err(e)?;
