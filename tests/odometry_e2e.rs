@@ -36,7 +36,8 @@ fn scenario(kind: ScenarioKind, secs: f64) -> Scenario {
     Scenario::from_config(c).unwrap()
 }
 
-/// Runs `modes` on `sc` in lockstep.
+/// Runs `modes` on `sc` in lockstep. The worlds of these scenarios stand still: the free-space
+/// tests (moving points, map voxels seen through) find almost nothing in them.
 fn run(sc: &Scenario, modes: &[AssociationMode]) -> Vec<Trace> {
     let mut guards: Vec<_> =
         STORES.iter().take(modes.len()).map(|m| m.lock().unwrap_or_else(|e| e.into_inner())).collect();
@@ -46,24 +47,51 @@ fn run(sc: &Scenario, modes: &[AssociationMode]) -> Vec<Trace> {
     for (tr, mode) in traces.iter().zip(modes) {
         println!("{}", summary(sc.config().kind.name(), *mode, tr));
     }
+    let kept: u64 = traces[0].results.iter().map(|r| u64::from(r.points[1])).sum();
+    let st = odos[0].stats();
+    println!(
+        "{:?}: {} moving points of {kept}, {} map voxels seen through",
+        sc.config().kind,
+        st.moving,
+        st.cleared
+    );
+    assert!(st.moving * 1000 <= kept, "static world: {} of {kept} points judged moving", st.moving);
+    assert!(st.cleared <= 1000, "static world: {} map voxels seen through", st.cleared);
     traces
 }
 
 /// The well-posed scenarios: full within 0.10 m, better than plane-only, no re-initialisation,
 /// and nearly every scan updated by the LiDAR.
 fn well_posed(kind: ScenarioKind) {
+    well_posed_over(kind, &[7]);
+}
+
+/// [`well_posed`] on each of `seeds`, full against plane-only by their mean ATE.
+fn well_posed_over(kind: ScenarioKind, seeds: &[u64]) {
     let _one = LOCK.lock().unwrap_or_else(|e| e.into_inner());
-    let sc = scenario(kind, kind.default_duration_s());
-    let traces = run(&sc, &MODES);
-    let (full, plane, plain) = (traces[0].ate(), traces[1].ate(), traces[2].ate());
-    println!("{kind:?}: ATE full {full:.4} m, plane-only {plane:.4} m, plain {plain:.4} m");
-    let [ok, deg, imu, _, reinit] = traces[0].status_counts();
-    assert!(full.is_finite() && full <= 0.10, "{kind:?}: full-mode ATE {full:.4} m exceeds 0.10 m");
-    assert!(full < plane, "{kind:?}: full {full:.4} m must beat plane-only {plane:.4} m");
-    assert_eq!(reinit, 0, "{kind:?}: no re-initialisation on clean data");
+    let (mut full_sum, mut plane_sum) = (0.0, 0.0);
+    for &seed in seeds {
+        let mut c = ScenarioConfig::new(kind, SensorModel::Vlp32c, seed);
+        c.duration_s = kind.default_duration_s();
+        let sc = Scenario::from_config(c).unwrap();
+        let traces = run(&sc, &MODES);
+        let (full, plane, plain) = (traces[0].ate(), traces[1].ate(), traces[2].ate());
+        println!("{kind:?} seed {seed}: ATE full {full:.4} m, plane-only {plane:.4} m, plain {plain:.4} m");
+        let [ok, deg, imu, _, reinit] = traces[0].status_counts();
+        assert!(full.is_finite() && full <= 0.10, "{kind:?}: full-mode ATE {full:.4} m exceeds 0.10 m");
+        assert_eq!(reinit, 0, "{kind:?}: no re-initialisation on clean data");
+        assert!(
+            ok + deg > 9 * (ok + deg + imu) / 10,
+            "{kind:?}: most scans must update ({ok} ok, {deg} degraded, {imu} imu-only)"
+        );
+        full_sum += full;
+        plane_sum += plane;
+    }
+    let n = seeds.len() as f64;
+    let (full, plane) = (full_sum / n, plane_sum / n);
     assert!(
-        ok + deg > 9 * (ok + deg + imu) / 10,
-        "{kind:?}: most scans must update ({ok} ok, {deg} degraded, {imu} imu-only)"
+        full < plane,
+        "{kind:?}: full {full:.4} m must beat plane-only {plane:.4} m (mean over {seeds:?})"
     );
 }
 
@@ -121,10 +149,14 @@ fn handheld_indoors() {
 
 /// The drone climbs 70 m out of a courtyard among 25-40 m towers: near the top only rooftops
 /// (from ~100 m) and the ground (beyond ~150 m, the VLP-32C looks at most 25 deg down) are in
-/// range, so the scans thin out from ~50,000 returns to a few hundred.
+/// range, so the scans thin out from ~50,000 returns to a few hundred. There one seed's full
+/// against plane-only is within what a handful of points changes (four variants of the
+/// free-space tests that touched 16-26 points of 1.6 million gave full 0.0218-0.0240 m and
+/// plane-only 0.0234-0.0262 m on seed 7), so the modes are compared by their mean over three
+/// seeds.
 #[test]
 fn drone_into_open_sky() {
-    well_posed(ScenarioKind::Drone);
+    well_posed_over(ScenarioKind::Drone, &[7, 1, 2]);
 }
 
 #[test]
@@ -277,8 +309,9 @@ fn map_points_in_and_out_of_the_traffic<const PIX: usize, const PTS: usize, cons
 
 /// Moving actors leave no ghost trails: the first 35 s of `traffic` (the truck ahead pulling
 /// away, oncoming cars, the wait at the junction with cross traffic and pedestrians) run with the
-/// map clearing what the scans see through and without. The clearing removes most of the
-/// points left where the actors drove, keeps the static world, and the trajectory is as good.
+/// free-space tests (the map clears what the scans see through, moving points are left out) and
+/// without. Most of the points left where the actors drove go, the static world stays, and the
+/// trajectory is as good.
 #[test]
 fn moving_actors_leave_no_ghost_trails_in_the_map() {
     let _one = LOCK.lock().unwrap_or_else(|e| e.into_inner());
@@ -296,13 +329,13 @@ fn moving_actors_leave_no_ghost_trails_in_the_map() {
     let (ghosts, statics) = map_points_in_and_out_of_the_traffic(&sc, &odos[0], &traces[0]);
     let (ghosts_kept, statics_kept) = map_points_in_and_out_of_the_traffic(&sc, &odos[1], &traces[1]);
     let (ate, ate_kept) = (traces[0].ate(), traces[1].ate());
-    let cleared = odos[0].stats().cleared;
+    let (cleared, moving) = (odos[0].stats().cleared, odos[0].stats().moving);
     println!(
-        "traffic 35 s: clearing {cleared} voxels; map points in the actors' swept volumes {ghosts} (kept: \
+        "traffic 35 s: {moving} moving points left out, {cleared} voxels cleared; map points in the actors' swept volumes {ghosts} (kept: \
          {ghosts_kept}), elsewhere {statics} (kept: {statics_kept}); ATE {ate:.4} m (kept: {ate_kept:.4} m)"
     );
-    assert_eq!(odos[1].stats().cleared, 0);
-    assert!(cleared > 0);
+    assert_eq!((odos[1].stats().cleared, odos[1].stats().moving), (0, 0));
+    assert!(cleared > 0 && moving > 0);
     assert!(ghosts_kept > 1000, "the actors leave trails without clearing: {ghosts_kept}");
     assert!(2 * ghosts <= ghosts_kept, "at least half the trail points go: {ghosts} of {ghosts_kept}");
     assert!(

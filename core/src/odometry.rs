@@ -81,7 +81,7 @@ pub use crate::clock::{Clock, NoClock};
 use crate::association::{AssociationConfig, Correspondence, KNN_CHUNK, KnnScratch, ScanAssociation};
 use crate::downsample::{DownsampleConfig, INVALID_NORMAL, VoxelDownsampler, normal_is_valid};
 use crate::eskf::{Eskf, EskfConfig, Predicted, PropagationFlags, UpdateOutcome, UpdateResult, idx};
-use crate::free_space::{FreeSpaceConfig, FreeSpaceImage};
+use crate::free_space::{FreeSpaceConfig, FreeSpaceImage, Verdict};
 use crate::imu::{
     ImuDrop, ImuInitConfig, ImuInitializer, ImuPush, ImuQueue, ImuSample, InitStatus, WaitReason,
 };
@@ -100,7 +100,8 @@ use crate::so3;
 use crate::standstill::{ImuWindow, StandstillConfig};
 use crate::undistort::ImuTrajectory;
 use crate::voxel_map::{
-    MapConfig, MapError, MapPoint, MapStorage, Neighbours, PRESET_INDEX_SLOTS, PRESET_POOL_VOXELS, VoxelMap,
+    MapConfig, MapError, MapPoint, MapStorage, Neighbours, PRESET_INDEX_SLOTS, PRESET_POOL_VOXELS, Suspects,
+    VoxelMap,
 };
 
 /// IMU samples queued between two scans (200 Hz x 1 s, or 1 kHz x 0.25 s).
@@ -315,6 +316,11 @@ pub struct ScanStorage<const PIX: usize, const PTS: usize, const DS: usize> {
     corr: [Correspondence; DS],
     /// The scan's nearest returns per coarse cell ([`crate::free_space`]).
     free: FreeSpaceImage<PIX>,
+    /// The previous scan's ([`PrevScan`]): where its beams went through, something that is there
+    /// now moved in.
+    prev_free: FreeSpaceImage<PIX>,
+    /// Map voxels the last scan saw through, for this one to judge again.
+    suspects: Suspects<SUSPECTS>,
     queries: [[f32; 3]; KNN_CHUNK],
     neighbours: [Neighbours; KNN_CHUNK],
 }
@@ -329,6 +335,18 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> Default for ScanStorag
     fn default() -> Self {
         Self::new()
     }
+}
+
+/// Map voxels one scan may find seen through for the next to judge again (24 KiB).
+const SUSPECTS: usize = 2048;
+
+/// The previous scan's pose (sensor from world rotation, sensor origin) and end time, for the
+/// moving points of the next ([`crate::free_space`]).
+#[derive(Clone, Copy, Debug)]
+struct PrevScan {
+    end_ns: u64,
+    rot_t: Matrix3<f64>,
+    origin: Vector3<f64>,
 }
 
 /// The caller's threads and their k-NN scratch ([`Odometry::set_parallel`]).
@@ -377,6 +395,8 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> ScanStorage<PIX, PTS, 
             trajectory: ImuTrajectory::new(),
             corr: [Correspondence::NONE; DS],
             free: FreeSpaceImage::new(),
+            prev_free: FreeSpaceImage::new(),
+            suspects: Suspects::new(),
             queries: [[0.0; 3]; KNN_CHUNK],
             neighbours: [Neighbours::new(); KNN_CHUNK],
         }
@@ -468,6 +488,9 @@ pub struct OdometryStats {
     pub standstill: u32,
     /// Map voxels removed because a scan saw through them ([`crate::free_space`]).
     pub cleared: u64,
+    /// Points kept out of the association and the map because the previous scan saw through
+    /// where they are (moving objects; [`crate::free_space`]).
+    pub moving: u64,
 }
 
 /// The LiDAR-inertial odometry over caller-owned storage.
@@ -492,6 +515,8 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     last_end: Option<(u64, UnitQuaternion<f64>, Vector3<f64>)>,
     /// The last re-localisation search (whether or not it moved the prediction).
     last_relocalisation: Option<Relocalisation>,
+    /// The previous scan's pose, when its image is in `scan.prev_free`.
+    prev_scan: Option<PrevScan>,
     /// The caller's threads and their k-NN scratch ([`Odometry::set_parallel`]).
     parallel: ParallelSlot<'a>,
     /// Running means of the agreeing scans' shares of matching points and innovations.
@@ -549,6 +574,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         scan.table.build(&cfg.layout, &cfg.ring_fals).map_err(OdometryError::RingTable)?;
         // A layout the image cannot hold judges nothing: the map then keeps everything.
         let _ = scan.free.set_layout(&cfg.layout, cfg.free_space.columns);
+        let _ = scan.prev_free.set_layout(&cfg.layout, cfg.free_space.columns);
         scan.imu.clear();
         let map = map.map(cfg.map).map_err(OdometryError::Map)?;
         Ok(Self {
@@ -567,6 +593,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             last_scan_end_ns: None,
             last_end: None,
             last_relocalisation: None,
+            prev_scan: None,
             parallel: None,
             share_mean: None,
             nis_mean: None,
@@ -718,6 +745,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         self.wait = WaitReason::Collecting { samples: 0, span_s: 0.0 };
         self.last_scan_end_ns = None;
         self.last_end = None;
+        self.prev_scan = None;
+        self.scan.suspects.clear();
         self.share_mean = None;
         self.nis_mean = None;
         self.low_run = 0;
@@ -901,6 +930,52 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         times.downsample_ns = t3.saturating_sub(t2);
         let npoints = [npoints[0], kept as u32];
 
+        // 4b. Moving points: where the previous scan's beams went through, something moved in.
+        // They go to the end of the kept points, out of the association and the map.
+        let mut moving = 0usize;
+        let fs = self.cfg.free_space;
+        let ref_max_ns = (2.0 * f64::from(fs.reference_every_s) * 1e9) as u64 + 150_000_000;
+        if reinit.is_some()
+            || self.prev_scan.is_some_and(|p| end_ns <= p.end_ns || end_ns - p.end_ns > ref_max_ns)
+        {
+            self.prev_scan = None;
+        }
+        if let Some(prev) = self.prev_scan
+            && kept > 0
+            && fs.enabled
+            && fs.moving_points
+        {
+            let x = f.state();
+            let r = x.rot.to_rotation_matrix().into_inner();
+            let r_wl = r * x.ext_rot.to_rotation_matrix().into_inner();
+            let p_wl = r * x.ext_pos + x.pos;
+            // This scan's sensor frame to the previous one's.
+            let m = prev.rot_t * r_wl;
+            let b = prev.rot_t * (p_wl - prev.origin);
+            let m: [[f32; 3]; 3] = core::array::from_fn(|i| core::array::from_fn(|j| m[(i, j)] as f32));
+            let b = [b.x as f32, b.y as f32, b.z as f32];
+            let (img, fs) = (&st.prev_free, &self.cfg.free_space);
+            let moved = |p: &ScanPoint| {
+                let l: [f32; 3] = core::array::from_fn(|i| {
+                    m[i][0] * p.xyz[0] + m[i][1] * p.xyz[1] + m[i][2] * p.xyz[2] + b[i]
+                });
+                img.verdict(l, fs) == Verdict::SeenThrough
+            };
+            let (mut i, mut end) = (0usize, kept);
+            while i < end {
+                if moved(&st.points[i]) {
+                    end -= 1;
+                    st.points.swap(i, end);
+                    st.normals3.swap(i, end);
+                } else {
+                    i += 1;
+                }
+            }
+            moving = kept - end;
+            self.stats.moving = self.stats.moving.saturating_add(moving as u64);
+        }
+        let still = kept - moving;
+
         // 5. Association and update.
         let building = self.map.is_empty();
         let mut update = UpdateResult::default();
@@ -914,8 +989,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         if kept > 0 && !building {
             // The measured points first; the map still gets them all (step 6).
             measured = select_measured(
-                &mut st.points[..kept],
-                &mut st.normals3[..kept],
+                &mut st.points[..still],
+                &mut st.normals3[..still],
                 self.cfg.association.max_points,
             );
             // After a long LiDAR gap or while lost: re-localise in the map first.
@@ -1078,7 +1153,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             let r_wl: Matrix3<f64> = r * x.ext_rot.to_rotation_matrix().into_inner();
             let p_wl = r * x.ext_pos + x.pos;
             let origin = [p_wl.x as f32, p_wl.y as f32, p_wl.z as f32];
-            let pts = st.points[..kept].iter().zip(st.normals3[..kept].iter()).map(|(p, n)| {
+            let pts = st.points[..still].iter().zip(st.normals3[..still].iter()).map(|(p, n)| {
                 let q =
                     r_wl * Vector3::new(f64::from(p.xyz[0]), f64::from(p.xyz[1]), f64::from(p.xyz[2])) + p_wl;
                 let normal = if normal_is_valid(n) {
@@ -1090,8 +1165,12 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 MapPoint { xyz: [q.x as f32, q.y as f32, q.z as f32], normal }
             });
             // Before the scan goes in: what it sees through leaves the map.
-            let fs = self.cfg.free_space;
-            if fs.enabled && !building && update.outcome == UpdateOutcome::Updated {
+            // Judged only from a scan whose pose the map pins down in every direction.
+            let well_posed = update.outcome == UpdateOutcome::Updated && update.degeneracy.count == 0;
+            if !well_posed {
+                self.prev_scan = None;
+            }
+            if fs.enabled && !building && well_posed {
                 st.free.fill(&st.points[..kept]);
                 // World to sensor in f32: the map's points are f32, the margins decimetres.
                 let rt: [[f32; 3]; 3] =
@@ -1099,13 +1178,21 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 let (free, fsc) = (&st.free, &fs);
                 // Every voxel at least every 4 scans on a small map; a fixed cost on a large one.
                 let budget = (fs.voxels_per_scan as usize).min(self.map.len().div_ceil(4));
-                let cleared = self.map.clear_seen_through(origin, fs.max_range, budget, |q, slack| {
+                let sus = &mut st.suspects;
+                let cleared = self.map.clear_seen_through(origin, fs.max_range, budget, sus, |q, slack| {
                     let d = [q[0] - origin[0], q[1] - origin[1], q[2] - origin[2]];
                     let l: [f32; 3] =
                         core::array::from_fn(|i| rt[i][0] * d[0] + rt[i][1] * d[1] + rt[i][2] * d[2]);
                     free.verdict_with_slack(l, slack, fsc)
                 });
                 self.stats.cleared = self.stats.cleared.saturating_add(u64::from(cleared));
+                // The reference image and pose for the next scans' moving points, renewed every
+                // `reference_every_s`.
+                let renew_ns = (f64::from(fs.reference_every_s) * 1e9) as u64;
+                if self.prev_scan.is_none_or(|p| end_ns.saturating_sub(p.end_ns) >= renew_ns) {
+                    core::mem::swap(&mut st.free, &mut st.prev_free);
+                    self.prev_scan = Some(PrevScan { end_ns, rot_t: r_wl.transpose(), origin: p_wl });
+                }
             }
             self.stamp = self.stamp.saturating_add(1);
             // Cannot fail: the origin is finite (the state is) and stamps only increase.

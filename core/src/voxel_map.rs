@@ -98,6 +98,7 @@ mod knn;
 mod surfels;
 mod voxel;
 
+pub use self::clear::Suspects;
 pub use self::config::{LargeSurfelConfig, MapConfig, MapError};
 pub use self::distribution::{VoxelInfo, VoxelState};
 use self::evict::DIST_BUCKETS_PER_RADIUS;

@@ -181,6 +181,9 @@ pub trait Engine {
     fn imu_guard_stats(&self) -> loglio_core::imu_guard::ImuGuardStats;
     /// Re-localisations in the map that moved the prediction (after LiDAR gaps, while lost).
     fn relocalisations(&self) -> u32;
+    /// Map voxels removed because a scan saw through them, and points left out as moving
+    /// ([`loglio_core::free_space`]).
+    fn free_space(&self) -> (u64, u64);
 }
 
 struct CoreEngine<'a, const PIX: usize, const PTS: usize, const DS: usize> {
@@ -231,6 +234,10 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> Engine for CoreEngine<
     }
     fn relocalisations(&self) -> u32 {
         self.odo.stats().relocalisations
+    }
+    fn free_space(&self) -> (u64, u64) {
+        let s = self.odo.stats();
+        (s.cleared, s.moving)
     }
 }
 

@@ -78,6 +78,10 @@ pub struct RunStats {
     pub faults: FaultCounts,
     /// Scans at a stand, which gave zero-velocity updates.
     pub standstill: u64,
+    /// Map voxels removed because a scan saw through them (moving objects' trails).
+    pub cleared_voxels: u64,
+    /// Points left out of the association and the map as moving.
+    pub moving_points: u64,
     /// Scans predicted without IMU (LiDAR-only, constant-velocity model).
     pub lidar_only_scans: u64,
 }
@@ -675,6 +679,7 @@ impl<'e> Runner<'e> {
         self.process_ready(true, None)?;
         self.stats.faults.imu_guard = self.engine.imu_guard_stats();
         self.stats.faults.relocalisations = self.engine.relocalisations();
+        (self.stats.cleared_voxels, self.stats.moving_points) = self.engine.free_space();
         for w in self.stats.faults.warnings() {
             crate::diag::warn(w);
         }
@@ -697,6 +702,12 @@ pub fn status_summary(st: &RunStats) -> String {
         names.iter().zip(st.status).filter(|(_, n)| *n > 0).map(|(name, n)| format!("{n} {name}")).collect();
     if st.standstill > 0 {
         parts.push(format!("{} standing still", st.standstill));
+    }
+    if st.moving_points > 0 || st.cleared_voxels > 0 {
+        parts.push(format!(
+            "{} moving points left out, {} map voxels seen through",
+            st.moving_points, st.cleared_voxels
+        ));
     }
     parts.join(", ")
 }
