@@ -555,7 +555,7 @@ from cyclonedds.sub import DataReader
 from cyclonedds.core import Qos, Policy
 from cyclonedds.idl import IdlStruct
 from cyclonedds.util import duration
-from cyclonedds.idl.types import int32, uint32, float64, array
+from cyclonedds.idl.types import int32, uint32, uint8, float64, sequence, array
 
 {ROS2_TYPES}dp = DomainParticipant(int(sys.argv[1]))
 qos = Qos(Policy.Reliability.Reliable(max_blocking_time=duration(milliseconds=100)), Policy.History.KeepLast(1000))

@@ -39,30 +39,7 @@ from cyclonedds.idl import IdlStruct
 from cyclonedds.util import duration
 from cyclonedds.idl.types import int32, uint32, uint8, uint16, float32, float64, sequence, array
 
-@dataclass
-class Time(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
-    sec: int32
-    nanosec: uint32
-
-@dataclass
-class Header(IdlStruct, typename="std_msgs::msg::dds_::Header_"):
-    stamp: Time
-    frame_id: str
-
-@dataclass
-class Vector3(IdlStruct, typename="geometry_msgs::msg::dds_::Vector3_"):
-    x: float64
-    y: float64
-    z: float64
-
-@dataclass
-class Quaternion(IdlStruct, typename="geometry_msgs::msg::dds_::Quaternion_"):
-    x: float64
-    y: float64
-    z: float64
-    w: float64
-
-@dataclass
+{ROS2_TYPES}@dataclass
 class Imu(IdlStruct, typename="sensor_msgs::msg::dds_::Imu_"):
     header: Header
     orientation: Quaternion
@@ -71,40 +48,6 @@ class Imu(IdlStruct, typename="sensor_msgs::msg::dds_::Imu_"):
     angular_velocity_covariance: array[float64, 9]
     linear_acceleration: Vector3
     linear_acceleration_covariance: array[float64, 9]
-
-@dataclass
-class PointField(IdlStruct, typename="sensor_msgs::msg::dds_::PointField_"):
-    name: str
-    offset: uint32
-    datatype: uint8
-    count: uint32
-
-@dataclass
-class PointCloud2(IdlStruct, typename="sensor_msgs::msg::dds_::PointCloud2_"):
-    header: Header
-    height: uint32
-    width: uint32
-    fields: sequence[PointField]
-    is_bigendian: bool
-    point_step: uint32
-    row_step: uint32
-    data: sequence[uint8]
-    is_dense: bool
-
-@dataclass
-class Transform(IdlStruct, typename="geometry_msgs::msg::dds_::Transform_"):
-    translation: Vector3
-    rotation: Quaternion
-
-@dataclass
-class TransformStamped(IdlStruct, typename="geometry_msgs::msg::dds_::TransformStamped_"):
-    header: Header
-    child_frame_id: str
-    transform: Transform
-
-@dataclass
-class TFMessage(IdlStruct, typename="tf2_msgs::msg::dds_::TFMessage_"):
-    transforms: sequence[TransformStamped]
 
 domain, path, rate = int(sys.argv[1]), sys.argv[2], float(sys.argv[3])
 tf_t = [float(v) for v in sys.argv[4].split(",")]  # tx ty tz qx qy qz qw
@@ -334,7 +277,7 @@ fn run(case: &Case, salt: u32) -> Option<Outcome> {
     let (scans, imus, tf) = write_drive(&dir, case, 6.0);
     let domain = (1 + (std::process::id() * 3 + 7 + salt) % 200).to_string();
     let p = |f: &str| dir.join(f).to_str().unwrap().to_string();
-    std::fs::write(dir.join("pub.py"), PUBLISHER).unwrap();
+    std::fs::write(dir.join("pub.py"), common::with_ros2_types(PUBLISHER)).unwrap();
     std::fs::write(dir.join("cyclonedds.xml"), common::CYCLONE_XML).unwrap();
 
     // loglio first (it waits for the first cloud), then the publisher.
