@@ -204,6 +204,33 @@ struct ReplayArgs {
     run: RunArgs,
 }
 
+/// When a live run stops, and what it watches while it runs (`live`, `ros2`).
+#[derive(Debug, Args)]
+struct WatchArgs {
+    /// Stop after this many seconds (as Ctrl-C does).
+    #[arg(long, value_name = "S")]
+    seconds: Option<f64>,
+    /// Fail when no LiDAR data (packets, clouds) arrives within this many seconds of the start.
+    #[arg(long, value_name = "S", default_value_t = 10.0)]
+    lidar_timeout: f64,
+    /// Warn when no IMU sample arrives for this many seconds.
+    #[arg(long, value_name = "S", default_value_t = 3.0)]
+    imu_timeout: f64,
+    /// No status line.
+    #[arg(long)]
+    quiet: bool,
+}
+
+impl WatchArgs {
+    /// (seconds, LiDAR timeout, IMU timeout, status line), the IMU timeout checked.
+    fn checked(&self) -> anyhow::Result<(Option<f64>, f64, f64, bool)> {
+        if !(self.imu_timeout > 0.0 && self.imu_timeout.is_finite()) {
+            bail!("--imu-timeout must be a positive number of seconds, not {}", self.imu_timeout);
+        }
+        Ok((self.seconds, self.lidar_timeout, self.imu_timeout, !self.quiet))
+    }
+}
+
 #[derive(Debug, Args)]
 struct LiveArgs {
     /// The IMU's serial device: a UART, a USB serial adapter, a pseudo-terminal or a FIFO
@@ -241,18 +268,8 @@ struct LiveArgs {
     /// Velodyne position packet port (the GPS time).
     #[arg(long, value_name = "PORT", default_value_t = 8308)]
     position_port: u16,
-    /// Stop after this many seconds (as Ctrl-C does).
-    #[arg(long, value_name = "S")]
-    seconds: Option<f64>,
-    /// Fail when no LiDAR packet arrives within this many seconds of the start.
-    #[arg(long, value_name = "S", default_value_t = 10.0)]
-    lidar_timeout: f64,
-    /// Warn when no IMU sample arrives for this many seconds.
-    #[arg(long, value_name = "S", default_value_t = 3.0)]
-    imu_timeout: f64,
-    /// No status line.
-    #[arg(long)]
-    quiet: bool,
+    #[command(flatten)]
+    watch: WatchArgs,
     #[command(flatten)]
     run: RunArgs,
 }
@@ -322,18 +339,8 @@ struct Ros2Args {
     /// default); reliable readers (the default) do not match them.
     #[arg(long)]
     best_effort: bool,
-    /// Stop after this many seconds (as Ctrl-C does).
-    #[arg(long, value_name = "S")]
-    seconds: Option<f64>,
-    /// Fail when no cloud arrives within this many seconds of the start.
-    #[arg(long, value_name = "S", default_value_t = 10.0)]
-    lidar_timeout: f64,
-    /// Warn when no IMU message arrives for this many seconds.
-    #[arg(long, value_name = "S", default_value_t = 3.0)]
-    imu_timeout: f64,
-    /// No status line.
-    #[arg(long)]
-    quiet: bool,
+    #[command(flatten)]
+    watch: WatchArgs,
     #[command(flatten)]
     run: RunArgs,
 }
@@ -577,9 +584,7 @@ fn replay_cmd(a: ReplayArgs) -> anyhow::Result<()> {
 
 fn live_cmd(a: LiveArgs) -> anyhow::Result<()> {
     use loglio_host::cmd::live::{LiveImu, LiveOptions};
-    if !(a.imu_timeout > 0.0 && a.imu_timeout.is_finite()) {
-        bail!("--imu-timeout must be a positive number of seconds, not {}", a.imu_timeout);
-    }
+    let watch = a.watch.checked()?;
     let mut opt = LiveOptions::new(a.run.setup());
     opt.imu = match (a.imu_serial, a.ouster_imu, a.imu_mavlink_udp, a.no_imu) {
         (_, _, _, true) => LiveImu::None,
@@ -594,10 +599,7 @@ fn live_cmd(a: LiveArgs) -> anyhow::Result<()> {
     opt.lidar_port = a.lidar_port;
     opt.imu_port = a.imu_port;
     opt.position_port = a.position_port;
-    opt.seconds = a.seconds;
-    opt.lidar_timeout_s = a.lidar_timeout;
-    opt.imu_timeout_s = a.imu_timeout;
-    opt.status = !a.quiet;
+    (opt.seconds, opt.lidar_timeout_s, opt.imu_timeout_s, opt.status) = watch;
     let r = loglio_host::cmd::live::run(&opt)?;
     print(&loglio_host::cmd::live::summary(&r))
 }
@@ -646,16 +648,11 @@ fn bag_cmd(a: BagArgs) -> anyhow::Result<()> {
 
 fn ros2_cmd(a: Ros2Args) -> anyhow::Result<()> {
     use loglio_host::cmd::ros2::{Ros2RunOptions, run, summary};
-    if !(a.imu_timeout > 0.0 && a.imu_timeout.is_finite()) {
-        bail!("--imu-timeout must be a positive number of seconds, not {}", a.imu_timeout);
-    }
+    let watch = a.watch.checked()?;
     let mut opt = Ros2RunOptions::new(a.run.setup(), &a.lidar_topic);
     opt.imu_topic = (!a.no_imu).then_some(a.imu_topic);
     opt.best_effort = a.best_effort;
-    opt.seconds = a.seconds;
-    opt.lidar_timeout_s = a.lidar_timeout;
-    opt.imu_timeout_s = a.imu_timeout;
-    opt.status = !a.quiet;
+    (opt.seconds, opt.lidar_timeout_s, opt.imu_timeout_s, opt.status) = watch;
     print(&summary(&run(&opt)?))
 }
 

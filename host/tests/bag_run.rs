@@ -132,20 +132,8 @@ fn write_sim_bag_imu(dir: &Path, ring_time: bool, late: LateStamp, tf: bool, imu
             Event::Scan(s) => {
                 let c = cloud(minute(&mut cloud_late, s.start_ns), &s.points, rows, ring_time);
                 w.write(cloud_conn, s.end_ns + 5_000_000, &c.encode(Encoding::Ros1)).unwrap();
-                let g = sc.pose_at(s.end_ns);
-                let q = g.rotation.quaternion();
-                gt.push_str(&format!(
-                    "{}.{:09} {} {} {} {} {} {} {}\n",
-                    s.end_ns / 1_000_000_000,
-                    s.end_ns % 1_000_000_000,
-                    g.translation.x,
-                    g.translation.y,
-                    g.translation.z,
-                    q.i,
-                    q.j,
-                    q.k,
-                    q.w
-                ));
+                gt.push_str(&loglio_firmware_sim::tum::line(s.end_ns, &sc.pose_at(s.end_ns)));
+                gt.push('\n');
             }
         }
     }

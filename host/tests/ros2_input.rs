@@ -196,20 +196,8 @@ fn write_drive(dir: &Path, case: &Case, seconds: f64) -> (usize, usize, String) 
                     bin.extend_from_slice(&p.t.to_le_bytes());
                 }
                 scans += 1;
-                let g = sc.pose_at(s.end_ns);
-                let q = g.rotation.quaternion();
-                gt.push_str(&format!(
-                    "{}.{:09} {} {} {} {} {} {} {}\n",
-                    s.end_ns / 1_000_000_000,
-                    s.end_ns % 1_000_000_000,
-                    g.translation.x,
-                    g.translation.y,
-                    g.translation.z,
-                    q.i,
-                    q.j,
-                    q.k,
-                    q.w
-                ));
+                gt.push_str(&loglio_firmware_sim::tum::line(s.end_ns, &sc.pose_at(s.end_ns)));
+                gt.push('\n');
             }
         }
     }
