@@ -442,9 +442,18 @@ fn velodyne_driver_topics_lidar_only() {
 }
 
 /// Without a publisher: one error line after `--lidar-timeout` that names the topic, the
-/// domain and the QoS hint; a bad topic name is one error line (no peers needed).
+/// domain and the QoS hint; a bad topic name is one error line (no peers needed). Under
+/// qemu-user (`LOGLIO_TEST_RUNNER`) DDS cannot open its sockets ("Protocol not available": the
+/// emulator lacks a socket option), so only the topic name is checked there.
 #[test]
 fn no_publisher_or_a_bad_topic_is_one_error_line() {
+    bad_topic_is_one_error_line();
+    if let Some(r) = common::runner() {
+        println!(
+            "no publisher: skipped under LOGLIO_TEST_RUNNER ({r}): DDS needs socket options qemu-user lacks"
+        );
+        return;
+    }
     let t = Instant::now();
     let out = common::loglio_command(&["ros2", "--lidar-topic", "/nothing", "--lidar-timeout", "1"])
         .env("ROS_DOMAIN_ID", (1 + (std::process::id() * 3 + 11) % 200).to_string())
@@ -460,6 +469,9 @@ fn no_publisher_or_a_bad_topic_is_one_error_line() {
             && errors[0].contains("--best-effort"),
         "{err}"
     );
+}
+
+fn bad_topic_is_one_error_line() {
     let out = common::loglio_command(&["ros2", "--lidar-topic", "/bad topic"]).output().unwrap();
     let err = String::from_utf8_lossy(&out.stderr).to_string();
     assert!(!out.status.success());
