@@ -285,6 +285,11 @@ pub struct EskfConfig {
     pub degeneracy_threshold: f64,
     /// Initial uncertainties.
     pub initial: InitialSigmas,
+    /// The gyro's full scale, rad/s (0: unknown). A rate component within 2 % of it is a lower
+    /// bound of the true rate: the step takes the scans' own rate on that axis where it is
+    /// larger on the same side, and the attitude's variance grows by `bridge_gyro_std` there,
+    /// so that the scans correct what the clipped gyro missed.
+    pub gyro_full_scale: f64,
 }
 
 impl Default for EskfConfig {
@@ -306,6 +311,7 @@ impl Default for EskfConfig {
             min_measurements: 6,
             degeneracy_threshold: 1e-2,
             initial: InitialSigmas::default(),
+            gyro_full_scale: 0.0,
         }
     }
 }
@@ -389,6 +395,8 @@ pub struct PropagationCounters {
     pub jumps: u32,
     /// Stale samples.
     pub stale: u32,
+    /// Steps with a gyro component at its full scale ([`EskfConfig::gyro_full_scale`]).
+    pub clipped: u32,
     /// Dropped samples (non-finite or out of order).
     pub dropped: u32,
 }
@@ -886,14 +894,48 @@ impl Eskf {
             self.flags.0 |= PropagationFlags::GAP;
             Predicted::Gap { dt_s: dt }
         } else {
-            let gyro = (head.gyro_vec() + s.gyro_vec()) * 0.5;
+            let mut gyro = (head.gyro_vec() + s.gyro_vec()) * 0.5;
             let acc = (head.acc_vec() + s.acc_vec()) * (0.5 * self.acc_scale);
+            let clipped = self.unclip(&mut gyro, &[&head, s]);
             self.integrate(&gyro, &acc, dt, 1.0);
+            self.widen_clipped(clipped, dt);
             Predicted::Integrated { dt_s: dt }
         };
         self.t_ns = s.t_ns;
         self.held = Some(*s);
         out
+    }
+
+    /// The axes on which one of `samples` is at the gyro's full scale; on them `gyro` takes the
+    /// scans' own rate (plus the bias: what the gyro would have read) where it is larger on
+    /// the same side ([`EskfConfig::gyro_full_scale`]).
+    fn unclip(&self, gyro: &mut V3, samples: &[&ImuSample]) -> [bool; 3] {
+        let limit = 0.98 * self.cfg.gyro_full_scale;
+        let mut clipped = [false; 3];
+        if limit <= 0.0 {
+            return clipped;
+        }
+        for (k, c) in clipped.iter_mut().enumerate() {
+            *c = samples.iter().any(|s| f64::from(s.gyro[k]).abs() >= limit);
+            if let (true, Some((w, _))) = (*c, self.bridge_motion) {
+                let r = w[k] + self.x.bg[k];
+                if r * gyro[k] > 0.0 && r.abs() > gyro[k].abs() {
+                    gyro[k] = r;
+                }
+            }
+        }
+        clipped
+    }
+
+    /// The attitude's variance grows by the bridge's rate noise on the clipped axes.
+    fn widen_clipped(&mut self, clipped: [bool; 3], dt: f64) {
+        let q = self.cfg.bridge_gyro_std * self.cfg.bridge_gyro_std * dt;
+        for (k, _) in clipped.iter().enumerate().filter(|(_, c)| **c) {
+            self.p[(idx::ROT + k, idx::ROT + k)] += q;
+        }
+        if clipped.iter().any(|c| *c) {
+            self.counters.clipped = self.counters.clipped.saturating_add(1);
+        }
     }
 
     /// Propagates to `t_ns` (e.g. the scan end) holding the last sample, as the reference does.
@@ -922,7 +964,10 @@ impl Eskf {
             self.flags.0 |= PropagationFlags::GAP;
             Predicted::Gap { dt_s: dt }
         } else {
-            self.integrate(&h.gyro_vec(), &(h.acc_vec() * self.acc_scale), dt, 1.0);
+            let mut gyro = h.gyro_vec();
+            let clipped = self.unclip(&mut gyro, &[&h]);
+            self.integrate(&gyro, &(h.acc_vec() * self.acc_scale), dt, 1.0);
+            self.widen_clipped(clipped, dt);
             Predicted::Integrated { dt_s: dt }
         };
         self.t_ns = t_ns;

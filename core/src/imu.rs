@@ -110,6 +110,9 @@ pub enum ImuDrop {
     NonFinite,
     /// A component beyond the sensor's full scale ([`crate::imu_guard`]).
     BeyondFullScale,
+    /// Put before samples already queued when the estimated time offset moved back
+    /// ([`crate::time_offset`]).
+    Realigned,
 }
 
 /// What [`ImuQueue::push`] did with a sample.

@@ -57,5 +57,6 @@ pub mod standstill;
 pub mod surfel;
 #[cfg(test)]
 mod testutil;
+pub mod time_offset;
 pub mod undistort;
 pub mod voxel_map;

@@ -98,6 +98,7 @@ use crate::ring_fals::{PointNormal, RingFals, RingFalsConfig, RingTable, TableEr
 use crate::scan::{ScanPoint, ScanView};
 use crate::so3;
 use crate::standstill::{ImuWindow, StandstillConfig};
+use crate::time_offset::{self, TimeOffset, TimeOffsetConfig, TimeOffsetEstimate};
 use crate::undistort::ImuTrajectory;
 use crate::voxel_map::{
     MapConfig, MapError, MapPoint, MapStorage, Neighbours, PRESET_INDEX_SLOTS, PRESET_POOL_VOXELS, Suspects,
@@ -207,6 +208,8 @@ pub struct OdometryConfig {
     pub standstill: StandstillConfig,
     /// Removal of map voxels each scan sees through (moving objects' ghost trails).
     pub free_space: FreeSpaceConfig,
+    /// The IMU–LiDAR time offset, estimated online ([`crate::time_offset`]).
+    pub time_offset: TimeOffsetConfig,
     /// IMU from LiDAR rotation.
     pub ext_rot: UnitQuaternion<f64>,
     /// LiDAR origin in the IMU frame, m.
@@ -237,6 +240,7 @@ impl OdometryConfig {
             integrity: IntegrityConfig::DEFAULT,
             standstill: StandstillConfig::DEFAULT,
             free_space: FreeSpaceConfig::DEFAULT,
+            time_offset: TimeOffsetConfig::DEFAULT,
             ext_rot: UnitQuaternion::identity(),
             ext_pos: Vector3::zeros(),
             motion: MotionModel::Imu,
@@ -336,6 +340,10 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> Default for ScanStorag
         Self::new()
     }
 }
+
+/// A scan whose prediction held the last IMU sample longer than this (a 100 Hz IMU's period)
+/// tells nothing of the time offset, ns.
+const OFFSET_MAX_HOLD_NS: u64 = 10_000_000;
 
 /// Map voxels one scan may find seen through for the next to judge again (24 KiB).
 const SUSPECTS: usize = 2048;
@@ -491,6 +499,9 @@ pub struct OdometryStats {
     /// Points kept out of the association and the map because the previous scan saw through
     /// where they are (moving objects; [`crate::free_space`]).
     pub moving: u64,
+    /// IMU samples dropped because the estimated time offset moved back and put them before
+    /// samples already queued ([`crate::time_offset`]).
+    pub realigned: u32,
 }
 
 /// The LiDAR-inertial odometry over caller-owned storage.
@@ -530,6 +541,10 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     window: ImuWindow,
     /// How long the platform has stood still in a row, seconds.
     still_s: f64,
+    /// The IMU–LiDAR time offset's estimation; its applied offset shifts every IMU stamp.
+    offset: TimeOffset,
+    /// After the applied offset moved back: IMU samples up to this stamp are dropped.
+    realign_until_ns: Option<u64>,
 }
 
 impl<const PIX: usize, const PTS: usize, const DS: usize> core::fmt::Debug for Odometry<'_, PIX, PTS, DS> {
@@ -566,6 +581,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         if !cfg.imu_guard.is_valid() {
             return Err(OdometryError::InvalidConfig("imu_guard"));
         }
+        cfg.time_offset.validate().map_err(OdometryError::InvalidConfig)?;
         let ext_ok =
             cfg.ext_rot.coords.iter().all(|v| v.is_finite()) && cfg.ext_pos.iter().all(|v| v.is_finite());
         if !ext_ok {
@@ -578,7 +594,11 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         scan.imu.clear();
         let map = map.map(cfg.map).map_err(OdometryError::Map)?;
         Ok(Self {
-            cfg: cfg.clone(),
+            cfg: OdometryConfig {
+                // The filter knows where the gyro clips (the guard's full scale).
+                eskf: EskfConfig { gyro_full_scale: f64::from(cfg.imu_guard.gyro_full_scale), ..cfg.eskf },
+                ..cfg.clone()
+            },
             scan,
             map,
             initializer: ImuInitializer::new(cfg.init),
@@ -601,6 +621,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             recovering: 0,
             window: ImuWindow::default(),
             still_s: 0.0,
+            offset: TimeOffset::new(cfg.time_offset),
+            realign_until_ns: None,
         })
     }
 
@@ -617,6 +639,11 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
     /// The filter, once initialised.
     pub fn filter(&self) -> Option<&Eskf> {
         self.filter.as_ref()
+    }
+
+    /// The IMU–LiDAR time offset: what is applied to the IMU stamps and what the scans say.
+    pub fn time_offset(&self) -> TimeOffsetEstimate {
+        self.offset.estimate()
     }
 
     /// Counters.
@@ -645,6 +672,16 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
     /// is `Held` until the next one decides), then the queue (time order; dropped ones are
     /// counted in the queue's stats).
     pub fn push_imu(&mut self, s: ImuSample) -> ImuPush {
+        // The estimated time offset moves the sample onto the LiDAR's clock.
+        let shift = self.offset.applied_ns();
+        let s = ImuSample { t_ns: s.t_ns.saturating_add_signed(shift), ..s };
+        if let Some(until) = self.realign_until_ns {
+            if s.t_ns <= until {
+                self.stats.realigned = self.stats.realigned.saturating_add(1);
+                return ImuPush::Dropped(ImuDrop::Realigned);
+            }
+            self.realign_until_ns = None;
+        }
         let before = self.guard.stats().beyond_full_scale;
         let mut result = ImuPush::Held;
         for r in self.guard.push(s) {
@@ -1230,6 +1267,31 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             _ => {}
         }
         let pose = PoseEstimate::from_filter(f);
+        // How the scan is bent tells the IMU–LiDAR time offset (well-posed scans only).
+        let x = f.state();
+        // Only a scan the IMU covers to within a sample period: one predicted further past the
+        // last sample (a live source whose IMU lags) is bent by the extrapolation, not by the
+        // offset.
+        let covered = st.imu.last_time_ns().is_some_and(|t| t.saturating_add(OFFSET_MAX_HOLD_NS) >= end_ns);
+        let judged = covered
+            && reinit.is_none()
+            && !bridged
+            && !low
+            && !recovering
+            && !building
+            && kept > 0
+            && update.outcome == UpdateOutcome::Updated
+            && update.degeneracy.count == 0;
+        if judged && self.cfg.time_offset.enabled && !self.cfg.motion.is_lidar_only() {
+            let (pts, corr) = (&st.points[..measured], &st.corr[..measured]);
+            let end_t = f64::from(t_max);
+            let warp = time_offset::scan_warp(pts, corr, x, &st.trajectory, end_t);
+            if self.offset.scan(&warp).is_some() {
+                // Samples that the new offset puts before the ones queued are dropped until it
+                // catches up (only when it moved back).
+                self.realign_until_ns = st.imu.last_time_ns();
+            }
+        }
         // The motion from the last scan end to this one: what an IMU gap is bridged with.
         let x = f.state();
         if let Some((t, rot, pos)) = self.last_end.replace((end_ns, x.rot, x.pos))

@@ -244,6 +244,20 @@ impl<const N: usize> ImuTrajectory<N> {
         Some((rot, a.pos * w[0] + a.vel * w[1] + b.pos * w[2] + b.vel * w[3], false))
     }
 
+    /// The interpolated IMU position, velocity (world) and body rate at `t` seconds since the
+    /// scan start (the velocity linear between knots; the rate the segment's).
+    pub fn kinematics_at(&self, t: f64) -> Option<(V3, V3, V3)> {
+        let (_, _, a, omega, end) = self.locate(t)?;
+        let tau = t - a.t;
+        let Some(b) = end else {
+            return Some((a.pos + a.vel * tau, a.vel, omega));
+        };
+        let h = b.t - a.t;
+        let w = hermite_weights(tau, h);
+        let pos = a.pos * w[0] + a.vel * w[1] + b.pos * w[2] + b.vel * w[3];
+        Some((pos, a.vel + (b.vel - a.vel) * (tau / h), omega))
+    }
+
     /// The pose model that holds at time `t` ([`Self::locate`]) folded with the end state and
     /// the extrinsic, so that a time inside it costs two coefficients instead of matrix
     /// products. `None` without knots.

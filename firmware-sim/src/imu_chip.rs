@@ -115,6 +115,22 @@ pub enum GyroFs {
     Dps500 = 2,
     /// +-250 deg/s
     Dps250 = 3,
+    /// +-125 deg/s
+    Dps125 = 4,
+}
+
+impl GyroFs {
+    /// The full scale of `dps` deg/s (125, 250, 500, 1000 or 2000).
+    pub fn from_dps(dps: u32) -> Option<Self> {
+        [Self::Dps2000, Self::Dps1000, Self::Dps500, Self::Dps250, Self::Dps125]
+            .into_iter()
+            .find(|f| f.dps() == dps)
+    }
+
+    /// The full scale, deg/s.
+    pub fn dps(&self) -> u32 {
+        2000 >> (*self as u32)
+    }
 }
 
 /// Accelerometer full scale (`ACCEL_FS_SEL`).
@@ -128,6 +144,18 @@ pub enum AccelFs {
     G4 = 2,
     /// +-2 g
     G2 = 3,
+}
+
+impl AccelFs {
+    /// The full scale of `g` g (2, 4, 8 or 16).
+    pub fn from_g(g: u32) -> Option<Self> {
+        [Self::G16, Self::G8, Self::G4, Self::G2].into_iter().find(|f| f.g() == g)
+    }
+
+    /// The full scale, g.
+    pub fn g(&self) -> u32 {
+        16 >> (*self as u32)
+    }
 }
 
 /// Output data rate (`GYRO_ODR`/`ACCEL_ODR` codes).

@@ -131,6 +131,40 @@ impl LidarConfig {
         }
     }
 
+    /// The same LiDAR at `hz` scans per second: a Velodyne at `60 hz` rpm (5 to 20 Hz), an
+    /// Ouster in the mode of its columns at 10 or 20 Hz (2048 columns only at 10 Hz).
+    pub fn with_scan_rate_hz(self, hz: u32) -> Result<Self, &'static str> {
+        use crate::lidar::ouster::LidarMode as M;
+        match self {
+            Self::Velodyne(mut c) => {
+                if !(5..=20).contains(&hz) {
+                    return Err("a Velodyne turns at 5 to 20 Hz (300-1200 rpm)");
+                }
+                c.rpm = 60.0 * f64::from(hz);
+                Ok(Self::Velodyne(c))
+            }
+            Self::Ouster(mut c) => {
+                c.mode = match (c.mode.columns(), hz) {
+                    (512, 10) => M::M512x10,
+                    (512, 20) => M::M512x20,
+                    (1024, 10) => M::M1024x10,
+                    (1024, 20) => M::M1024x20,
+                    (2048, 10) => M::M2048x10,
+                    _ => return Err("an Ouster scans at 10 or 20 Hz (2048 columns at 10 Hz only)"),
+                };
+                Ok(Self::Ouster(c))
+            }
+        }
+    }
+
+    /// Scans per second.
+    pub fn scan_rate_hz(&self) -> f64 {
+        match self {
+            Self::Velodyne(c) => c.rpm / 60.0,
+            Self::Ouster(c) => c.mode.rate_hz() as f64,
+        }
+    }
+
     /// The range model.
     pub fn range_mut(&mut self) -> &mut RangeModel {
         match self {

@@ -324,6 +324,11 @@ pub struct ImuConfig {
     pub acc_bias_walk: f64,
     /// Local gravity magnitude, m/s^2.
     pub gravity: f64,
+    /// The gyroscope's full scale, deg/s: samples at it are counted as saturated, beyond it
+    /// dropped.
+    pub gyro_full_scale: f64,
+    /// The accelerometer's full scale, g.
+    pub acc_full_scale: f64,
 }
 
 /// `[extrinsics]`: the LiDAR frame in the IMU frame, `p_imu = R * p_lidar + t`.
@@ -394,6 +399,8 @@ pub struct TimeConfig {
     pub scan_stamp_offset: f64,
     /// Which clock stamps the LiDAR points.
     pub lidar_time_source: LidarTimeSource,
+    /// Estimate what `lidar_imu_offset` leaves of the offset from the scans and apply it.
+    pub estimate_offset: bool,
 }
 
 /// `[mapping]`.
@@ -635,6 +642,18 @@ static SPECS: &[Spec] = &[
     ),
     spec("imu.gravity", Kind::Float { min: 9.7, max: 9.9 }, "m/s^2", "Local gravity magnitude."),
     spec(
+        "imu.gyro_full_scale",
+        Kind::Float { min: 100.0, max: 10000.0 },
+        "deg/s",
+        "The gyroscope's full scale (its configured range, e.g. 250, 500, 1000, 2000): samples within 2 % of it are counted as saturated, and while a sample is saturated the filter trusts its rate that much less; beyond it a sample is dropped.",
+    ),
+    spec(
+        "imu.acc_full_scale",
+        Kind::Float { min: 1.0, max: 100.0 },
+        "g",
+        "The accelerometer's full scale (e.g. 2, 4, 8, 16): as imu.gyro_full_scale, for the specific force.",
+    ),
+    spec(
         "extrinsics.translation",
         Kind::Floats { len: 3, min: -10.0, max: 10.0 },
         "m",
@@ -666,6 +685,12 @@ static SPECS: &[Spec] = &[
         Kind::Float { min: -4e9, max: 4e9 },
         "s",
         "LiDAR clock minus IMU clock: IMU stamps are moved onto the LiDAR clock by adding it (any size: an IMU counting from its power-on beside a LiDAR on GPS time is 1.7e9 s behind; `loglio replay` names the offset that lines up streams that do not overlap).",
+    ),
+    spec(
+        "time.estimate_offset",
+        Kind::Bool,
+        "",
+        "Estimate what lidar_imu_offset leaves of the IMU-LiDAR clock offset (up to ±50 ms) from how it bends the scans, and apply it to the IMU stamps (see docs/estimation.md).",
     ),
     spec(
         "time.scan_stamp_offset",
@@ -978,6 +1003,8 @@ impl Config {
                 gyro_bias_walk: 1e-4,
                 acc_bias_walk: 6e-4,
                 gravity: 9.81,
+                gyro_full_scale: 2000.0,
+                acc_full_scale: 16.0,
             },
             extrinsics: Extrinsics {
                 // Ouster: points in the sensor frame (the SDK's XYZ) and the internal IMU at
@@ -992,6 +1019,7 @@ impl Config {
                 lidar_imu_offset: 0.0,
                 scan_stamp_offset: 0.0,
                 lidar_time_source: LidarTimeSource::Packet,
+                estimate_offset: true,
             },
             mapping: MappingConfig {
                 voxel_size: voxel,

@@ -109,10 +109,25 @@ struct SimArgs {
     /// moving actors' ghost trails stay.
     #[arg(long)]
     keep_free_space: bool,
+    /// Keep `--lidar-imu-offset` as it is (`time.estimate_offset = false`): no online estimate
+    /// of the IMU-LiDAR time offset.
+    #[arg(long)]
+    fixed_offset: bool,
     /// The simulated IMU's clock runs this far ahead of the LiDAR's, ms (a sensor-realism
     /// switch: its samples are stamped late).
     #[arg(long, default_value_t = 0.0, value_name = "MS", allow_negative_numbers = true)]
     imu_clock_offset_ms: f64,
+    /// Scans per second (a sensor-realism switch): 10 or 20 (a Velodyne 5 to 20; an Ouster
+    /// keeps its columns).
+    #[arg(long, value_name = "HZ")]
+    scan_rate_hz: Option<u32>,
+    /// The simulated IMU's gyroscope full scale, deg/s (a sensor-realism switch: 125, 250,
+    /// 500, 1000 or 2000; default 500). Faster rotation saturates there.
+    #[arg(long, value_name = "DPS")]
+    imu_gyro_full_scale: Option<u32>,
+    /// The simulated IMU's accelerometer full scale, g (2, 4, 8 or 16; default 4).
+    #[arg(long, value_name = "G")]
+    imu_acc_full_scale: Option<u32>,
     /// `time.lidar_imu_offset`: seconds added to the IMU stamps (e.g. -0.02 for
     /// --imu-clock-offset-ms 20).
     #[arg(long, default_value_t = 0.0, value_name = "S", allow_negative_numbers = true)]
@@ -709,7 +724,13 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
         no_imu: a.no_imu,
         standstill: a.standstill,
         keep_free_space: a.keep_free_space,
+        fixed_offset: a.fixed_offset,
         imu_clock_offset_ns: (a.imu_clock_offset_ms * 1e6).round() as i64,
+        realism: loglio_host::cmd::sim::Realism {
+            scan_rate_hz: a.scan_rate_hz,
+            gyro_full_scale_dps: a.imu_gyro_full_scale,
+            acc_full_scale_g: a.imu_acc_full_scale,
+        },
         lidar_imu_offset_s: a.lidar_imu_offset,
     })
 }
@@ -742,7 +763,9 @@ fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
         no_imu: false,
         standstill: false,
         keep_free_space: false,
+        fixed_offset: false,
         imu_clock_offset_ns: 0,
+        realism: Default::default(),
         lidar_imu_offset_s: 0.0,
     })
 }

@@ -372,6 +372,11 @@ fn live_stops_after_seconds_with_the_ouster_imu() {
     assert!(imu >= 100.0, "{text}");
     let [socket, decoder, imu_drops, _] = drops(&text);
     assert_eq!((socket, decoder, imu_drops), (0, 0, 0), "{text}");
+    // The Ouster's IMU is on the LiDAR's clock: no offset is applied.
+    if let Some(l) = text.lines().find(|l| l.starts_with("IMU–LiDAR time offset:")) {
+        println!("ouster imu: {l}");
+        assert!(l.ends_with("; +0.00 ms applied to the IMU stamps"), "{text}");
+    }
     // Whole outputs: the scans of 3.5 s or less, one pose per scan after the initialisation.
     let (poses, scans, _) = check_outputs(&out);
     assert!((5..=36).contains(&scans) && poses > 0, "{scans} scans, {poses} poses: {text}");

@@ -40,7 +40,9 @@ fn handheld(seconds: f64) -> SimOptions {
         no_imu: false,
         standstill: false,
         keep_free_space: false,
+        fixed_offset: false,
         imu_clock_offset_ns: 0,
+        realism: Default::default(),
         lidar_imu_offset_s: 0.0,
     }
 }

@@ -189,7 +189,9 @@ pub fn run(
         no_imu: false,
         standstill: false,
         keep_free_space: false,
+        fixed_offset: false,
         imu_clock_offset_ns: 0,
+        realism: Default::default(),
         lidar_imu_offset_s: 0.0,
     };
     let sc = sim::scenario(&opt)?;

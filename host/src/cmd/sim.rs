@@ -5,6 +5,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
+use loglio_firmware_sim::imu_chip::{AccelFs, GyroFs};
 use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKind};
 use nalgebra::Isometry3;
@@ -46,8 +47,12 @@ pub struct SimOptions {
     pub standstill: bool,
     /// Keep what the scans see through in the map (`mapping.clear_free_space = false`).
     pub keep_free_space: bool,
+    /// Keep `lidar_imu_offset_s` as it is (`time.estimate_offset = false`).
+    pub fixed_offset: bool,
     /// The simulated IMU's clock ahead of the LiDAR's by this, ns (a sensor-realism switch).
     pub imu_clock_offset_ns: i64,
+    /// The other sensor-realism switches.
+    pub realism: Realism,
     /// `time.lidar_imu_offset`, s: what the run adds to the IMU stamps.
     pub lidar_imu_offset_s: f64,
     /// Show a progress bar (on a terminal).
@@ -133,6 +138,19 @@ pub fn scenario_config(sc: &Scenario, preset: Preset, mode: Option<AssociationMo
     cfg
 }
 
+/// Sensor-realism switches of a simulated run beside the clock offset (`None`: the
+/// scenario's own).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Realism {
+    /// Scans per second (10 or 20; a Velodyne 5 to 20).
+    pub scan_rate_hz: Option<u32>,
+    /// The IMU chip's gyroscope full scale, deg/s (125, 250, 500, 1000, 2000): it saturates
+    /// there.
+    pub gyro_full_scale_dps: Option<u32>,
+    /// The IMU chip's accelerometer full scale, g (2, 4, 8, 16).
+    pub acc_full_scale_g: Option<u32>,
+}
+
 /// Builds the scenario of `opt`.
 pub fn scenario(opt: &SimOptions) -> Result<Scenario, PipelineError> {
     let mut sc_cfg = ScenarioConfig::new(opt.kind, opt.sensor, opt.seed);
@@ -141,6 +159,20 @@ pub fn scenario(opt: &SimOptions) -> Result<Scenario, PipelineError> {
     }
     sc_cfg.actors = !opt.no_actors;
     sc_cfg.imu_clock_offset_ns = opt.imu_clock_offset_ns;
+    let r = opt.realism;
+    if let Some(hz) = r.scan_rate_hz {
+        sc_cfg.lidar =
+            sc_cfg.lidar.with_scan_rate_hz(hz).map_err(|e| PipelineError(format!("--scan-rate-hz: {e}")))?;
+    }
+    if let Some(dps) = r.gyro_full_scale_dps {
+        sc_cfg.imu_board.gyro_fs = GyroFs::from_dps(dps).ok_or_else(|| {
+            PipelineError(format!("--imu-gyro-full-scale: 125, 250, 500, 1000 or 2000 deg/s, not {dps}"))
+        })?;
+    }
+    if let Some(g) = r.acc_full_scale_g {
+        sc_cfg.imu_board.accel_fs = AccelFs::from_g(g)
+            .ok_or_else(|| PipelineError(format!("--imu-acc-full-scale: 2, 4, 8 or 16 g, not {g}")))?;
+    }
     Scenario::from_config(sc_cfg).map_err(|e| PipelineError(format!("scenario: {e}")))
 }
 
@@ -191,6 +223,11 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
     cfg.mapping.knn_search = opt.knn_search;
     cfg.filter.standstill = opt.standstill;
     cfg.mapping.clear_free_space = !opt.keep_free_space;
+    cfg.time.estimate_offset = !opt.fixed_offset;
+    // What the chip is configured to is what its user knows: its rate and its full scales.
+    cfg.sensor.scan_rate_hz = sc.config().lidar.scan_rate_hz();
+    cfg.imu.gyro_full_scale = f64::from(sc.config().imu_board.gyro_fs.dps());
+    cfg.imu.acc_full_scale = f64::from(sc.config().imu_board.accel_fs.g());
     cfg.time.lidar_imu_offset = opt.lidar_imu_offset_s;
     if opt.no_imu {
         cfg.imu.source = ImuSource::None;
@@ -285,6 +322,7 @@ pub fn summary(opt: &SimOptions, r: &SimReport) -> String {
         if mean > 0.0 { r.scan_period_s / mean } else { f64::INFINITY },
         r.scan_period_s * 1e3
     ));
+    s.push_str(&runner::time_offset_line(&st.time_offset));
     match &r.finished.eval {
         Some(e) => s.push_str(&format!(
             "ATE against ground truth (SE(3)-aligned, {} poses): rmse {:.3} m, max {:.3} m; rotation rmse {:.2} deg\n",

@@ -30,6 +30,7 @@ use loglio_core::downsample::DownsampleConfig;
 use loglio_core::eskf::EskfConfig;
 use loglio_core::free_space::FreeSpaceConfig;
 use loglio_core::imu::{ImuInitConfig, ImuNoise, ImuPush, ImuSample};
+use loglio_core::imu_guard::ImuGuardConfig;
 use loglio_core::motion_model::MotionModel;
 use loglio_core::odometry::{Clock, Odometry, OdometryConfig, OdometryError, OdometryStorage};
 use loglio_core::output::ScanResult;
@@ -38,6 +39,7 @@ use loglio_core::range_image::{MAX_COLS, MAX_ROWS, RangeImageLayout};
 use loglio_core::ring_fals::storage_pixels;
 use loglio_core::scan::ScanView;
 use loglio_core::standstill::StandstillConfig;
+use loglio_core::time_offset::TimeOffsetConfig;
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
 use crate::config::{Config, ImuSource, SensorFamily};
@@ -148,6 +150,12 @@ pub fn odometry_config(cfg: &Config, layout: RangeImageLayout) -> Result<Odometr
         },
         standstill: StandstillConfig { enabled: cfg.filter.standstill, ..base.standstill },
         free_space: FreeSpaceConfig { enabled: cfg.mapping.clear_free_space, ..base.free_space },
+        time_offset: TimeOffsetConfig { enabled: cfg.time.estimate_offset, ..base.time_offset },
+        imu_guard: ImuGuardConfig {
+            gyro_full_scale: cfg.imu.gyro_full_scale.to_radians() as f32,
+            acc_full_scale: (cfg.imu.acc_full_scale * 9.80665) as f32,
+            ..base.imu_guard
+        },
         ..base
     })
 }
@@ -184,6 +192,8 @@ pub trait Engine {
     /// Map voxels removed because a scan saw through them, and points left out as moving
     /// ([`loglio_core::free_space`]).
     fn free_space(&self) -> (u64, u64);
+    /// The IMU–LiDAR time offset the core estimated and applies ([`loglio_core::time_offset`]).
+    fn time_offset(&self) -> loglio_core::time_offset::TimeOffsetEstimate;
 }
 
 struct CoreEngine<'a, const PIX: usize, const PTS: usize, const DS: usize> {
@@ -238,6 +248,9 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> Engine for CoreEngine<
     fn free_space(&self) -> (u64, u64) {
         let s = self.odo.stats();
         (s.cleared, s.moving)
+    }
+    fn time_offset(&self) -> loglio_core::time_offset::TimeOffsetEstimate {
+        self.odo.time_offset()
     }
 }
 

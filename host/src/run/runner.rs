@@ -7,7 +7,7 @@ use std::io;
 use std::time::Instant;
 
 use loglio_core::eskf::{Eskf, Predicted, PropagationFlags};
-use loglio_core::imu::{ImuPush, ImuSample};
+use loglio_core::imu::{ImuDrop, ImuPush, ImuSample};
 use loglio_core::output::{ScanResult, StageTimes, Status};
 use loglio_core::scan::{ScanPoint, ScanView};
 
@@ -84,6 +84,8 @@ pub struct RunStats {
     pub moving_points: u64,
     /// Scans predicted without IMU (LiDAR-only, constant-velocity model).
     pub lidar_only_scans: u64,
+    /// The IMU–LiDAR time offset the core estimated (on top of `time.lidar_imu_offset`).
+    pub time_offset: loglio_core::time_offset::TimeOffsetEstimate,
 }
 
 /// Timing faults and IMU outliers a run met (each also said as a `warning:`).
@@ -511,7 +513,7 @@ impl<'e> Runner<'e> {
                 }
                 let s = *s;
                 self.imu.pop_front();
-                if !matches!(self.engine.push_imu(s), ImuPush::Accepted | ImuPush::Held) {
+                if !pushed_ok(self.engine.push_imu(s)) {
                     self.stats.imu_dropped += 1;
                 }
             }
@@ -583,7 +585,7 @@ impl<'e> Runner<'e> {
     /// `older_than`, those that arrived before it (a caller's wall clock: the live wait bound).
     pub fn process_ready(&mut self, force: bool, older_than: Option<u64>) -> Result<(), PipelineError> {
         while let Some((front, arrival)) = self.scans.front() {
-            let end = front.end_ns();
+            let end = self.imu_time(front.end_ns());
             let covered = self.lidar_only || self.last_imu_ns.is_some_and(|t| t >= end);
             let waited = older_than.is_some_and(|t| *arrival <= t);
             if !(covered || force || waited || self.scans.len() > MAX_PENDING_SCANS) {
@@ -598,8 +600,16 @@ impl<'e> Runner<'e> {
         Ok(())
     }
 
+    /// A LiDAR time on the IMU stamps' clock as they arrive here: the core moves them on by the
+    /// time offset it estimated ([`loglio_core::time_offset`]), so a scan's end is covered by
+    /// samples stamped that much later (or earlier).
+    fn imu_time(&self, lidar_ns: u64) -> u64 {
+        let applied = (self.engine.time_offset().applied_s * 1e9).round() as i64;
+        lidar_ns.saturating_add_signed(-applied)
+    }
+
     fn process(&mut self, scan: OwnedScan, arrival: u64) -> Result<(), PipelineError> {
-        let end = scan.end_ns();
+        let end = self.imu_time(scan.end_ns());
         let stale_before = scan.start_ns.saturating_sub(1_000_000_000);
         // After the first scan, samples that old are the IMU through a LiDAR pause: integrated
         // without a scan (dropping them made the filter step over the pause: a re-initialising
@@ -615,7 +625,7 @@ impl<'e> Runner<'e> {
                 self.stats.imu_stale += 1;
                 continue;
             }
-            if !matches!(self.engine.push_imu(s), ImuPush::Accepted | ImuPush::Held) {
+            if !pushed_ok(self.engine.push_imu(s)) {
                 self.stats.imu_dropped += 1;
             }
             if s.t_ns < stale_before {
@@ -680,6 +690,7 @@ impl<'e> Runner<'e> {
         self.stats.faults.imu_guard = self.engine.imu_guard_stats();
         self.stats.faults.relocalisations = self.engine.relocalisations();
         (self.stats.cleared_voxels, self.stats.moving_points) = self.engine.free_space();
+        self.stats.time_offset = self.engine.time_offset();
         for w in self.stats.faults.warnings() {
             crate::diag::warn(w);
         }
@@ -693,6 +704,12 @@ impl<'e> Runner<'e> {
     pub fn flush(&mut self) -> io::Result<()> {
         self.outputs.flush()
     }
+}
+
+/// Whether a pushed sample went in (or waits in the guard): a sample that the estimated time
+/// offset put before those queued is no fault either.
+fn pushed_ok(p: ImuPush) -> bool {
+    matches!(p, ImuPush::Accepted | ImuPush::Held | ImuPush::Dropped(ImuDrop::Realigned))
 }
 
 /// A summary line of the status counts.
@@ -710,6 +727,21 @@ pub fn status_summary(st: &RunStats) -> String {
         ));
     }
     parts.join(", ")
+}
+
+/// What the time-offset estimation found and applies (a line), or nothing before its first
+/// window.
+pub fn time_offset_line(t: &loglio_core::time_offset::TimeOffsetEstimate) -> String {
+    match t.estimate_s {
+        Some(e) => format!(
+            "IMU–LiDAR time offset: the scans' warp says {:+.2} ± {:.2} ms ({} scans); {:+.2} ms applied to the IMU stamps\n",
+            e * 1e3,
+            t.std_s * 1e3,
+            t.scans,
+            t.applied_s * 1e3
+        ),
+        None => String::new(),
+    }
 }
 
 /// "LiDAR-only (no IMU): constant-velocity model" and a newline when the run had no IMU,
@@ -744,6 +776,7 @@ pub fn summary(stats: &RunStats, fin: &Finished, scan_period_s: f64, wall_s: f64
         if mean > 0.0 { scan_period_s / mean } else { f64::INFINITY },
         scan_period_s * 1e3
     ));
+    s.push_str(&time_offset_line(&stats.time_offset));
     if let Some(e) = &fin.eval {
         s.push_str(&format!(
             "ATE against ground truth (SE(3)-aligned, {} poses): rmse {:.3} m, max {:.3} m; rotation rmse {:.2} deg\n",
