@@ -236,13 +236,20 @@ struct WatchArgs {
     quiet: bool,
 }
 
-impl WatchArgs {
-    /// (seconds, LiDAR timeout, IMU timeout, status line), the IMU timeout checked.
-    fn checked(&self) -> anyhow::Result<(Option<f64>, f64, f64, bool)> {
-        if !(self.imu_timeout > 0.0 && self.imu_timeout.is_finite()) {
-            bail!("--imu-timeout must be a positive number of seconds, not {}", self.imu_timeout);
+impl TryFrom<&WatchArgs> for loglio_host::cmd::Watch {
+    type Error = anyhow::Error;
+
+    /// The options as the commands take them, the IMU timeout checked (the run checks the rest).
+    fn try_from(a: &WatchArgs) -> anyhow::Result<Self> {
+        if !(a.imu_timeout > 0.0 && a.imu_timeout.is_finite()) {
+            bail!("--imu-timeout must be a positive number of seconds, not {}", a.imu_timeout);
         }
-        Ok((self.seconds, self.lidar_timeout, self.imu_timeout, !self.quiet))
+        Ok(loglio_host::cmd::Watch {
+            seconds: a.seconds,
+            lidar_timeout_s: a.lidar_timeout,
+            imu_timeout_s: a.imu_timeout,
+            status: !a.quiet,
+        })
     }
 }
 
@@ -598,8 +605,9 @@ fn replay_cmd(a: ReplayArgs) -> anyhow::Result<()> {
 }
 
 fn live_cmd(a: LiveArgs) -> anyhow::Result<()> {
+    use loglio_host::cmd::Watch;
     use loglio_host::cmd::live::{LiveImu, LiveOptions};
-    let watch = a.watch.checked()?;
+    let watch = Watch::try_from(&a.watch)?;
     let mut opt = LiveOptions::new(a.run.setup());
     opt.imu = match (a.imu_serial, a.ouster_imu, a.imu_mavlink_udp, a.no_imu) {
         (_, _, _, true) => LiveImu::None,
@@ -614,7 +622,7 @@ fn live_cmd(a: LiveArgs) -> anyhow::Result<()> {
     opt.lidar_port = a.lidar_port;
     opt.imu_port = a.imu_port;
     opt.position_port = a.position_port;
-    (opt.seconds, opt.lidar_timeout_s, opt.imu_timeout_s, opt.status) = watch;
+    opt.watch = watch;
     let r = loglio_host::cmd::live::run(&opt)?;
     print(&loglio_host::cmd::live::summary(&r))
 }
@@ -662,12 +670,13 @@ fn bag_cmd(a: BagArgs) -> anyhow::Result<()> {
 }
 
 fn ros2_cmd(a: Ros2Args) -> anyhow::Result<()> {
+    use loglio_host::cmd::Watch;
     use loglio_host::cmd::ros2::{Ros2RunOptions, run, summary};
-    let watch = a.watch.checked()?;
+    let watch = Watch::try_from(&a.watch)?;
     let mut opt = Ros2RunOptions::new(a.run.setup(), &a.lidar_topic);
     opt.imu_topic = (!a.no_imu).then_some(a.imu_topic);
     opt.best_effort = a.best_effort;
-    (opt.seconds, opt.lidar_timeout_s, opt.imu_timeout_s, opt.status) = watch;
+    opt.watch = watch;
     print(&summary(&run(&opt)?))
 }
 

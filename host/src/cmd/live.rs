@@ -51,6 +51,7 @@ use std::time::{Duration, Instant};
 
 use loglio_core::imu::ImuSample;
 
+use crate::cmd::Watch;
 use crate::config::{Config, ImuSource, LidarTimeSource, SensorFamily};
 use crate::diag::warn;
 use crate::error::PipelineError;
@@ -114,15 +115,9 @@ pub struct LiveOptions {
     pub imu_port: Option<u16>,
     /// Velodyne position packet port (GPS time).
     pub position_port: u16,
-    /// Stop after this many seconds (from the moment reception starts).
-    pub seconds: Option<f64>,
-    /// Fail when no LiDAR packet arrives within this many seconds of the start; warn when the
-    /// stream stops for as long later.
-    pub lidar_timeout_s: f64,
-    /// Warn when no IMU sample arrives for this many seconds.
-    pub imu_timeout_s: f64,
-    /// Print the status line once a second.
-    pub status: bool,
+    /// When to stop (`seconds` from the moment reception starts), the timeouts
+    /// (`lidar_timeout_s`: no LiDAR packet), the status line.
+    pub watch: Watch,
     /// Handle SIGINT and SIGTERM (the command does; a library caller may not want to).
     pub handle_signals: bool,
 }
@@ -139,10 +134,7 @@ impl LiveOptions {
             lidar_port: None,
             imu_port: None,
             position_port: VELODYNE_POSITION_PORT,
-            seconds: None,
-            lidar_timeout_s: 10.0,
-            imu_timeout_s: 3.0,
-            status: true,
+            watch: Watch::default(),
             handle_signals: true,
         }
     }
@@ -694,17 +686,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
         cfg.imu.protocol = p;
     }
     let imu_protocol = cfg.imu.protocol;
-    if !(opt.lidar_timeout_s > 0.0 && opt.lidar_timeout_s.is_finite()) {
-        return Err(PipelineError(format!(
-            "--lidar-timeout must be a positive number of seconds, not {}",
-            opt.lidar_timeout_s
-        )));
-    }
-    if let Some(s) = opt.seconds
-        && !(s > 0.0 && s.is_finite())
-    {
-        return Err(PipelineError(format!("--seconds must be a positive number, not {s}")));
-    }
+    opt.watch.check()?;
     let bind: IpAddr = match opt.bind {
         Some(a) => a,
         None => cfg.network.bind.parse().map_err(|_| {
@@ -885,10 +867,10 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                     t.scans += 1;
                 }));
             }
-            let status = StatusLine::new(opt.status);
-            let limit_ns = opt.seconds.map(|s| (s * 1e9) as u64);
-            let lidar_timeout_ns = (opt.lidar_timeout_s * 1e9) as u64;
-            let imu_timeout_ns = (opt.imu_timeout_s * 1e9) as u64;
+            let status = StatusLine::new(opt.watch.status);
+            let limit_ns = opt.watch.seconds.map(|s| (s * 1e9) as u64);
+            let lidar_timeout_ns = (opt.watch.lidar_timeout_s * 1e9) as u64;
+            let imu_timeout_ns = (opt.watch.imu_timeout_s * 1e9) as u64;
             let wait_ns = IMU_WAIT.as_nanos() as u64;
             let (mut lidar_stall, mut imu_stall) = (Stall::default(), Stall::default());
             let mut stopped: Option<(StopReason, u64)> = None;
@@ -934,7 +916,7 @@ pub fn run(opt: &LiveOptions) -> Result<LiveReport, PipelineError> {
                     if last_lidar == 0 && now > lidar_timeout_ns {
                         return Err(PipelineError(format!(
                             "no LiDAR packets on UDP {lidar_addr} within {} s: is the sensor on, and sending to this computer's address and port {lidar_port} (its destination IP, the firewall)?",
-                            opt.lidar_timeout_s
+                            opt.watch.lidar_timeout_s
                         )));
                     }
                     if last_lidar != 0 && c.lidar_packets.load(Relaxed) == 0 && now > lidar_timeout_ns {

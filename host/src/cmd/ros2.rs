@@ -32,6 +32,7 @@ use std::sync::mpsc::{self, RecvTimeoutError, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use crate::cmd::Watch;
 use crate::cmd::live::{self, Msg, ScanTimes, Stall, StatusLine, StopReason, pose_phrase, since};
 use crate::config::{ImuSource, LidarTimeSource};
 use crate::diag::warn;
@@ -60,15 +61,9 @@ pub struct Ros2RunOptions {
     pub domain: Option<u16>,
     /// Best-effort readers (for best-effort publishers).
     pub best_effort: bool,
-    /// Stop after this many seconds (from the moment the readers start).
-    pub seconds: Option<f64>,
-    /// Fail when no cloud arrives within this many seconds of the start; warn when the topic
-    /// stops for as long later.
-    pub lidar_timeout_s: f64,
-    /// Warn when no IMU message arrives for this many seconds.
-    pub imu_timeout_s: f64,
-    /// Print the status line once a second.
-    pub status: bool,
+    /// When to stop (`seconds` from the moment the readers start), the timeouts (`lidar_timeout_s`:
+    /// no cloud), the status line.
+    pub watch: Watch,
     /// Handle SIGINT and SIGTERM.
     pub handle_signals: bool,
 }
@@ -83,10 +78,7 @@ impl Ros2RunOptions {
             imu_topic: Some("/imu/data".into()),
             domain: None,
             best_effort: false,
-            seconds: None,
-            lidar_timeout_s: 10.0,
-            imu_timeout_s: 3.0,
-            status: true,
+            watch: Watch::default(),
             handle_signals: true,
         }
     }
@@ -281,17 +273,7 @@ impl Convert {
 pub fn run(opt: &Ros2RunOptions) -> Result<Ros2Report, PipelineError> {
     let wall = Instant::now();
     let mut cfg = opt.setup.load_config()?;
-    if !(opt.lidar_timeout_s > 0.0 && opt.lidar_timeout_s.is_finite()) {
-        return Err(PipelineError(format!(
-            "--lidar-timeout must be a positive number of seconds, not {}",
-            opt.lidar_timeout_s
-        )));
-    }
-    if let Some(s) = opt.seconds
-        && !(s > 0.0 && s.is_finite())
-    {
-        return Err(PipelineError(format!("--seconds must be a positive number, not {s}")));
-    }
+    opt.watch.check()?;
     let domain = match opt.domain {
         Some(d) => d,
         None => crate::sink::ros2::domain_from_env(std::env::var("ROS_DOMAIN_ID").ok().as_deref())
@@ -345,7 +327,7 @@ pub fn run(opt: &Ros2RunOptions) -> Result<Ros2Report, PipelineError> {
     );
 
     // The first messages: their frames and /tf_static give the extrinsic.
-    let lidar_timeout_ns = (opt.lidar_timeout_s * 1e9) as u64;
+    let lidar_timeout_ns = (opt.watch.lidar_timeout_s * 1e9) as u64;
     let mut both_at: Option<u64> = None;
     let data = loop {
         if stop_signal.load(Relaxed) {
@@ -364,7 +346,7 @@ pub fn run(opt: &Ros2RunOptions) -> Result<Ros2Report, PipelineError> {
         if shared.clouds.load(Relaxed) == 0 && now > lidar_timeout_ns {
             return Err(PipelineError(format!(
                 "no sensor_msgs/PointCloud2 on {} within {} s (ROS_DOMAIN_ID {domain}): is the driver publishing there{qos_hint}?",
-                opt.lidar_topic, opt.lidar_timeout_s
+                opt.lidar_topic, opt.watch.lidar_timeout_s
             )));
         }
         if want_tf {
@@ -419,9 +401,9 @@ pub fn run(opt: &Ros2RunOptions) -> Result<Ros2Report, PipelineError> {
                 t.scans += 1;
             }));
         }
-        let status = StatusLine::new(opt.status);
-        let limit_ns = opt.seconds.map(|s| (s * 1e9) as u64);
-        let imu_timeout_ns = (opt.imu_timeout_s * 1e9) as u64;
+        let status = StatusLine::new(opt.watch.status);
+        let limit_ns = opt.watch.seconds.map(|s| (s * 1e9) as u64);
+        let imu_timeout_ns = (opt.watch.imu_timeout_s * 1e9) as u64;
         let wait_ns = live::IMU_WAIT.as_nanos() as u64;
         let (mut lidar_stall, mut imu_stall) = (Stall::default(), Stall::default());
         let mut stopped: Option<StopReason> = None;
