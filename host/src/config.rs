@@ -645,13 +645,13 @@ static SPECS: &[Spec] = &[
         "imu.gyro_full_scale",
         Kind::Float { min: 100.0, max: 10000.0 },
         "deg/s",
-        "The gyroscope's full scale (its configured range, e.g. 250, 500, 1000, 2000): samples within 2 % of it are counted as saturated, and while a sample is saturated the filter trusts its rate that much less; beyond it a sample is dropped.",
+        "The gyroscope's full scale (its configured range, e.g. 250, 500, 1000, 2000): samples within 2 % of it are counted as saturated, and on a saturated axis the filter takes the rate the last scans measured where it is larger and trusts its attitude less; beyond it a sample is dropped.",
     ),
     spec(
         "imu.acc_full_scale",
         Kind::Float { min: 1.0, max: 100.0 },
         "g",
-        "The accelerometer's full scale (e.g. 2, 4, 8, 16): as imu.gyro_full_scale, for the specific force.",
+        "The accelerometer's full scale (e.g. 2, 4, 8, 16): samples within 2 % of it are counted as saturated, beyond it dropped.",
     ),
     spec(
         "extrinsics.translation",
