@@ -1293,7 +1293,6 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             }
         }
         // The motion from the last scan end to this one: what an IMU gap is bridged with.
-        let x = f.state();
         if let Some((t, rot, pos)) = self.last_end.replace((end_ns, x.rot, x.pos))
             && end_ns > t
             && (end_ns - t) as f64 * 1e-9 <= LIDAR_GAP_S

@@ -264,11 +264,6 @@ impl TimeOffset {
         }
     }
 
-    /// The settings.
-    pub fn config(&self) -> &TimeOffsetConfig {
-        &self.cfg
-    }
-
     /// The offset to add to every IMU stamp, ns.
     pub fn applied_ns(&self) -> i64 {
         self.applied_ns
