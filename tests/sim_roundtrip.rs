@@ -414,6 +414,8 @@ fn ouster_packets_round_trip_through_the_core_decoder_and_assembler() {
         (SensorModel::Os1_16, Profile::Rng19Rfl8Sig16Nir16, LidarMode::M512x20, 3),
         (SensorModel::Os1_64, Profile::Legacy, LidarMode::M1024x10, 3),
         (SensorModel::Os1_64, Profile::Rng19Rfl8Sig16Nir16, LidarMode::M2048x10, 3),
+        (SensorModel::Os1_128, Profile::Legacy, LidarMode::M1024x10, 2),
+        (SensorModel::Os1_128, Profile::Rng19Rfl8Sig16Nir16, LidarMode::M512x20, 3),
     ] {
         let w = ouster_round_trip(sensor, profile, mode, frames);
         assert!(w.points > 20_000, "{sensor:?}: {} points", w.points);

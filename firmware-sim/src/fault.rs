@@ -470,7 +470,7 @@ pub fn foreign_model(m: SensorModel) -> SensorModel {
         SensorModel::Vlp16 => SensorModel::Vlp32c,
         SensorModel::Vlp32c | SensorModel::Hdl32e => SensorModel::Vlp16,
         SensorModel::Os1_16 => SensorModel::Os1_64,
-        SensorModel::Os1_64 => SensorModel::Os1_16,
+        SensorModel::Os1_64 | SensorModel::Os1_128 => SensorModel::Os1_16,
     }
 }
 

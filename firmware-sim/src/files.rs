@@ -188,7 +188,11 @@ pub fn ouster_metadata(o: &Ouster) -> serde_json::Value {
     let shift: Vec<i64> = az.iter().map(|a| libm::round((a - min_az) * w as f64 / 360.0) as i64).collect();
     let i = ouster::IMU_IN_SENSOR;
     json!({
-        "prod_line": match c.model { crate::lidar::SensorModel::Os1_16 => "OS-1-16", _ => "OS-1-64" },
+        "prod_line": match c.model {
+            crate::lidar::SensorModel::Os1_16 => "OS-1-16",
+            crate::lidar::SensorModel::Os1_128 => "OS-1-128",
+            _ => "OS-1-64",
+        },
         "prod_sn": c.serial.to_string(),
         "build_rev": "v2.3.0",
         "status": "RUNNING",

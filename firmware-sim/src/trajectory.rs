@@ -100,6 +100,12 @@ pub enum Trajectory {
         /// The ground it drives on.
         terrain: Terrain,
     },
+    /// A car on a 3.1 km loop with bends around a wide district at 12.5 m/s on average, one lap and
+    /// [`LONG_PAST_START_M`] more, so that it comes back past its start ([`LONG_DURATION_S`]).
+    Long {
+        /// The ground it drives on.
+        terrain: Terrain,
+    },
 }
 
 /// Vehicle loop: a rounded square of "radius" A with corner sharpness K and an asymmetry B.
@@ -115,6 +121,25 @@ pub const VEH_IMU_HEIGHT: f64 = 1.75;
 pub const TRAFFIC_BRAKE_S: f64 = 15.0;
 /// The traffic drive: time the car drives on after its stop, seconds.
 pub const TRAFFIC_GO_S: f64 = 29.0;
+
+/// The long drive's loop: the vehicle loop's shape scaled up ([`LONG_A`] instead of 80 m), with
+/// bends of [`LONG_W`] metres (7 and 5 per lap across x and y); 3.08 km long, every bend
+/// wider than 53 m in radius.
+pub const LONG_A: f64 = 470.0;
+const LONG_K: f64 = 0.1;
+const LONG_B: f64 = 35.0;
+/// Amplitude of the long loop's bends, metres.
+pub const LONG_W: f64 = 18.0;
+const LONG_THETA0: f64 = -1.2;
+/// The long drive's path-angle rate times [`LONG_A`], m/s (its speed is 20 m/s at most, 12.5
+/// on average; the lateral acceleration stays under 1.3 m/s^2).
+const LONG_SPEED: f64 = 12.0;
+/// When the long drive is back at its start (one lap), seconds.
+pub const LONG_LAP_S: f64 = REST_S + 0.5 * VEH_RAMP_S + core::f64::consts::TAU * LONG_A / LONG_SPEED;
+/// How far the long drive goes on past its start, metres (along the path angle, about).
+pub const LONG_PAST_START_M: f64 = 135.0;
+/// The long drive's length, seconds: one lap and [`LONG_PAST_START_M`].
+pub const LONG_DURATION_S: f64 = 262.0;
 
 /// The traffic drive: time the car comes to a standstill (braking takes the ramp time), seconds.
 pub const TRAFFIC_STOP_S: f64 = TRAFFIC_BRAKE_S + VEH_RAMP_S;
@@ -147,7 +172,12 @@ fn traffic_theta_jet(tj: Jet) -> Jet {
 
 /// The car on the loop at path angle `th`: position and (roll, pitch, yaw) on the ground.
 fn vehicle_on_road(terrain: &Terrain, th: Jet) -> ([Jet; 3], [Jet; 3]) {
-    let (x, y, dx, dy) = vehicle_path(th);
+    car_on_road(terrain, vehicle_path(th))
+}
+
+/// A car at a road point (x, y, dx/dtheta, dy/dtheta): position and (roll, pitch, yaw) on the
+/// ground.
+fn car_on_road(terrain: &Terrain, (x, y, dx, dy): (Jet, Jet, Jet, Jet)) -> ([Jet; 3], [Jet; 3]) {
     let yaw = dy.atan2(dx);
     let (zg, gx, gy) = terrain.height_jet(x, y);
     let (cy, sy) = (yaw.cos(), yaw.sin());
@@ -199,6 +229,11 @@ impl Trajectory {
                 vehicle_on_road(terrain, th)
             }
             Trajectory::Traffic { terrain } => vehicle_on_road(terrain, traffic_theta_jet(tj)),
+            Trajectory::Long { terrain } => {
+                let th = Jet::c(LONG_THETA0)
+                    + smoothstep_integral(moving * (1.0 / VEH_RAMP_S)) * (LONG_SPEED / LONG_A * VEH_RAMP_S);
+                car_on_road(terrain, long_path(th))
+            }
             Trajectory::Handheld => {
                 let th = Jet::c(-0.4) + smoothstep_integral(moving * (1.0 / 2.5)) * (WALK_SPEED / 12.0 * 2.5);
                 let (x, y, dx, dy) = walk_path(th);
@@ -264,16 +299,40 @@ impl Trajectory {
 
 /// The vehicle's loop as a function of the path angle: position and d/dtheta, as jets of time.
 fn vehicle_path(th: Jet) -> (Jet, Jet, Jet, Jet) {
+    rounded_loop(th, VEH_A, VEH_K, VEH_B)
+}
+
+/// A rounded square of "radius" `a`, corner sharpness `k` and asymmetry `b` at path angle `th`:
+/// position and d/dtheta.
+fn rounded_loop(th: Jet, a: f64, k: f64, b: f64) -> (Jet, Jet, Jet, Jet) {
     let (c1, s1) = (th.cos(), th.sin());
     let th3 = th * 3.0;
     let (c3, s3) = (th3.cos(), th3.sin());
     let th2 = th * 2.0;
     let (c2, s2) = (th2.cos(), th2.sin());
-    let x = (c1 - c3 * VEH_K) * VEH_A + s2 * VEH_B;
-    let y = (s1 + s3 * VEH_K) * VEH_A;
-    let dx = (-s1 + s3 * (3.0 * VEH_K)) * VEH_A + c2 * (2.0 * VEH_B);
-    let dy = (c1 + c3 * (3.0 * VEH_K)) * VEH_A;
+    let x = (c1 - c3 * k) * a + s2 * b;
+    let y = (s1 + s3 * k) * a;
+    let dx = (-s1 + s3 * (3.0 * k)) * a + c2 * (2.0 * b);
+    let dy = (c1 + c3 * (3.0 * k)) * a;
     (x, y, dx, dy)
+}
+
+/// The long drive's loop: position and d/dtheta.
+fn long_path(th: Jet) -> (Jet, Jet, Jet, Jet) {
+    let (x, y, dx, dy) = rounded_loop(th, LONG_A, LONG_K, LONG_B);
+    let (tn, tm) = (th * 7.0, th * 5.0);
+    (
+        x + tn.sin() * LONG_W,
+        y + tm.cos() * LONG_W,
+        dx + tn.cos() * (7.0 * LONG_W),
+        dy - tm.sin() * (5.0 * LONG_W),
+    )
+}
+
+/// A point of the long drive's loop at path angle `theta`: (x, y) and (dx/dtheta, dy/dtheta).
+pub fn long_road_point(theta: f64) -> [f64; 4] {
+    let (x, y, dx, dy) = long_path(Jet::c(theta));
+    [x.v, y.v, dx.v, dy.v]
 }
 
 /// The walking loop in the hall: position and d/dtheta.
@@ -328,13 +387,14 @@ pub fn log_so3(r: &Rotation3<f64>) -> Vector3<f64> {
 mod tests {
     use super::*;
 
-    fn all() -> [Trajectory; 5] {
+    fn all() -> [Trajectory; 6] {
         [
             Trajectory::Vehicle { terrain: Terrain::town() },
             Trajectory::Handheld,
             Trajectory::Corridor,
             Trajectory::Drone { ground_z: 0.7 },
             Trajectory::FastRotation,
+            Trajectory::Long { terrain: Terrain::town() },
         ]
     }
 
@@ -391,7 +451,7 @@ mod tests {
     #[test]
     fn limits_are_respected() {
         // Speeds and rates over 60 s (longer than any scenario), every 10 ms.
-        let mut max = [(0.0f64, 0.0f64); 5];
+        let mut max = [(0.0f64, 0.0f64); 6];
         for (j, traj) in all().iter().enumerate() {
             for i in 0..6000 {
                 let k = traj.eval(0.01 * i as f64);
@@ -399,7 +459,7 @@ mod tests {
                 max[j].1 = max[j].1.max(k.angular_velocity.norm().to_degrees());
             }
         }
-        let [veh, hand, corr, drone, rot] = max;
+        let [veh, hand, corr, drone, rot, _] = max;
         assert!(veh.0 <= 10.0 && veh.0 > 8.0, "vehicle speed {veh:?}");
         assert!(hand.0 < 2.0 && hand.0 > 0.9, "walk speed {hand:?}");
         assert!(corr.0 <= 5.0 && corr.0 > 4.0, "corridor speed {corr:?}");
@@ -450,6 +510,38 @@ mod tests {
             let [x, y, ..] = road_point(traffic_theta(t));
             assert!((x - k.position.x).abs() < 1e-9 && (y - k.position.y).abs() < 1e-9);
         }
+    }
+
+    #[test]
+    fn long_drive_goes_3_km_and_comes_back_past_its_start() {
+        let traj = Trajectory::Long { terrain: Terrain::town() };
+        let (mut dist, mut max_speed, mut max_lat, mut max_rate) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
+        let dt = 0.05;
+        let mut prev = traj.eval(0.0).position;
+        let start = prev;
+        let mut closest_after_lap = f64::INFINITY;
+        let n = (LONG_DURATION_S / dt) as usize;
+        for i in 1..=n {
+            let t = i as f64 * dt;
+            let k = traj.eval(t);
+            dist += (k.position - prev).norm();
+            prev = k.position;
+            max_speed = max_speed.max(k.velocity.norm());
+            max_rate = max_rate.max(k.angular_velocity.norm().to_degrees());
+            let fwd = k.rotation * Vector3::x();
+            max_lat = max_lat.max((k.acceleration - fwd * fwd.dot(&k.acceleration)).xy().norm());
+            if t > LONG_LAP_S - 20.0 {
+                closest_after_lap = closest_after_lap.min((k.position - start).xy().norm());
+            }
+        }
+        assert!(dist > 3000.0 && dist < 3400.0, "{dist} m");
+        assert!(max_speed > 15.0 && max_speed < 20.0, "{max_speed} m/s");
+        assert!(max_lat < 2.0, "lateral acceleration {max_lat} m/s^2");
+        assert!(max_rate > 10.0 && max_rate < 30.0, "{max_rate} deg/s");
+        // It passes within a metre of where it started (the lap closes on the same road).
+        assert!(closest_after_lap < 1.0, "{closest_after_lap} m");
+        let [x, y, ..] = long_road_point(LONG_THETA0);
+        assert!((x - start.x).abs() < 1e-9 && (y - start.y).abs() < 1e-9);
     }
 
     #[test]

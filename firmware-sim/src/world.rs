@@ -30,6 +30,9 @@ pub enum SceneKind {
     Hall,
     /// The long featureless corridor.
     Corridor,
+    /// The town's kind of streets along the long drive's 3.1 km loop, over a square of
+    /// 2 x [`LONG_HALF`] metres (buildings only within [`LONG_BAND`] of the road).
+    LongLoop,
 }
 
 /// Corridor geometry: half width, height and x extent (metres).
@@ -42,6 +45,11 @@ pub const CORRIDOR_X: [f64; 2] = [-220.0, 390.0];
 pub const HALL: [f64; 3] = [30.0, 18.0, 8.0];
 /// Half size of the town's square (metres around the origin).
 pub const TOWN_HALF: f64 = 180.0;
+/// Half size of the long drive's square (metres around the origin).
+pub const LONG_HALF: f64 = 530.0;
+/// Along the long loop, nothing is built farther than this from the road (metres): beyond it a
+/// 100 m LiDAR sees little, and the world stays small.
+pub const LONG_BAND: f64 = 70.0;
 /// Road half width in the town (the sidewalk kerbs start here).
 pub const ROAD_HALF_WIDTH: f64 = 4.0;
 
@@ -120,6 +128,7 @@ impl World {
             SceneKind::Town => town(seed),
             SceneKind::Hall => hall(seed),
             SceneKind::Corridor => corridor(seed),
+            SceneKind::LongLoop => long_loop(seed),
         }
     }
 
@@ -131,7 +140,16 @@ impl World {
 
 fn town(seed: u64) -> World {
     let (prims, terrain) = town_prims(seed);
-    town_scene(prims, terrain, seed)
+    town_scene(prims, terrain, seed, TOWN_HALF, SceneKind::Town)
+}
+
+fn long_loop(seed: u64) -> World {
+    let terrain = Terrain::town();
+    let road =
+        path_samples(&Trajectory::Long { terrain: terrain.clone() }, crate::trajectory::LONG_LAP_S, 0.125);
+    let streets = Streets { half: LONG_HALF, band: LONG_BAND, court: None, walls: 1400 };
+    let prims = street_prims(seed, &terrain, &road, &streets);
+    town_scene(prims, terrain, seed, LONG_HALF, SceneKind::LongLoop)
 }
 
 impl World {
@@ -140,23 +158,43 @@ impl World {
     pub fn town_without(seed: u64, remove: impl Fn(&Prim) -> bool) -> World {
         let (mut prims, terrain) = town_prims(seed);
         prims.retain(|p| !remove(p));
-        town_scene(prims, terrain, seed)
+        town_scene(prims, terrain, seed, TOWN_HALF, SceneKind::Town)
     }
 }
 
-fn town_scene(prims: Vec<Prim>, terrain: Terrain, seed: u64) -> World {
-    let half = TOWN_HALF;
+fn town_scene(prims: Vec<Prim>, terrain: Terrain, seed: u64, half: f64, kind: SceneKind) -> World {
     let g = Heightfield::new(-half, -half, 1.0, (2.0 * half) as usize, (2.0 * half) as usize, 18, |x, y| {
         terrain.height(x, y)
     });
     let scene = Scene::new(prims, Some(g), seed, [-half, -half], [half, half], 4.0);
-    World { kind: SceneKind::Town, seed, terrain, scene }
+    World { kind, seed, terrain, scene }
 }
 
 fn town_prims(seed: u64) -> (Vec<Prim>, Terrain) {
     let terrain = Terrain::town();
-    let mut b = Builder { prims: Vec::new(), rng: SplitMix64::new(seed, 1) };
     let road = path_samples(&Trajectory::Vehicle { terrain: terrain.clone() }, 95.0, 0.25);
+    let streets = Streets { half: TOWN_HALF, band: f64::INFINITY, court: Some(DRONE_START), walls: 160 };
+    let prims = street_prims(seed, &terrain, &road, &streets);
+    (prims, terrain)
+}
+
+/// How [`street_prims`] builds around a road.
+struct Streets {
+    /// Half size of the square the buildings' grid covers, metres.
+    half: f64,
+    /// No building farther than this from the road, metres.
+    band: f64,
+    /// The drone's courtyard (cleared and ringed by towers), if any.
+    court: Option<[f64; 2]>,
+    /// How many garden walls are tried.
+    walls: usize,
+}
+
+/// The town's streets along `road` (samples of x, y, heading): kerbs, street furniture, parked
+/// cars, buildings and garden walls.
+fn street_prims(seed: u64, terrain: &Terrain, road: &[[f64; 3]], streets: &Streets) -> Vec<Prim> {
+    let mut b = Builder { prims: Vec::new(), rng: SplitMix64::new(seed, 1) };
+    let road = road.to_vec();
     let ground_range = |s: &Shape| -> (f64, f64) {
         let (lo, hi) = s.bounds();
         let mut r = (f64::INFINITY, f64::NEG_INFINITY);
@@ -271,10 +309,10 @@ fn town_prims(seed: u64) -> (Vec<Prim>, Terrain) {
         }
     }
     // The drone's courtyard: a clear disc ringed by towers.
-    let court = DRONE_START;
     let court_clear = 13.0;
     let mut buildings: Vec<Shape> = Vec::new();
-    let n_towers = 7;
+    let n_towers = if streets.court.is_some() { 7 } else { 0 };
+    let court = streets.court.unwrap_or([0.0; 2]);
     for k in 0..n_towers {
         let a = k as f64 * core::f64::consts::TAU / n_towers as f64 + 0.3 * b.rng.unit();
         let depth = 10.0 + 6.0 * b.rng.unit();
@@ -293,11 +331,19 @@ fn town_prims(seed: u64) -> (Vec<Prim>, Terrain) {
     }
     // Buildings on a jittered grid over the town, aligned with the nearest street.
     let spacing = 23.0;
-    let n = (2.0 * TOWN_HALF / spacing) as i32;
+    let half = streets.half;
+    let clear_of_court =
+        |foot: &Shape, margin: f64| streets.court.is_none_or(|c| foot.xy_distance(c) > margin);
+    let n = (2.0 * half / spacing) as i32;
     for gj in 0..n {
         for gi in 0..n {
-            let x = -TOWN_HALF + (gi as f64 + 0.2 + 0.6 * b.rng.unit()) * spacing;
-            let y = -TOWN_HALF + (gj as f64 + 0.2 + 0.6 * b.rng.unit()) * spacing;
+            let x = -half + (gi as f64 + 0.2 + 0.6 * b.rng.unit()) * spacing;
+            let y = -half + (gj as f64 + 0.2 + 0.6 * b.rng.unit()) * spacing;
+            if streets.band.is_finite()
+                && clearance(&Shape::boxed([x, y, 0.0], [1.0; 3], 0.0), &road) > streets.band
+            {
+                continue;
+            }
             let (sx, sy) = (9.0 + 12.0 * b.rng.unit(), 9.0 + 12.0 * b.rng.unit());
             let height = 6.0 + 24.0 * b.rng.unit() * b.rng.unit() + 3.0 * b.rng.unit();
             let near = road.iter().min_by(|a, c| {
@@ -315,7 +361,7 @@ fn town_prims(seed: u64) -> (Vec<Prim>, Terrain) {
             for _ in 0..4 {
                 let foot = Shape::boxed([x, y, 0.0], [size[0], size[1], 1.0], yaw);
                 if clearance(&foot, &road) >= 9.0
-                    && foot.xy_distance(court) > court_clear + 3.0
+                    && clear_of_court(&foot, court_clear + 3.0)
                     && !buildings.iter().any(|q| footprints_overlap(&foot, q, 1.5))
                 {
                     ok = true;
@@ -345,15 +391,15 @@ fn town_prims(seed: u64) -> (Vec<Prim>, Terrain) {
         }
     }
     // Garden walls between buildings and the road.
-    for _ in 0..160 {
-        let x = b.rng.range(-TOWN_HALF, TOWN_HALF);
-        let y = b.rng.range(-TOWN_HALF, TOWN_HALF);
+    for _ in 0..streets.walls {
+        let x = b.rng.range(-half, half);
+        let y = b.rng.range(-half, half);
         let len = 6.0 + 12.0 * b.rng.unit();
         let yaw = b.rng.range(0.0, core::f64::consts::PI);
         let foot = Shape::boxed([x, y, 0.0], [len, 0.25, 1.0], yaw);
         let cl = clearance(&foot, &road);
         if !(7.0..20.0).contains(&cl)
-            || foot.xy_distance(court) < court_clear + 1.0
+            || !clear_of_court(&foot, court_clear + 1.0)
             || buildings.iter().any(|q| footprints_overlap(&foot, q, 0.5))
         {
             continue;
@@ -363,7 +409,7 @@ fn town_prims(seed: u64) -> (Vec<Prim>, Terrain) {
         b.push(Shape::boxed([x, y, (g0 - 0.5 + g1 + h) * 0.5], [len, 0.25, g1 + h - g0 + 0.5], yaw), 40);
         buildings.push(foot);
     }
-    (b.prims, terrain)
+    b.prims
 }
 
 fn hall(seed: u64) -> World {
@@ -524,6 +570,38 @@ mod tests {
     }
 
     #[test]
+    fn long_loop_is_built_along_its_whole_road_and_leaves_it_clear() {
+        let a = World::build(SceneKind::LongLoop, 5);
+        assert_eq!(a.kind, SceneKind::LongLoop);
+        assert_eq!(a.scene.prims(), World::build(SceneKind::LongLoop, 5).scene.prims());
+        let prims = a.scene.prims();
+        assert!(prims.len() > 2000, "{}", prims.len());
+        let traj = Trajectory::Long { terrain: Terrain::town() };
+        let lap = crate::trajectory::LONG_LAP_S;
+        // Along the whole loop: the road is clear above and the ground 1.75 m below, and within
+        // 40 m on either side stand walls a LiDAR can hold on to (a horizontal ray hits within
+        // 60 m one way or the other).
+        let mut walled = 0;
+        let n = 600;
+        for i in 0..n {
+            let k = traj.eval(lap * i as f64 / n as f64);
+            let p = k.position;
+            let key = i as u64;
+            let r = a.scene.cast(&Ray { o: [p.x, p.y, p.z], d: [0.0, 0.0, 1.0] }, 3.0, key);
+            assert!(r.hit.is_none(), "obstacle above the road at {p:?}: {r:?}");
+            let down = a.scene.cast(&Ray { o: [p.x, p.y, p.z], d: [0.0, 0.0, -1.0] }, 10.0, key).hit.unwrap();
+            assert!((down.t - 1.75).abs() < 0.01, "IMU height above the road {}", down.t);
+            let left = k.rotation * nalgebra::Vector3::y();
+            let side = |s: f64| {
+                let d = [s * left.x, s * left.y, 0.0];
+                a.scene.cast(&Ray { o: [p.x, p.y, p.z + 1.0], d }, 60.0, key).hit.is_some()
+            };
+            walled += usize::from(side(1.0) || side(-1.0));
+        }
+        assert!(walled * 10 > n * 8, "{walled} of {n} stretches see a wall beside the road");
+    }
+
+    #[test]
     fn grid_casting_equals_brute_force() {
         // Random rays from around the trajectories: the grid must return exactly what testing
         // every primitive returns (hit distance, primitive, partial leaf).
@@ -532,6 +610,7 @@ mod tests {
             (SceneKind::Town, Trajectory::Drone { ground_z: 0.0 }),
             (SceneKind::Hall, Trajectory::Handheld),
             (SceneKind::Corridor, Trajectory::Corridor),
+            (SceneKind::LongLoop, Trajectory::Long { terrain: Terrain::town() }),
         ] {
             let w = World::build(kind, 21);
             let mut rng = SplitMix64::new(4, 4);

@@ -69,19 +69,19 @@ enum Command {
 #[cfg(feature = "sim")]
 #[derive(Debug, Args)]
 struct SimArgs {
-    /// Scenario: vehicle, handheld, corridor, drone, rotation, traffic.
+    /// Scenario: vehicle, handheld, corridor, drone, rotation, traffic, long (3.2 km, 262 s).
     #[arg(long, default_value = "vehicle", value_name = "NAME")]
     scenario: String,
     /// Leave the scenario's moving actors out (traffic: the same drive in an empty street).
     #[arg(long)]
     no_actors: bool,
-    /// Simulated LiDAR: vlp16, vlp32c, hdl32e, os1-16, os1-64.
+    /// Simulated LiDAR: vlp16, vlp32c, hdl32e, os1-16, os1-64, os1-128.
     #[arg(long, default_value = "vlp32c", value_name = "NAME")]
     sensor: String,
     /// Seed of the world and every noise.
     #[arg(long, default_value_t = 1)]
     seed: u64,
-    /// Length in seconds (default: the scenario's, 30-40 s).
+    /// Length in seconds (default: the scenario's, 30-60 s; long 262 s).
     #[arg(long, value_name = "S")]
     seconds: Option<f64>,
     /// Association mode.
@@ -299,7 +299,7 @@ struct LiveArgs {
 #[cfg(feature = "sim")]
 #[derive(Debug, Args)]
 struct BenchArgs {
-    /// Sensor preset: vlp16, vlp32c, hdl32e, os1-16, os1-64.
+    /// Sensor preset: vlp16, vlp32c, hdl32e, os1-16, os1-64, os1-128.
     #[arg(long, default_value = "vlp32c", value_name = "NAME")]
     preset: String,
     /// Seconds of simulated data (2 s at rest are not timed).
@@ -316,7 +316,7 @@ struct BenchArgs {
     /// cores (at most 8).
     #[arg(long, default_value_t = 0, value_name = "N")]
     threads: usize,
-    /// Simulated scenario: vehicle, handheld, corridor, drone, rotation, traffic (default: vehicle for
+    /// Simulated scenario: vehicle, handheld, corridor, drone, rotation, traffic, long (default: vehicle for
     /// Velodyne presets, handheld for Ouster).
     #[arg(long, value_name = "NAME")]
     scenario: Option<String>,

@@ -79,7 +79,7 @@ struct ScenarioArgs {
     /// Leave the scenario's moving actors out (traffic: the same drive in an empty street).
     #[arg(long)]
     no_actors: bool,
-    /// vlp16, vlp32c, hdl32e, os1-16 or os1-64.
+    /// vlp16, vlp32c, hdl32e, os1-16, os1-64 or os1-128.
     #[arg(long, default_value = "vlp32c")]
     sensor: String,
     /// Seed of the world and of every noise.

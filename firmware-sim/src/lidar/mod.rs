@@ -109,11 +109,14 @@ pub enum SensorModel {
     Os1_16,
     /// Ouster OS1-64.
     Os1_64,
+    /// Ouster OS1-128 (45 degree field of view).
+    Os1_128,
 }
 
 impl SensorModel {
     /// Every model.
-    pub const ALL: [SensorModel; 5] = [Self::Vlp16, Self::Vlp32c, Self::Hdl32e, Self::Os1_16, Self::Os1_64];
+    pub const ALL: [SensorModel; 6] =
+        [Self::Vlp16, Self::Vlp32c, Self::Hdl32e, Self::Os1_16, Self::Os1_64, Self::Os1_128];
 
     /// Whether this is a Velodyne sensor.
     pub fn is_velodyne(&self) -> bool {
@@ -126,10 +129,11 @@ impl SensorModel {
             Self::Vlp16 | Self::Os1_16 => 16,
             Self::Vlp32c | Self::Hdl32e => 32,
             Self::Os1_64 => 64,
+            Self::Os1_128 => 128,
         }
     }
 
-    /// A short lower-case name (`vlp16`, `vlp32c`, `hdl32e`, `os1-16`, `os1-64`).
+    /// A short lower-case name (`vlp16`, `vlp32c`, `hdl32e`, `os1-16`, `os1-64`, `os1-128`).
     pub fn name(&self) -> &'static str {
         match self {
             Self::Vlp16 => "vlp16",
@@ -137,6 +141,7 @@ impl SensorModel {
             Self::Hdl32e => "hdl32e",
             Self::Os1_16 => "os1-16",
             Self::Os1_64 => "os1-64",
+            Self::Os1_128 => "os1-128",
         }
     }
 

@@ -1,4 +1,4 @@
-//! Ouster OS1-16 and OS1-64 firmware: lidar packets (UDP 7502) in the LEGACY and
+//! Ouster OS1-16, OS1-64 and OS1-128 firmware: lidar packets (UDP 7502) in the LEGACY and
 //! RNG19_RFL8_SIG16_NIR16 profiles, and IMU packets (UDP 7503), written from Ouster's sensor
 //! documentation (firmware 2.x packet formats).
 //!
@@ -40,8 +40,8 @@ pub const IMU_PACKET_LEN: usize = 48;
 pub const COLUMNS_PER_PACKET: usize = 16;
 /// Encoder ticks per revolution (LEGACY column header).
 pub const ENCODER_TICKS: u32 = 90_112;
-/// Largest lidar packet (OS1-64, LEGACY or RNG19): 16 * (16 + 64 * 12 + 4).
-pub const MAX_LIDAR_PACKET_LEN: usize = 12_608;
+/// Largest lidar packet (OS1-128, LEGACY): 16 * (16 + 128 * 12 + 4).
+pub const MAX_LIDAR_PACKET_LEN: usize = 24_896;
 /// Height of the lidar frame above the sensor frame, metres (`lidar_to_sensor_transform`).
 pub const LIDAR_TO_SENSOR_Z: f64 = 0.036_18;
 /// Distance from the lidar origin to the beams' origins, metres (the simulated unit's value).
@@ -131,7 +131,7 @@ impl core::error::Error for ConfigError {}
 /// An Ouster sensor's configuration.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct OusterConfig {
-    /// OS1-16 or OS1-64.
+    /// OS1-16, OS1-64 or OS1-128.
     pub model: SensorModel,
     /// Columns and rate.
     pub mode: LidarMode,
@@ -190,13 +190,16 @@ pub struct Ouster {
     cfg: OusterConfig,
     start_ns: u64,
     beams: usize,
-    altitude: [f64; 64],
-    azimuth: [f64; 64],
-    cos_az: [f64; 64],
-    sin_az: [f64; 64],
-    cos_alt: [f64; 64],
-    sin_alt: [f64; 64],
+    altitude: [f64; MAX_BEAMS],
+    azimuth: [f64; MAX_BEAMS],
+    cos_az: [f64; MAX_BEAMS],
+    sin_az: [f64; MAX_BEAMS],
+    cos_alt: [f64; MAX_BEAMS],
+    sin_alt: [f64; MAX_BEAMS],
 }
+
+/// The most beams of a simulated Ouster (the OS1-128).
+pub const MAX_BEAMS: usize = 128;
 
 impl Ouster {
     /// The firmware of a sensor whose column 0 of frame 0 fires at `start_ns`.
@@ -204,24 +207,31 @@ impl Ouster {
         let beams = match cfg.model {
             SensorModel::Os1_16 => 16,
             SensorModel::Os1_64 => 64,
+            SensorModel::Os1_128 => 128,
             _ => return Err(ConfigError::NotOuster),
         };
         let mut o = Self {
             cfg,
             start_ns,
             beams,
-            altitude: [0.0; 64],
-            azimuth: [0.0; 64],
-            cos_az: [0.0; 64],
-            sin_az: [0.0; 64],
-            cos_alt: [0.0; 64],
-            sin_alt: [0.0; 64],
+            altitude: [0.0; MAX_BEAMS],
+            azimuth: [0.0; MAX_BEAMS],
+            cos_az: [0.0; MAX_BEAMS],
+            sin_az: [0.0; MAX_BEAMS],
+            cos_alt: [0.0; MAX_BEAMS],
+            sin_alt: [0.0; MAX_BEAMS],
         };
-        // The simulated unit's calibration: the OS1's 33.2 degree field of view, uniform beam
-        // spacing, and the four emitter columns' azimuth offsets (one column for the OS1-16).
+        // The simulated unit's calibration: the OS1's 33.2 degree field of view (45 degrees
+        // for the OS1-128, as its later revisions), uniform beam spacing, and the four emitter
+        // columns' azimuth offsets (one column for the OS1-16).
+        let fov = if beams == 128 { 45.0 } else { 33.2 };
         for i in 0..beams {
-            o.altitude[i] = 16.6 - 33.2 * i as f64 / (beams - 1) as f64;
-            o.azimuth[i] = if beams == 64 { [3.1, 0.9, -1.2, -3.3][i % 4] } else { -3.1 };
+            o.altitude[i] = 0.5 * fov - fov * i as f64 / (beams - 1) as f64;
+            o.azimuth[i] = match beams {
+                128 => [4.2, 1.4, -1.4, -4.2][i % 4],
+                64 => [3.1, 0.9, -1.2, -3.3][i % 4],
+                _ => -3.1,
+            };
             let (a, p) = (o.azimuth[i].to_radians(), o.altitude[i].to_radians());
             (o.cos_az[i], o.sin_az[i], o.cos_alt[i], o.sin_alt[i]) =
                 (libm::cos(a), libm::sin(a), libm::cos(p), libm::sin(p));
@@ -463,7 +473,7 @@ mod tests {
 
     #[test]
     fn packets_sizes_headers_and_formula_round_trip() {
-        for model in [SensorModel::Os1_16, SensorModel::Os1_64] {
+        for model in [SensorModel::Os1_16, SensorModel::Os1_64, SensorModel::Os1_128] {
             for profile in [Profile::Legacy, Profile::Rng19Rfl8Sig16Nir16] {
                 let mut cfg = OusterConfig::default_for(model);
                 cfg.profile = profile;
@@ -477,8 +487,12 @@ mod tests {
                 if model == SensorModel::Os1_64 {
                     assert_eq!(o.packet_len(), if profile == Profile::Legacy { 12_608 } else { 12_544 });
                 }
+                if model == SensorModel::Os1_128 {
+                    assert_eq!(o.packet_len(), if profile == Profile::Legacy { 24_896 } else { 24_832 });
+                    assert!(o.packet_len() <= MAX_LIDAR_PACKET_LEN);
+                }
                 let mut buf = [0u8; MAX_LIDAR_PACKET_LEN];
-                let mut truth = [OusterTruth::default(); 1024];
+                let mut truth = [OusterTruth::default(); 16 * MAX_BEAMS];
                 for k in [0u64, 1, 63, 64, 65] {
                     let n = o.lidar_packet(k, &mut Sphere, &mut buf, &mut truth).unwrap();
                     assert_eq!(

@@ -165,7 +165,7 @@ pub fn run(
     let threads = crate::config::ComputeConfig { threads: threads as u32 }.resolved_threads();
     let sensor = sim::sensor_of(preset).ok_or_else(|| {
         PipelineError(format!(
-            "the simulator has no {preset} model; bench one of vlp16, vlp32c, hdl32e, os1-16, os1-64 (the per-point cost scales with the points per scan)"
+            "the simulator has no {preset} model; bench one of vlp16, vlp32c, hdl32e, os1-16, os1-64, os1-128 (the per-point cost scales with the points per scan)"
         ))
     })?;
     let kind = scenario.unwrap_or(if preset.family() == crate::config::SensorFamily::Ouster {

@@ -80,6 +80,51 @@ pub struct SimReport {
     pub scan_period_s: f64,
     /// The storage class used.
     pub class: StorageClass,
+    /// Drift per distance, on drives of at least [`DRIFT_MIN_PATH_M`].
+    pub drift: Option<Drift>,
+}
+
+/// Below this ground-truth path length no drift per 100 m is given, metres.
+pub const DRIFT_MIN_PATH_M: f64 = 300.0;
+
+/// Drift per distance: the relative translation error over every 100 m stretch of the ground
+/// truth's path (evo's RPE, `--delta 100 --delta_unit m --all_pairs`, pairs from the truth).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Drift {
+    /// Ground-truth path length, metres.
+    pub path_m: f64,
+    /// Stretches of 100 m (overlapping, one from each pose).
+    pub pairs: usize,
+    /// Mean error over a stretch, metres (per 100 m, so also per cent).
+    pub mean_m: f64,
+    /// Largest error over a stretch, metres.
+    pub max_m: f64,
+    /// Mean rotation error over a stretch, degrees.
+    pub rot_mean_deg: f64,
+}
+
+/// The drift per 100 m of `est` against `gt`, when the truth's path is long enough.
+pub fn drift_per_100m(gt: &Trajectory, est: &Trajectory) -> Option<Drift> {
+    let path_m: f64 = gt.poses.windows(2).map(|w| (w[1].t - w[0].t).norm()).sum();
+    if path_m < DRIFT_MIN_PATH_M {
+        return None;
+    }
+    let opt = eval::EvalOptions {
+        max_diff: 0.002,
+        rpe_delta: 100.0,
+        rpe_unit: eval::DeltaUnit::Metres,
+        all_pairs: true,
+        pairs_from_gt: true,
+        ..Default::default()
+    };
+    let r = eval::evaluate(gt, est, &opt).ok()?;
+    (r.rpe_trans.n > 0).then_some(Drift {
+        path_m,
+        pairs: r.rpe_trans.n,
+        mean_m: r.rpe_trans.mean,
+        max_m: r.rpe_trans.max,
+        rot_mean_deg: r.rpe_rot_deg.mean,
+    })
 }
 
 impl SimReport {
@@ -97,6 +142,7 @@ pub fn preset_of(sensor: SensorModel) -> Preset {
         SensorModel::Hdl32e => Preset::Hdl32e,
         SensorModel::Os1_16 => Preset::Os1_16,
         SensorModel::Os1_64 => Preset::Os1_64,
+        SensorModel::Os1_128 => Preset::Os1_128,
     }
 }
 
@@ -108,7 +154,8 @@ pub fn sensor_of(preset: Preset) -> Option<SensorModel> {
         Preset::Hdl32e => SensorModel::Hdl32e,
         Preset::Os1_16 => SensorModel::Os1_16,
         Preset::Os1_64 => SensorModel::Os1_64,
-        Preset::Os1_32 | Preset::Os1_128 => return None,
+        Preset::Os1_128 => SensorModel::Os1_128,
+        Preset::Os1_32 => return None,
     })
 }
 
@@ -259,6 +306,7 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
         }
     });
     let (stop, _signals) = run::Signals::stop_flag();
+    let drift = std::cell::Cell::new(None);
     let opts = RunOptions {
         outputs: OutputOptions {
             dir: opt.out.clone(),
@@ -280,7 +328,9 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
                         .map_err(|e| PipelineError(format!("{}: {e}", dir.join(ACTORS_CSV).display())))?;
                 }
             }
-            runner.outputs.set_ground_truth(Some(to_trajectory(&gt)));
+            let gt = to_trajectory(&gt);
+            drift.set(drift_per_100m(&gt, &to_trajectory(&runner.outputs.poses)));
+            runner.outputs.set_ground_truth(Some(gt));
             Ok(())
         })),
     };
@@ -293,7 +343,15 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
             finished.files.push(dir.join(ACTORS_CSV));
         }
     }
-    Ok(SimReport { stats, finished, sim_s, wall_s: wall.elapsed().as_secs_f64(), scan_period_s, class })
+    Ok(SimReport {
+        stats,
+        finished,
+        sim_s,
+        wall_s: wall.elapsed().as_secs_f64(),
+        scan_period_s,
+        class,
+        drift: drift.get(),
+    })
 }
 
 /// The human summary of a simulated run.
@@ -322,6 +380,8 @@ pub fn summary(opt: &SimOptions, r: &SimReport) -> String {
         if mean > 0.0 { r.scan_period_s / mean } else { f64::INFINITY },
         r.scan_period_s * 1e3
     ));
+    s.push_str(&runner::scan_time_trend_line(st));
+    s.push_str(&runner::map_line(&st.map));
     s.push_str(&runner::time_offset_line(&st.time_offset));
     match &r.finished.eval {
         Some(e) => s.push_str(&format!(
@@ -329,6 +389,17 @@ pub fn summary(opt: &SimOptions, r: &SimReport) -> String {
             e.matched, e.ape_trans.rmse, e.ape_trans.max, e.ape_rot_deg.rmse
         )),
         None => s.push_str("ATE: not evaluated\n"),
+    }
+    if let Some(d) = &r.drift {
+        s.push_str(&format!(
+            "drift per 100 m of the {:.0} m driven: {:.3} m mean ({:.3} %), {:.3} m max, {:.3} deg mean rotation ({} stretches)\n",
+            d.path_m,
+            d.mean_m,
+            d.mean_m,
+            d.max_m,
+            d.rot_mean_deg,
+            d.pairs
+        ));
     }
     s.push_str(&format!("wall time {:.1} s (simulation included)\n", r.wall_s));
     for line in crate::sink::sinks_summary(&st.sinks) {

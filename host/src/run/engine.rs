@@ -168,6 +168,9 @@ pub trait Engine {
     fn process_scan(&mut self, scan: ScanView<'_>, clock: &mut StdClock) -> ScanResult;
     /// Voxels in the map.
     fn map_voxels(&self) -> usize;
+    /// The map's life counters (voxels created and evicted, points dropped) and its pool's
+    /// capacity in voxels.
+    fn map_counters(&self) -> (loglio_core::voxel_map::MapCounters, usize);
     /// Appends the map's points (world frame) with their normals where known.
     fn map_points(&self, out: &mut Vec<MapPoint>);
     /// Most points a scan may hold (more are cut off by the core).
@@ -210,6 +213,9 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> Engine for CoreEngine<
     }
     fn map_voxels(&self) -> usize {
         self.odo.map().len()
+    }
+    fn map_counters(&self) -> (loglio_core::voxel_map::MapCounters, usize) {
+        (self.odo.map().counters(), self.odo.map().capacity())
     }
     fn map_points(&self, out: &mut Vec<MapPoint>) {
         self.odo.map().for_each_point(|_, xyz, normal| out.push(MapPoint { xyz, normal }));

@@ -86,6 +86,19 @@ pub struct RunStats {
     pub lidar_only_scans: u64,
     /// The IMU–LiDAR time offset the core estimated (on top of `time.lidar_imu_offset`).
     pub time_offset: loglio_core::time_offset::TimeOffsetEstimate,
+    /// The map at the end: its use of the fixed pool and what was evicted on the way.
+    pub map: MapUse,
+}
+
+/// The voxel map's use of its fixed pool at the end of a run.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct MapUse {
+    /// Voxels in the map.
+    pub voxels: usize,
+    /// The pool's capacity, voxels (fixed at the start; the map never grows past it).
+    pub capacity: usize,
+    /// Created, evicted (far from the sensor, from the full pool), dropped, cleared.
+    pub counters: loglio_core::voxel_map::MapCounters,
 }
 
 /// Timing faults and IMU outliers a run met (each also said as a `warning:`).
@@ -691,6 +704,8 @@ impl<'e> Runner<'e> {
         self.stats.faults.relocalisations = self.engine.relocalisations();
         (self.stats.cleared_voxels, self.stats.moving_points) = self.engine.free_space();
         self.stats.time_offset = self.engine.time_offset();
+        let (counters, capacity) = self.engine.map_counters();
+        self.stats.map = MapUse { voxels: self.engine.map_voxels(), capacity, counters };
         for w in self.stats.faults.warnings() {
             crate::diag::warn(w);
         }
@@ -744,6 +759,45 @@ pub fn time_offset_line(t: &loglio_core::time_offset::TimeOffsetEstimate) -> Str
     }
 }
 
+/// The map's use of its fixed pool (a line): voxels held of the capacity, and what was
+/// evicted to stay inside it. Nothing before the map holds a voxel.
+pub fn map_line(m: &MapUse) -> String {
+    let c = &m.counters;
+    if c.created == 0 || m.capacity == 0 {
+        return String::new();
+    }
+    let mut s = format!(
+        "map: {} voxels of a fixed pool of {} ({:.0} %); {} created, {} evicted far from the sensor, {} evicted from the full pool",
+        m.voxels,
+        m.capacity,
+        100.0 * m.voxels as f64 / m.capacity as f64,
+        c.created,
+        c.evicted_far,
+        c.evicted_full
+    );
+    if c.dropped_full > 0 {
+        s.push_str(&format!(", {} points dropped with the pool full", c.dropped_full));
+    }
+    s.push('\n');
+    s
+}
+
+/// Whether the time per scan grew over a long run (a line): the mean of the first and the last
+/// quarter of the scans. Nothing under 400 scans.
+pub fn scan_time_trend_line(st: &RunStats) -> String {
+    let n = st.scan_ns.len();
+    if n < 400 {
+        return String::new();
+    }
+    let q = n / 4;
+    let mean_ms = |v: &[u64]| v.iter().map(|&x| x as f64).sum::<f64>() / v.len() as f64 * 1e-6;
+    format!(
+        "time per scan over the run: {:.1} ms (mean of the first quarter), {:.1} ms (last quarter)\n",
+        mean_ms(&st.scan_ns[..q]),
+        mean_ms(&st.scan_ns[n - q..])
+    )
+}
+
 /// "LiDAR-only (no IMU): constant-velocity model" and a newline when the run had no IMU,
 /// else nothing.
 pub fn lidar_only_line(st: &RunStats) -> String {
@@ -776,6 +830,8 @@ pub fn summary(stats: &RunStats, fin: &Finished, scan_period_s: f64, wall_s: f64
         if mean > 0.0 { scan_period_s / mean } else { f64::INFINITY },
         scan_period_s * 1e3
     ));
+    s.push_str(&scan_time_trend_line(stats));
+    s.push_str(&map_line(&stats.map));
     s.push_str(&time_offset_line(&stats.time_offset));
     if let Some(e) = &fin.eval {
         s.push_str(&format!(

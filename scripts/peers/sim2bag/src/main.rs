@@ -43,8 +43,8 @@ struct Cli {
     /// Output directory (one folder per scenario is created in it).
     #[arg(long)]
     out: PathBuf,
-    /// Scenarios (vehicle, handheld, corridor, drone, rotation, traffic); default: the five static
-    /// ones (not traffic).
+    /// Scenarios (vehicle, handheld, corridor, drone, rotation, traffic, long); default: the five
+    /// static 30-40 s ones (not traffic, not long).
     #[arg(long)]
     scenario: Vec<String>,
     /// LiDAR model: vlp16, vlp32c or hdl32e (Velodyne layout clouds).
@@ -53,7 +53,7 @@ struct Cli {
     /// Seed of the world and of every noise (loglio-sim's default: 1).
     #[arg(long, default_value_t = 1)]
     seed: u64,
-    /// Seconds to simulate (default: the scenario's, 30-40 s).
+    /// Seconds to simulate (default: the scenario's: 30-40 s, traffic 60 s, long 262 s).
     #[arg(long)]
     duration: Option<f64>,
     /// Threads for scan generation (the output does not depend on it).
@@ -68,10 +68,14 @@ const IMU_FRAME: &str = "imu_link";
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
-    let sensor = SensorModel::from_name(&cli.sensor).with_context(|| format!("unknown sensor {:?}", cli.sensor))?;
+    let sensor =
+        SensorModel::from_name(&cli.sensor).with_context(|| format!("unknown sensor {:?}", cli.sensor))?;
     anyhow::ensure!(sensor.is_velodyne(), "only Velodyne models are exported (Velodyne cloud layout)");
     let kinds: Vec<ScenarioKind> = if cli.scenario.is_empty() {
-        ScenarioKind::ALL.into_iter().filter(|k| *k != ScenarioKind::Traffic).collect()
+        ScenarioKind::ALL
+            .into_iter()
+            .filter(|k| !matches!(k, ScenarioKind::Traffic | ScenarioKind::Long))
+            .collect()
     } else {
         cli.scenario
             .iter()
@@ -153,14 +157,21 @@ fn export(sc: &Scenario, dir: &Path) -> anyhow::Result<(u64, u64)> {
                 max_t = pts.iter().fold(max_t, |m, p| m.max(p.t));
                 bag.write_point_cloud2(c_pts, scan.end_ns, &cloud)?;
                 let _ = writeln!(scans_csv, "{},{},{},{}", scan.index, scan.start_ns, scan.end_ns, pts.len());
-                gt_times.extend([scan.start_ns, scan.start_ns + (scan.end_ns - scan.start_ns) / 2, scan.end_ns]);
+                gt_times.extend([
+                    scan.start_ns,
+                    scan.start_ns + (scan.end_ns - scan.start_ns) / 2,
+                    scan.end_ns,
+                ]);
                 n_scans += 1;
             }
         }
     }
     bag.finish()?;
     std::fs::write(dir.join("scans.csv"), scans_csv)?;
-    std::fs::write(dir.join("groundtruth.tum"), tum::trajectory(gt_times.iter().copied(), |t| sc.pose_at(t)))?;
+    std::fs::write(
+        dir.join("groundtruth.tum"),
+        tum::trajectory(gt_times.iter().copied(), |t| sc.pose_at(t)),
+    )?;
     std::fs::write(
         dir.join("lidar_groundtruth.tum"),
         tum::trajectory(gt_times.iter().copied(), |t| sc.lidar_pose_at(t)),
