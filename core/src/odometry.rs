@@ -643,7 +643,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
 
     /// The IMU–LiDAR time offset: what is applied to the IMU stamps and what the scans say.
     pub fn time_offset(&self) -> TimeOffsetEstimate {
-        self.offset.estimate()
+        TimeOffsetEstimate { realigned: self.stats.realigned, ..self.offset.estimate() }
     }
 
     /// Counters.

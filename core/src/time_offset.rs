@@ -224,6 +224,8 @@ const TABLE: usize = 64;
 pub struct TimeOffsetEstimate {
     /// The offset added to the IMU stamps now, s (on top of the caller's).
     pub applied_s: f64,
+    /// The same, exactly, ns (what the stamps are moved by).
+    pub applied_ns: i64,
     /// The scans' estimate, s, once any scan gave information.
     pub estimate_s: Option<f64>,
     /// Its standard deviation, s.
@@ -232,6 +234,9 @@ pub struct TimeOffsetEstimate {
     pub scans: u32,
     /// Times the applied offset changed.
     pub changes: u32,
+    /// IMU samples dropped because a change put them before samples already queued (filled in
+    /// by the odometry, which owns the queue).
+    pub realigned: u32,
 }
 
 /// The estimation's state (a few numbers).
@@ -320,6 +325,7 @@ impl TimeOffset {
         let max = f64::from(self.cfg.max_offset_s);
         self.applied_ns = libm::round(est.clamp(-max, max) * 1e9) as i64;
         self.state.applied_s = self.applied_ns as f64 * 1e-9;
+        self.state.applied_ns = self.applied_ns;
         self.state.changes = self.state.changes.saturating_add(1);
         Some(self.applied_ns)
     }
@@ -447,6 +453,8 @@ mod tests {
         }
         let e = est.estimate();
         assert!((e.applied_s + late).abs() < 0.0005, "{e:?}");
+        assert_eq!(e.applied_ns, est.applied_ns());
+        assert_eq!(e.applied_s, e.applied_ns as f64 * 1e-9);
         assert!(e.changes >= 1 && e.scans == 40, "{e:?}");
         // Not from the first scan: only once the standard deviation allows.
         assert!(first_change.is_some_and(|k| k > 0), "{first_change:?}");
@@ -456,6 +464,7 @@ mod tests {
     #[test]
     fn a_constant_rate_gives_no_information() {
         let mut w = Warp::new();
+        assert!(w.is_empty());
         // A constant rate: the warp derivatives are zero.
         let o = Vector3::zeros();
         for k in 0..500 {
@@ -464,6 +473,7 @@ mod tests {
             w.add(&Vector3::new(p.y, 6.0, p.z), &o, &Vector3::y(), -6.0, &Vector3::zeros());
             w.add(&Vector3::new(p.y, p.z * 2.0, -1.5), &o, &(-Vector3::z()), -1.5, &Vector3::zeros());
         }
+        assert_eq!((w.len(), w.is_empty()), (1500, false));
         assert_eq!(w.offset_change(), None);
         let mut est = TimeOffset::new(TimeOffsetConfig::DEFAULT);
         assert_eq!(est.scan(&w), None);

@@ -284,6 +284,56 @@ fn finite_and_symmetric(f: &Eskf) {
     assert!((f.covariance() - f.covariance().transpose()).amax() < 1e-15);
 }
 
+/// A gyro axis at its full scale reads a lower bound of the true rate: the step takes the rate
+/// the scans last measured where it is larger on the same side, and the attitude's variance
+/// grows on that axis only.
+#[test]
+fn a_clipped_gyro_axis_takes_the_scans_rate_and_widens_the_attitude() {
+    let full_scale = 2.0;
+    let clipped_sample = |t_ns: u64| ImuSample { t_ns, gyro: [0.3, 0.0, 2.0], acc: [0.0, 0.0, G as f32] };
+    let filter = |fs: f64, scans_rate: Option<f64>| {
+        let x = at_rest();
+        let p = diag_cov(&[(idx::POS, 3, 0.01), (idx::ROT, 3, 0.01), (idx::VEL, 3, 0.01)]);
+        let cfg = EskfConfig { gyro_full_scale: fs, ..EskfConfig::default() };
+        let mut f = Eskf::from_state(cfg, x, p, T0, Some(clipped_sample(T0)), 1.0);
+        if let Some(r) = scans_rate {
+            f.set_bridge_motion(V3::new(0.3, 0.0, r), V3::zeros());
+        }
+        for k in 1..=40u64 {
+            assert!(matches!(f.predict(&clipped_sample(T0 + k * 5_000_000)), Predicted::Integrated { .. }));
+        }
+        finite_and_symmetric(&f);
+        f
+    };
+    let yaw = |f: &Eskf| f.state().rot.scaled_axis()[2];
+    let roll = |f: &Eskf| f.state().rot.scaled_axis()[0];
+    // Full scale unknown: 2 rad/s over 0.2 s, nothing counted.
+    let blind = filter(0.0, Some(3.0));
+    assert!((yaw(&blind) - 0.4).abs() < 1e-3, "{}", yaw(&blind));
+    assert_eq!(blind.counters().clipped, 0);
+    // Known: the scans' 3 rad/s is taken on z; x (0.3 rad/s, not clipped) is as read.
+    let known = filter(full_scale, Some(3.0));
+    assert!((yaw(&known) - 0.6).abs() < 1e-3, "{}", yaw(&known));
+    assert!((roll(&known) - roll(&blind)).abs() < 1e-9);
+    assert_eq!(known.counters().clipped, 40);
+    let var = |f: &Eskf, k: usize| f.covariance()[(idx::ROT + k, idx::ROT + k)];
+    // The growth is on z (some of it turns into x and y with the rotation over the steps).
+    let grown = |k: usize| var(&known, k) - var(&blind, k);
+    assert!(grown(2) > 0.1 * var(&blind, 2), "{} vs {}", var(&known, 2), var(&blind, 2));
+    assert!(
+        grown(2) > 4.0 * grown(0).abs() && grown(2) > 4.0 * grown(1).abs(),
+        "{:?}",
+        [grown(0), grown(1), grown(2)]
+    );
+    // The scans measured less than the clipped reading: the reading stands (a lower bound).
+    let slower = filter(full_scale, Some(1.0));
+    assert!((yaw(&slower) - 0.4).abs() < 1e-3, "{}", yaw(&slower));
+    // No scans' rate yet: the reading stands, the attitude still widens.
+    let none = filter(full_scale, None);
+    assert!((yaw(&none) - 0.4).abs() < 1e-3);
+    assert!(var(&none, 2) > var(&blind, 2) * 1.1);
+}
+
 #[test]
 fn gap_holds_the_last_sample_inflates_covariance_and_flags() {
     let mut a = still_filter();

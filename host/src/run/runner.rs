@@ -617,8 +617,7 @@ impl<'e> Runner<'e> {
     /// time offset it estimated ([`loglio_core::time_offset`]), so a scan's end is covered by
     /// samples stamped that much later (or earlier).
     fn imu_time(&self, lidar_ns: u64) -> u64 {
-        let applied = (self.engine.time_offset().applied_s * 1e9).round() as i64;
-        lidar_ns.saturating_add_signed(-applied)
+        lidar_ns.saturating_add_signed(-self.engine.time_offset().applied_ns)
     }
 
     fn process(&mut self, scan: OwnedScan, arrival: u64) -> Result<(), PipelineError> {
@@ -748,13 +747,23 @@ pub fn status_summary(st: &RunStats) -> String {
 /// window.
 pub fn time_offset_line(t: &loglio_core::time_offset::TimeOffsetEstimate) -> String {
     match t.estimate_s {
-        Some(e) => format!(
-            "IMU–LiDAR time offset: the scans' warp says {:+.2} ± {:.2} ms ({} scans); {:+.2} ms applied to the IMU stamps\n",
-            e * 1e3,
-            t.std_s * 1e3,
-            t.scans,
-            t.applied_s * 1e3
-        ),
+        Some(e) => {
+            let mut s = format!(
+                "IMU–LiDAR time offset: the scans' warp says {:+.2} ± {:.2} ms ({} scans); {:+.2} ms applied to the IMU stamps",
+                e * 1e3,
+                t.std_s * 1e3,
+                t.scans,
+                t.applied_s * 1e3
+            );
+            if t.realigned > 0 {
+                s.push_str(&format!(
+                    " ({} IMU samples dropped: a change put them before samples already queued)",
+                    t.realigned
+                ));
+            }
+            s.push('\n');
+            s
+        }
         None => String::new(),
     }
 }
