@@ -68,6 +68,8 @@ pub struct FreeSpaceConfig {
     /// Moving points are judged against the image of a scan at most twice this old (seconds),
     /// renewed this often: an object moving with the sensor shifts too little between two scans.
     pub reference_every_s: f32,
+    /// Moving points grown into the rest of their objects ([`crate::moving_objects`]).
+    pub grow: crate::moving_objects::GrowConfig,
 }
 
 impl FreeSpaceConfig {
@@ -80,10 +82,11 @@ impl FreeSpaceConfig {
         max_range: 60.0,
         margin: 0.4,
         margin_per_m: 0.02,
-        voxels_per_scan: 24576,
+        voxels_per_scan: 65536,
         columns: 360,
         min_beyond: 8,
-        reference_every_s: 1.0,
+        reference_every_s: 2.0,
+        grow: crate::moving_objects::GrowConfig::DEFAULT,
     };
     /// Off: the map keeps everything it was given.
     pub const OFF: Self = Self { enabled: false, ..Self::DEFAULT };

@@ -43,6 +43,7 @@ pub mod imu;
 pub mod imu_guard;
 pub mod math;
 pub mod motion_model;
+pub mod moving_objects;
 pub mod odometry;
 pub mod output;
 pub mod parallel;

@@ -87,6 +87,7 @@ use crate::imu::{
 };
 use crate::imu_guard::{ImuGuard, ImuGuardConfig};
 use crate::motion_model::{ConstantVelocity, MotionModel};
+use crate::moving_objects::MovingObjects;
 use crate::output::{
     AssociationCounts, BridgeReason, ImuOnlyReason, Integrity, PoseEstimate, ReinitReason, ScanResult,
     StageTimes, Status,
@@ -325,6 +326,8 @@ pub struct ScanStorage<const PIX: usize, const PTS: usize, const DS: usize> {
     prev_free: FreeSpaceImage<PIX>,
     /// Map voxels the last scan saw through, for this one to judge again.
     suspects: Suspects<SUSPECTS>,
+    /// The scan's coarse cells, to grow moving points into their objects.
+    objects: MovingObjects<DS>,
     queries: [[f32; 3]; KNN_CHUNK],
     neighbours: [Neighbours; KNN_CHUNK],
 }
@@ -405,6 +408,7 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> ScanStorage<PIX, PTS, 
             free: FreeSpaceImage::new(),
             prev_free: FreeSpaceImage::new(),
             suspects: Suspects::new(),
+            objects: MovingObjects::new(),
             queries: [[0.0; 3]; KNN_CHUNK],
             neighbours: [Neighbours::new(); KNN_CHUNK],
         }
@@ -1009,6 +1013,19 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 }
             }
             moving = kept - end;
+            // The rest of the objects those points belong to ([`crate::moving_objects`]).
+            let grow = &self.cfg.free_space.grow;
+            if grow.enabled && moving > 0 {
+                let up = [r_wl[(2, 0)] as f32, r_wl[(2, 1)] as f32, r_wl[(2, 2)] as f32];
+                moving += st.objects.grow(
+                    &mut st.points[..kept],
+                    &mut st.normals3[..kept],
+                    end,
+                    grow,
+                    up,
+                    &mut st.cell_of[..kept],
+                );
+            }
             self.stats.moving = self.stats.moving.saturating_add(moving as u64);
         }
         let still = kept - moving;

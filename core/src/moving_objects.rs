@@ -1,0 +1,400 @@
+//! Moving objects: a scan's moving points grown into the objects they belong to.
+//!
+//! The moving-point test of [`crate::free_space`] flags a point where the beams of an older scan
+//! went through. On an object that moves with the sensor (a bus overtaking slowly) only the part
+//! that moved into free space is flagged: the rest of it lies where the object itself stood in
+//! the older scan. That rest then enters the map, and the object hides its own trail from every
+//! later scan, so the map never sees through it again.
+//!
+//! An object is connected: the flagged points' coarse cells ([`GrowConfig::cell`] metres, in the
+//! scan's frame) are grown through the 26 neighbouring cells that hold points of the scan, and
+//! the points of the grown cells are moving too. Three rules keep the growth on the object:
+//! - ground-like points (a normal within about 37 degrees of the vertical: roads, floors,
+//!   roofs) hold no cell, so that no growth runs along the ground from one object to the next;
+//! - the growth stops [`GrowConfig::depth`] cells from the nearest flagged cell;
+//! - a connected set of flagged cells must hold [`GrowConfig::min_seeds`] of them (a single
+//!   flagged cell on a wall is a false alarm, not an object), and a set that reaches more than
+//!   [`GrowConfig::max_grown_per_seed`] unflagged cells per flagged one is a static structure the
+//!   object touches (a wall): nothing of it grows.
+//!
+//! A wrongly grown point costs only its own scan (it is left out of the association and the map
+//! for that scan); the map's contents are never removed here. The cells live in the caller's
+//! storage (`N` slots, a power of two, at least 4/3 of the points judged), so the cost is fixed.
+
+use crate::scan::ScanPoint;
+
+/// Settings of the growth.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct GrowConfig {
+    /// Grow at all (with the free-space moving points).
+    pub enabled: bool,
+    /// Cell size, metres.
+    pub cell: f32,
+    /// Most cells from the nearest flagged cell.
+    pub depth: u8,
+    /// Fewest flagged cells in a connected set for it to grow.
+    pub min_seeds: u16,
+    /// Most unflagged cells a set may reach per flagged cell (plus [`Self::slack`]).
+    pub max_grown_per_seed: f32,
+    /// Unflagged cells a set may always reach.
+    pub slack: u16,
+    /// A point whose unit normal has at least this component along the vertical is ground-like.
+    pub ground_cos: f32,
+}
+
+impl GrowConfig {
+    /// The defaults: 1 m cells, 8 cells deep, 2 flagged cells, 4 grown per flagged cell plus 32
+    /// (on the traffic scenario: map points where actors drove 2.6 / 3.6 / 3.6 % before, seeds
+    /// 1-3, see docs/voxel-map.md).
+    pub const DEFAULT: Self = Self {
+        enabled: true,
+        cell: 1.0,
+        depth: 8,
+        min_seeds: 2,
+        max_grown_per_seed: 4.0,
+        slack: 32,
+        ground_cos: 0.8,
+    };
+}
+
+impl Default for GrowConfig {
+    fn default() -> Self {
+        Self::DEFAULT
+    }
+}
+
+const EMPTY: u64 = 0;
+const NONE: u32 = u32::MAX;
+
+/// A cell's state.
+const STATIC: u8 = 0;
+const SEED: u8 = 1;
+/// Reached from a seed set that may grow.
+const GROWN: u8 = 2;
+/// Reached from a seed set too small or too large to grow.
+const REFUSED: u8 = 3;
+
+/// The cells of one scan, in the caller's storage (`N` a power of two).
+pub struct MovingObjects<const N: usize> {
+    keys: [u64; N],
+    state: [u8; N],
+    /// BFS depth of each cell reached (u8::MAX: not yet).
+    depth: [u8; N],
+    /// The slots in use (to clear them) and the BFS queue.
+    used: [u32; N],
+    queue: [u32; N],
+}
+
+impl<const N: usize> core::fmt::Debug for MovingObjects<N> {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.debug_struct("MovingObjects").field("slots", &N).finish()
+    }
+}
+
+impl<const N: usize> Default for MovingObjects<N> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// A cell's key: the three cell indices packed, never [`EMPTY`].
+fn key(c: [i32; 3]) -> u64 {
+    let f = |v: i32| u64::from((v as u32).wrapping_add(1 << 20) & 0x1f_ffff);
+    (f(c[0]) | (f(c[1]) << 21) | (f(c[2]) << 42)) | (1 << 63)
+}
+
+fn hash(k: u64) -> usize {
+    (k.wrapping_mul(0x9e37_79b9_7f4a_7c15) >> 40) as usize
+}
+
+impl<const N: usize> MovingObjects<N> {
+    /// Empty storage.
+    pub const fn new() -> Self {
+        Self { keys: [EMPTY; N], state: [0; N], depth: [0; N], used: [0; N], queue: [0; N] }
+    }
+
+    /// The slot of `k`, if present.
+    fn find(&self, k: u64) -> Option<usize> {
+        let mask = N - 1;
+        let mut i = hash(k) & mask;
+        for _ in 0..N {
+            if self.keys[i] == k {
+                return Some(i);
+            }
+            if self.keys[i] == EMPTY {
+                return None;
+            }
+            i = (i + 1) & mask;
+        }
+        None
+    }
+
+    /// The slot of `k`, inserting it (as `STATIC`) when `insert`; `None` when absent or full.
+    fn slot(&mut self, k: u64, insert: bool, used: &mut usize) -> Option<usize> {
+        let mask = N - 1;
+        let mut i = hash(k) & mask;
+        for _ in 0..N {
+            if self.keys[i] == k {
+                return Some(i);
+            }
+            if self.keys[i] == EMPTY {
+                // Keep a quarter of the slots free so that every probe ends soon.
+                if !insert || *used * 4 >= N * 3 {
+                    return None;
+                }
+                self.keys[i] = k;
+                self.state[i] = STATIC;
+                self.depth[i] = u8::MAX;
+                self.used[*used] = i as u32;
+                *used += 1;
+                return Some(i);
+            }
+            i = (i + 1) & mask;
+        }
+        None
+    }
+
+    /// Grows the moving points `points[still..kept]` into the still points `points[..still]`
+    /// of the same objects (see the module docs). The grown points are moved to the end of
+    /// `points[..still]` (with their `normals`, same order of operations as the caller's
+    /// partition); returns how many. `up` is the vertical in the points' frame; `cell_of` is
+    /// scratch of at least `kept` entries.
+    pub fn grow(
+        &mut self,
+        points: &mut [ScanPoint],
+        normals: &mut [[f32; 3]],
+        still: usize,
+        cfg: &GrowConfig,
+        up: [f32; 3],
+        cell_of: &mut [u32],
+    ) -> usize {
+        let kept = points.len().min(normals.len()).min(cell_of.len());
+        let bad_cell = cfg.cell.is_nan() || cfg.cell <= 0.0;
+        if !cfg.enabled || N == 0 || !N.is_power_of_two() || still >= kept || bad_cell {
+            return 0;
+        }
+        let inv = 1.0 / cfg.cell;
+        let mut used = 0usize;
+        // 1. Cells of every point that is not ground-like; flagged points make seeds.
+        for i in 0..kept {
+            cell_of[i] = NONE;
+            let n = normals[i];
+            let vertical = (n[0] * up[0] + n[1] * up[1] + n[2] * up[2]).abs();
+            let unit = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2] - 1.0).abs() < 0.1;
+            if unit && vertical >= cfg.ground_cos {
+                continue;
+            }
+            let p = points[i].xyz;
+            let c = [floor_i32(p[0] * inv), floor_i32(p[1] * inv), floor_i32(p[2] * inv)];
+            if let Some(s) = self.slot(key(c), true, &mut used) {
+                cell_of[i] = s as u32;
+                if i >= still {
+                    self.state[s] = SEED;
+                }
+            }
+        }
+        // 2. Each connected set of seeds, breadth first through the occupied cells.
+        let mut any = false;
+        for u in 0..used {
+            let s0 = self.used[u] as usize;
+            if self.state[s0] != SEED || self.depth[s0] != u8::MAX {
+                continue;
+            }
+            // First the seeds of this set (depth 0), then the cells around them.
+            let (mut head, mut tail) = (0usize, 0usize);
+            self.depth[s0] = 0;
+            self.queue[tail] = s0 as u32;
+            tail += 1;
+            let (mut seeds, mut reached) = (0u32, 0u32);
+            while head < tail {
+                let s = self.queue[head] as usize;
+                head += 1;
+                if self.state[s] == SEED {
+                    seeds += 1;
+                } else {
+                    reached += 1;
+                }
+                let d = self.depth[s];
+                let c = unkey(self.keys[s]);
+                for dz in -1..=1 {
+                    for dy in -1..=1 {
+                        for dx in -1..=1 {
+                            if dx == 0 && dy == 0 && dz == 0 {
+                                continue;
+                            }
+                            let Some(t) = self.find(key([c[0] + dx, c[1] + dy, c[2] + dz])) else {
+                                continue;
+                            };
+                            if self.depth[t] != u8::MAX {
+                                continue;
+                            }
+                            // Seeds join at depth 0 (the set is all the flagged cells it
+                            // touches); other cells one deeper, up to the limit.
+                            let nd = if self.state[t] == SEED { 0 } else { d.saturating_add(1) };
+                            if nd > cfg.depth {
+                                continue;
+                            }
+                            self.depth[t] = nd;
+                            if tail < N {
+                                self.queue[tail] = t as u32;
+                                tail += 1;
+                            }
+                        }
+                    }
+                }
+            }
+            let cap = cfg.max_grown_per_seed * seeds as f32 + f32::from(cfg.slack);
+            let grows = seeds >= u32::from(cfg.min_seeds) && (reached as f32) <= cap;
+            any |= grows && reached > 0;
+            for q in 0..tail {
+                let s = self.queue[q] as usize;
+                if self.state[s] != SEED {
+                    if grows {
+                        self.state[s] = GROWN;
+                    } else if self.state[s] != GROWN {
+                        self.state[s] = REFUSED;
+                    }
+                    // Open again for the next set, which must count what it reaches too.
+                    self.depth[s] = u8::MAX;
+                }
+            }
+        }
+        // 3. The still points of grown cells move to the end of the still ones.
+        let mut end = still;
+        if any {
+            let mut i = 0;
+            while i < end {
+                let s = cell_of[i];
+                if s != NONE && self.state[s as usize] == GROWN {
+                    end -= 1;
+                    points.swap(i, end);
+                    normals.swap(i, end);
+                    cell_of.swap(i, end);
+                } else {
+                    i += 1;
+                }
+            }
+        }
+        // 4. Clear the slots used.
+        for u in 0..used {
+            self.keys[self.used[u] as usize] = EMPTY;
+        }
+        still - end
+    }
+}
+
+/// `floor(v)` as an integer (saturating; `no_std` has no `f32::floor`).
+fn floor_i32(v: f32) -> i32 {
+    let i = v as i32;
+    if (i as f32) > v { i - 1 } else { i }
+}
+
+/// The cell indices of a key.
+fn unkey(k: u64) -> [i32; 3] {
+    let f = |v: u64| ((v & 0x1f_ffff) as u32).wrapping_sub(1 << 20) as i32;
+    [f(k), f(k >> 21), f(k >> 42)]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pt(x: f32, y: f32, z: f32) -> ScanPoint {
+        ScanPoint { xyz: [x, y, z], t: 0.0, row: 0, col: 0, intensity: 0, ret: 0, flags: 0 }
+    }
+
+    #[test]
+    fn keys_round_trip() {
+        for c in [[0, 0, 0], [-1, 2, -3], [1 << 19, -(1 << 19), 77]] {
+            assert_eq!(unkey(key(c)), c);
+            assert_ne!(key(c), EMPTY);
+        }
+    }
+
+    /// A 12 m "bus" side (x 0..12, y 3, z -1.5..1.5) whose front 8 m were flagged, beside a
+    /// road (ground points), a long wall farther out (y 10) and a lone false alarm on it.
+    fn scene() -> (heapless::Vec<ScanPoint, 2048>, heapless::Vec<[f32; 3], 2048>, usize, usize) {
+        let mut still: heapless::Vec<(ScanPoint, [f32; 3]), 2048> = heapless::Vec::new();
+        let mut moving: heapless::Vec<(ScanPoint, [f32; 3]), 2048> = heapless::Vec::new();
+        let side = [0.0, -1.0, 0.0];
+        for i in 0..24 {
+            for k in 0..6 {
+                let (x, z) = (0.5 * i as f32 + 0.25, -1.5 + 0.5 * k as f32 + 0.25);
+                let p = (pt(x, 3.0, z), side);
+                if x >= 4.0 { moving.push(p).unwrap() } else { still.push(p).unwrap() }
+            }
+        }
+        // The road: ground points under and around everything (normals up).
+        for i in -10..30 {
+            for j in -2..14 {
+                still.push((pt(0.5 * i as f32, 0.5 * j as f32, -1.8), [0.0, 0.0, 1.0])).unwrap();
+            }
+        }
+        // The wall: 60 m long, 3 m high, at y = 10.
+        for i in 0..120 {
+            for k in 0..6 {
+                still.push((pt(-20.0 + 0.5 * i as f32, 10.0, -1.5 + 0.5 * k as f32), side)).unwrap();
+            }
+        }
+        // False alarms: two flagged points on the wall in one cell, and a patch of three
+        // cells' worth (a set that reaches far more of the wall than it holds).
+        moving.push((pt(20.1, 10.0, 0.2), side)).unwrap();
+        moving.push((pt(20.3, 10.0, 0.4), side)).unwrap();
+        for x in [30.5, 31.5, 32.5] {
+            moving.push((pt(x, 10.0, 0.5), side)).unwrap();
+        }
+        let (n_still, n_moving) = (still.len(), moving.len());
+        let mut pts = heapless::Vec::new();
+        let mut nrm = heapless::Vec::new();
+        for (p, n) in still.iter().chain(moving.iter()) {
+            pts.push(*p).unwrap();
+            nrm.push(*n).unwrap();
+        }
+        (pts, nrm, n_still, n_moving)
+    }
+
+    #[test]
+    fn a_flagged_front_takes_the_rest_of_its_object_and_nothing_else() {
+        let obj = &mut MovingObjects::<4096>::new();
+        let (mut pts, mut nrm, still, _) = scene();
+        let mut cell_of = [0u32; 2048];
+        let grown = obj.grow(&mut pts, &mut nrm, still, &GrowConfig::DEFAULT, [0.0, 0.0, 1.0], &mut cell_of);
+        // The bus's unflagged 4 m (8 x 6 points) and nothing of the ground or the wall.
+        assert_eq!(grown, 48);
+        for p in &pts[still - grown..still] {
+            assert!(p.xyz[1] == 3.0 && p.xyz[0] < 4.0, "{:?}", p.xyz);
+        }
+        for p in &pts[..still - grown] {
+            assert!(p.xyz[1] != 3.0 || p.xyz[2] < -1.6, "{:?}", p.xyz);
+        }
+        // Again with the same storage: the same answer (the cells were cleared).
+        let (mut pts2, mut nrm2, still2, _) = scene();
+        let again =
+            obj.grow(&mut pts2, &mut nrm2, still2, &GrowConfig::DEFAULT, [0.0, 0.0, 1.0], &mut cell_of);
+        assert_eq!(again, 48);
+        // Off: nothing.
+        let off = GrowConfig { enabled: false, ..GrowConfig::DEFAULT };
+        let (mut pts3, mut nrm3, still3, _) = scene();
+        assert_eq!(obj.grow(&mut pts3, &mut nrm3, still3, &off, [0.0, 0.0, 1.0], &mut cell_of), 0);
+        // Without the depth to reach the rear: only what lies within it (and the wall's patch,
+        // which reaches less of the wall now, is small enough to grow: 3 seeds, 8 cells).
+        let shallow = GrowConfig { depth: 1, ..GrowConfig::DEFAULT };
+        let (mut pts4, mut nrm4, still4, _) = scene();
+        let some = obj.grow(&mut pts4, &mut nrm4, still4, &shallow, [0.0, 0.0, 1.0], &mut cell_of);
+        let bus = pts4[still4 - some..still4].iter().filter(|p| p.xyz[1] == 3.0).count();
+        assert_eq!(bus, 12, "the 1 m column behind the flagged front: 2 x 6 points");
+    }
+
+    #[test]
+    fn storage_too_small_grows_nothing_wrongly() {
+        let obj = &mut MovingObjects::<64>::new();
+        let (mut pts, mut nrm, still, _) = scene();
+        let mut cell_of = [0u32; 2048];
+        let grown = obj.grow(&mut pts, &mut nrm, still, &GrowConfig::DEFAULT, [0.0, 0.0, 1.0], &mut cell_of);
+        // Some cells find no slot; whatever grows is still on the bus.
+        for p in &pts[still - grown..still] {
+            assert!(p.xyz[1] == 3.0, "{:?}", p.xyz);
+        }
+    }
+}
