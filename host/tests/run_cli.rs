@@ -209,19 +209,25 @@ fn sim_imu_clock_offset_and_its_compensation() {
 
 /// The same 20 ms with nothing said about it: the scans' warp tells the offset
 /// (`time.estimate_offset`, on by default), it is applied to the IMU stamps, and the error is
-/// the one-clock run's. Measured (handheld, 20 s): -19.93 ms applied; ATE 0.003 m, as on one
-/// clock, against 0.008 m with the offset kept.
+/// near the one-clock run's: only the first scans, before the estimate is certain, are bent.
+/// Measured (handheld, 20 s, 2026-11-28): -19.94 ms applied; ATE 3.50 mm against 3.04 mm on one
+/// clock (1.15x) and 8-9 mm with the offset kept. The ATEs are read from `eval.json` (the
+/// summary's three decimals of a metre cannot tell 1.15x from 1.3x at 3 mm).
 #[test]
 fn sim_imu_clock_offset_is_estimated_from_the_scans() {
+    let dir = scratch("offset-estimated");
     let run = |extra: &[&str]| {
-        let mut args = vec!["sim", "--scenario", "handheld", "--seconds", "20"];
+        let mut args =
+            vec!["sim", "--scenario", "handheld", "--seconds", "20", "--out", dir.to_str().unwrap()];
         args.extend_from_slice(extra);
-        stdout(&loglio(&args))
+        let text = stdout(&loglio(&args));
+        let eval = std::fs::read_to_string(dir.join("eval.json")).unwrap();
+        let v: serde_json::Value = serde_json::from_str(&eval).unwrap();
+        (text, v["ape_trans_m"]["rmse"].as_f64().unwrap())
     };
-    let one_clock = number_after(&run(&[]), "rmse");
-    let kept = number_after(&run(&["--imu-clock-offset-ms", "20", "--fixed-offset"]), "rmse");
-    let text = run(&["--imu-clock-offset-ms", "20"]);
-    let estimated = number_after(&text, "rmse");
+    let (_, one_clock) = run(&[]);
+    let (_, kept) = run(&["--imu-clock-offset-ms", "20", "--fixed-offset"]);
+    let (text, estimated) = run(&["--imu-clock-offset-ms", "20"]);
     let line = text.lines().find(|l| l.starts_with("IMU–LiDAR time offset:")).expect(&text);
     let applied: f64 = line
         .split("; ")
@@ -237,8 +243,10 @@ fn sim_imu_clock_offset_is_estimated_from_the_scans() {
         line.ends_with("IMU samples dropped: a change put them before samples already queued)"),
         "{line}"
     );
-    assert!(kept > 1.5 * one_clock, "20 ms kept: {kept} m against {one_clock} m");
-    assert!(estimated < 1.15 * one_clock, "estimated: {estimated} m against {one_clock} m\n{text}");
+    assert!(kept > 2.0 * one_clock, "20 ms kept: {kept} m against {one_clock} m");
+    assert!(estimated < 1.3 * one_clock, "estimated: {estimated} m against {one_clock} m\n{text}");
+    assert!(2.0 * estimated < kept, "estimated: {estimated} m against {kept} m kept\n{text}");
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// Sensor-realism switches: a gyro that clips at 125 deg/s while the platform spins at up to
