@@ -90,7 +90,13 @@ def main():
     ap.add_argument("--results", type=Path, required=True)
     ap.add_argument("--extra", action="append", default=[], metavar="NAME=DIR")
     ap.add_argument("--loglio", default="target/release/loglio", help="the loglio binary (for `loglio eval`)")
+    ap.add_argument(
+        "--scenarios",
+        default=" ".join(SCENARIOS),
+        help="scenarios to evaluate, space-separated (default: the five static ones; run-all passes its own)",
+    )
     a = ap.parse_args()
+    scenarios = a.scenarios.split()
     loglio = [a.loglio]
 
     columns = []  # (name, tum(scenario), timing(scenario))
@@ -137,7 +143,7 @@ def main():
         columns.append((name, tum, timing))
 
     rows = []
-    for s in SCENARIOS:
+    for s in scenarios:
         gt = a.bags / s / "groundtruth.tum"
         if not gt.exists():
             print(f"no ground truth for {s} ({gt}), skipped", file=sys.stderr)
@@ -219,7 +225,7 @@ def main():
         return f"{r['ate_rmse_m']:.3f} m{t}{partial}{shifted}"
 
     md = ["| scenario | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
-    for s in SCENARIOS:
+    for s in scenarios:
         if not any(k[0] == s for k in by):
             continue
         md.append(f"| {s} | " + " | ".join(cell(by.get((s, n))) for n in names) + " |")
