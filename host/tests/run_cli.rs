@@ -34,6 +34,18 @@ fn scratch(name: &str) -> PathBuf {
 }
 
 /// The count of scans with `status` in the summary's "N scans (a ok, b imu-only, ...)".
+/// Under an emulating runner (CI's aarch64 job under qemu-user) the long simulated runs take
+/// minutes each; they are said skipped (the short `sim` tests still run there).
+fn emulated(test: &str, what: &str) -> bool {
+    match common::runner() {
+        Some(r) => {
+            println!("{test}: skipped under LOGLIO_TEST_RUNNER ({r}): {what}; run natively");
+            true
+        }
+        None => false,
+    }
+}
+
 fn status_count(text: &str, status: &str) -> u64 {
     let open = text.find(" scans (").expect("scan summary") + " scans (".len();
     let close = open + text[open..].find(')').unwrap();
@@ -215,6 +227,9 @@ fn sim_imu_clock_offset_and_its_compensation() {
 /// summary's three decimals of a metre cannot tell 1.15x from 1.3x at 3 mm).
 #[test]
 fn sim_imu_clock_offset_is_estimated_from_the_scans() {
+    if emulated("sim_imu_clock_offset_is_estimated_from_the_scans", "three 20 s runs") {
+        return;
+    }
     let dir = scratch("offset-estimated");
     let run = |extra: &[&str]| {
         let mut args =
@@ -258,6 +273,9 @@ fn sim_imu_clock_offset_is_estimated_from_the_scans() {
 /// 400 scans (0.004 m at 10 Hz).
 #[test]
 fn sim_saturated_gyro_and_20_hz_scans() {
+    if emulated("sim_saturated_gyro_and_20_hz_scans", "two 20 s runs") {
+        return;
+    }
     let run = |extra: &[&str]| {
         let mut args = vec!["sim", "--seconds", "20"];
         args.extend_from_slice(extra);
