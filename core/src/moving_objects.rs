@@ -114,45 +114,43 @@ impl<const N: usize> MovingObjects<N> {
         Self { keys: [EMPTY; N], state: [0; N], depth: [0; N], used: [0; N], queue: [0; N] }
     }
 
-    /// The slot of `k`, if present.
-    fn find(&self, k: u64) -> Option<usize> {
+    /// Where `k` is (`Ok`), or the empty slot where it would go (`Err(Some)`; `Err(None)`: the
+    /// table is full).
+    fn probe(&self, k: u64) -> Result<usize, Option<usize>> {
         let mask = N - 1;
         let mut i = hash(k) & mask;
         for _ in 0..N {
             if self.keys[i] == k {
-                return Some(i);
+                return Ok(i);
             }
             if self.keys[i] == EMPTY {
-                return None;
+                return Err(Some(i));
             }
             i = (i + 1) & mask;
         }
-        None
+        Err(None)
     }
 
-    /// The slot of `k`, inserting it (as `STATIC`) when `insert`; `None` when absent or full.
-    fn slot(&mut self, k: u64, insert: bool, used: &mut usize) -> Option<usize> {
-        let mask = N - 1;
-        let mut i = hash(k) & mask;
-        for _ in 0..N {
-            if self.keys[i] == k {
-                return Some(i);
-            }
-            if self.keys[i] == EMPTY {
-                // Keep a quarter of the slots free so that every probe ends soon.
-                if !insert || *used * 4 >= N * 3 {
-                    return None;
-                }
+    /// The slot of `k`, if present.
+    fn find(&self, k: u64) -> Option<usize> {
+        self.probe(k).ok()
+    }
+
+    /// The slot of `k`, inserted (as `STATIC`) if absent; `None` when the table is three
+    /// quarters full (a quarter stays free so that every probe ends soon).
+    fn insert(&mut self, k: u64, used: &mut usize) -> Option<usize> {
+        match self.probe(k) {
+            Ok(i) => Some(i),
+            Err(Some(i)) if *used * 4 < N * 3 => {
                 self.keys[i] = k;
                 self.state[i] = STATIC;
                 self.depth[i] = u8::MAX;
                 self.used[*used] = i as u32;
                 *used += 1;
-                return Some(i);
+                Some(i)
             }
-            i = (i + 1) & mask;
+            Err(_) => None,
         }
-        None
     }
 
     /// Grows the moving points `points[still..kept]` into the still points `points[..still]`
@@ -187,7 +185,7 @@ impl<const N: usize> MovingObjects<N> {
             }
             let p = points[i].xyz;
             let c = [floor_i32(p[0] * inv), floor_i32(p[1] * inv), floor_i32(p[2] * inv)];
-            if let Some(s) = self.slot(key(c), true, &mut used) {
+            if let Some(s) = self.insert(key(c), &mut used) {
                 cell_of[i] = s as u32;
                 if i >= still {
                     self.state[s] = SEED;
