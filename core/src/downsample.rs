@@ -173,14 +173,6 @@ fn hash(k: &[i32; 3]) -> u32 {
     h << 3 | ((k[0] & 1) | (k[1] & 1) << 1 | (k[2] & 1) << 2) as u32
 }
 
-/// `floor(v)` as an integer for finite `|v| < 2^31`, equal to `libm::floorf` there (an `f32`
-/// of magnitude 2^23 or more is an integer, so the truncation is exact) and cheaper.
-#[inline(always)]
-fn floor_i32(v: f32) -> i32 {
-    let i = v as i32;
-    if (i as f32) > v { i - 1 } else { i }
-}
-
 impl<const N: usize> VoxelDownsampler<N> {
     /// An empty grid (all zero bytes, so that a `static` lives in .bss).
     pub const fn new() -> Self {
@@ -207,7 +199,7 @@ impl<const N: usize> VoxelDownsampler<N> {
             if !v.is_finite() || v.abs() >= 2.0e9 {
                 return None;
             }
-            k[a] = floor_i32(v);
+            k[a] = crate::math::floor_i32(v);
         }
         Some(k)
     }

@@ -21,6 +21,7 @@
 //! for that scan); the map's contents are never removed here. The cells live in the caller's
 //! storage (`N` slots, a power of two, at least 4/3 of the points judged), so the cost is fixed.
 
+use crate::math::floor_i32;
 use crate::scan::ScanPoint;
 
 /// Settings of the growth.
@@ -72,8 +73,6 @@ const STATIC: u8 = 0;
 const SEED: u8 = 1;
 /// Reached from a seed set that may grow.
 const GROWN: u8 = 2;
-/// Reached from a seed set too small or too large to grow.
-const REFUSED: u8 = 3;
 
 /// The cells of one scan, in the caller's storage (`N` a power of two).
 pub struct MovingObjects<const N: usize> {
@@ -184,7 +183,7 @@ impl<const N: usize> MovingObjects<N> {
                 continue;
             }
             let p = points[i].xyz;
-            let c = [floor_i32(p[0] * inv), floor_i32(p[1] * inv), floor_i32(p[2] * inv)];
+            let c = [p[0] * inv, p[1] * inv, p[2] * inv].map(floor_i32);
             if let Some(s) = self.insert(key(c), &mut used) {
                 cell_of[i] = s as u32;
                 if i >= still {
@@ -250,8 +249,6 @@ impl<const N: usize> MovingObjects<N> {
                 if self.state[s] != SEED {
                     if grows {
                         self.state[s] = GROWN;
-                    } else if self.state[s] != GROWN {
-                        self.state[s] = REFUSED;
                     }
                     // Open again for the next set, which must count what it reaches too.
                     self.depth[s] = u8::MAX;
@@ -280,12 +277,6 @@ impl<const N: usize> MovingObjects<N> {
         }
         still - end
     }
-}
-
-/// `floor(v)` as an integer (saturating; `no_std` has no `f32::floor`).
-fn floor_i32(v: f32) -> i32 {
-    let i = v as i32;
-    if (i as f32) > v { i - 1 } else { i }
 }
 
 /// The cell indices of a key.

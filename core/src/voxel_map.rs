@@ -318,7 +318,7 @@ impl<'a> VoxelMap<'a> {
             if !(libm::fabsf(v) < KEY_LIMIT) {
                 return None;
             }
-            k[a] = floor_i32(v);
+            k[a] = crate::math::floor_i32(v);
         }
         Some(k)
     }
@@ -360,15 +360,6 @@ fn prefetch<T>(r: &T) {
     safe_arch::prefetch_t0(r);
     #[cfg(not(all(any(target_arch = "x86", target_arch = "x86_64"), target_feature = "sse")))]
     let _ = r;
-}
-
-/// `floor(v)` for `|v| < 2^31` (callers check a smaller bound): truncation, minus one for
-/// negative non-integers. Exact, and cheaper than `libm::floorf` on targets without a rounding
-/// instruction in their baseline (x86-64 before SSE4.1, Cortex-M4F).
-#[inline]
-fn floor_i32(v: f32) -> i32 {
-    let t = v as i32;
-    if (t as f32) > v { t - 1 } else { t }
 }
 
 #[cfg(test)]

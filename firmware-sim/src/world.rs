@@ -194,7 +194,6 @@ struct Streets {
 /// cars, buildings and garden walls.
 fn street_prims(seed: u64, terrain: &Terrain, road: &[[f64; 3]], streets: &Streets) -> Vec<Prim> {
     let mut b = Builder { prims: Vec::new(), rng: SplitMix64::new(seed, 1) };
-    let road = road.to_vec();
     let ground_range = |s: &Shape| -> (f64, f64) {
         let (lo, hi) = s.bounds();
         let mut r = (f64::INFINITY, f64::NEG_INFINITY);
@@ -213,7 +212,7 @@ fn street_prims(seed: u64, terrain: &Terrain, road: &[[f64; 3]], streets: &Stree
     // Sidewalks (kerbs), every ~5 m of road on both sides.
     let mut arc = 0.0;
     let mut last = road[0];
-    for p in &road {
+    for p in road {
         arc += libm::hypot(p[0] - last[0], p[1] - last[1]);
         last = *p;
         if arc < 5.0 {
@@ -225,7 +224,7 @@ fn street_prims(seed: u64, terrain: &Terrain, road: &[[f64; 3]], streets: &Stree
             let off = side * (ROAD_HALF_WIDTH + 1.5);
             let (x, y) = (p[0] - s * off, p[1] + c * off);
             let foot = Shape::boxed([x, y, 0.0], [5.4, 3.0, 1.0], p[2]);
-            if clearance(&foot, &road) < ROAD_HALF_WIDTH - 0.4 {
+            if clearance(&foot, road) < ROAD_HALF_WIDTH - 0.4 {
                 continue;
             }
             let (g0, g1) = ground_range(&foot);
@@ -240,7 +239,7 @@ fn street_prims(seed: u64, terrain: &Terrain, road: &[[f64; 3]], streets: &Stree
     let mut next_tree = 6.0;
     let mut next_car = 3.0;
     let mut dist = 0.0;
-    for p in &road {
+    for p in road {
         let step = libm::hypot(p[0] - last[0], p[1] - last[1]);
         dist += step;
         last = *p;
@@ -251,7 +250,7 @@ fn street_prims(seed: u64, terrain: &Terrain, road: &[[f64; 3]], streets: &Stree
             let side = if b.rng.unit() < 0.5 { -1.0 } else { 1.0 };
             let (x, y) = at(side * 6.4);
             let cyl = Shape::Cylinder { c: [x, y], r: 0.12, z0: 0.0, z1: 1.0 };
-            if clearance(&cyl, &road) > ROAD_HALF_WIDTH + 1.0 {
+            if clearance(&cyl, road) > ROAD_HALF_WIDTH + 1.0 {
                 let g = terrain.height(x, y);
                 let h = 6.0 + 2.0 * b.rng.unit();
                 b.push(Shape::Cylinder { c: [x, y], r: 0.12, z0: g - 0.5, z1: g + h }, 30);
@@ -272,7 +271,7 @@ fn street_prims(seed: u64, terrain: &Terrain, road: &[[f64; 3]], streets: &Stree
             let (x, y) = at(side * (8.0 + 1.5 * b.rng.unit()));
             let trunk_r = 0.15 + 0.1 * b.rng.unit();
             let cyl = Shape::Cylinder { c: [x, y], r: trunk_r, z0: 0.0, z1: 1.0 };
-            if clearance(&cyl, &road) > ROAD_HALF_WIDTH + 2.5 {
+            if clearance(&cyl, road) > ROAD_HALF_WIDTH + 2.5 {
                 let g = terrain.height(x, y);
                 let h = 2.8 + 1.5 * b.rng.unit();
                 let r = 1.8 + 1.4 * b.rng.unit();
@@ -289,8 +288,7 @@ fn street_prims(seed: u64, terrain: &Terrain, road: &[[f64; 3]], streets: &Stree
                 let (x, y) = at(side * 3.15);
                 let yaw = p[2] + 0.04 * (b.rng.unit() - 0.5);
                 let body = Shape::boxed([x, y, 0.0], [4.4, 1.8, 1.0], yaw);
-                if clearance(&body, &road) > 2.1 && !placed.iter().any(|q| footprints_overlap(&body, q, 0.5))
-                {
+                if clearance(&body, road) > 2.1 && !placed.iter().any(|q| footprints_overlap(&body, q, 0.5)) {
                     let g = terrain.height(x, y);
                     let paint = 30 + (b.rng.unit() * 60.0) as u8;
                     b.push(Shape::boxed([x, y, g + 0.65], [4.4, 1.8, 0.7], yaw), paint);
@@ -311,23 +309,27 @@ fn street_prims(seed: u64, terrain: &Terrain, road: &[[f64; 3]], streets: &Stree
     // The drone's courtyard: a clear disc ringed by towers.
     let court_clear = 13.0;
     let mut buildings: Vec<Shape> = Vec::new();
-    let n_towers = if streets.court.is_some() { 7 } else { 0 };
-    let court = streets.court.unwrap_or([0.0; 2]);
-    for k in 0..n_towers {
-        let a = k as f64 * core::f64::consts::TAU / n_towers as f64 + 0.3 * b.rng.unit();
-        let depth = 10.0 + 6.0 * b.rng.unit();
-        let width = 9.0 + 5.0 * b.rng.unit();
-        let r = court_clear + depth * 0.5 + 1.0;
-        let (x, y) = (court[0] + r * libm::cos(a), court[1] + r * libm::sin(a));
-        let foot = Shape::boxed([x, y, 0.0], [depth, width, 1.0], a);
-        if clearance(&foot, &road) < 9.0 || buildings.iter().any(|q| footprints_overlap(&foot, q, 1.0)) {
-            continue;
+    let n_towers = 7;
+    if let Some(court) = streets.court {
+        for k in 0..n_towers {
+            let a = k as f64 * core::f64::consts::TAU / n_towers as f64 + 0.3 * b.rng.unit();
+            let depth = 10.0 + 6.0 * b.rng.unit();
+            let width = 9.0 + 5.0 * b.rng.unit();
+            let r = court_clear + depth * 0.5 + 1.0;
+            let (x, y) = (court[0] + r * libm::cos(a), court[1] + r * libm::sin(a));
+            let foot = Shape::boxed([x, y, 0.0], [depth, width, 1.0], a);
+            if clearance(&foot, road) < 9.0 || buildings.iter().any(|q| footprints_overlap(&foot, q, 1.0)) {
+                continue;
+            }
+            let (g0, g1) = ground_range(&foot);
+            let h = 25.0 + 15.0 * b.rng.unit();
+            let refl = 55 + (b.rng.unit() * 25.0) as u8;
+            b.push(
+                Shape::boxed([x, y, (g0 - 0.5 + g1 + h) * 0.5], [depth, width, g1 + h - g0 + 0.5], a),
+                refl,
+            );
+            buildings.push(foot);
         }
-        let (g0, g1) = ground_range(&foot);
-        let h = 25.0 + 15.0 * b.rng.unit();
-        let refl = 55 + (b.rng.unit() * 25.0) as u8;
-        b.push(Shape::boxed([x, y, (g0 - 0.5 + g1 + h) * 0.5], [depth, width, g1 + h - g0 + 0.5], a), refl);
-        buildings.push(foot);
     }
     // Buildings on a jittered grid over the town, aligned with the nearest street.
     let spacing = 23.0;
@@ -340,7 +342,7 @@ fn street_prims(seed: u64, terrain: &Terrain, road: &[[f64; 3]], streets: &Stree
             let x = -half + (gi as f64 + 0.2 + 0.6 * b.rng.unit()) * spacing;
             let y = -half + (gj as f64 + 0.2 + 0.6 * b.rng.unit()) * spacing;
             if streets.band.is_finite()
-                && clearance(&Shape::boxed([x, y, 0.0], [1.0; 3], 0.0), &road) > streets.band
+                && clearance(&Shape::boxed([x, y, 0.0], [1.0; 3], 0.0), road) > streets.band
             {
                 continue;
             }
@@ -360,7 +362,7 @@ fn street_prims(seed: u64, terrain: &Terrain, road: &[[f64; 3]], streets: &Stree
             let mut ok = false;
             for _ in 0..4 {
                 let foot = Shape::boxed([x, y, 0.0], [size[0], size[1], 1.0], yaw);
-                if clearance(&foot, &road) >= 9.0
+                if clearance(&foot, road) >= 9.0
                     && clear_of_court(&foot, court_clear + 3.0)
                     && !buildings.iter().any(|q| footprints_overlap(&foot, q, 1.5))
                 {
@@ -397,7 +399,7 @@ fn street_prims(seed: u64, terrain: &Terrain, road: &[[f64; 3]], streets: &Stree
         let len = 6.0 + 12.0 * b.rng.unit();
         let yaw = b.rng.range(0.0, core::f64::consts::PI);
         let foot = Shape::boxed([x, y, 0.0], [len, 0.25, 1.0], yaw);
-        let cl = clearance(&foot, &road);
+        let cl = clearance(&foot, road);
         if !(7.0..20.0).contains(&cl)
             || !clear_of_court(&foot, court_clear + 1.0)
             || buildings.iter().any(|q| footprints_overlap(&foot, q, 0.5))

@@ -7,6 +7,7 @@ use std::vec::Vec;
 
 use super::voxel::round_sat;
 use super::*;
+use crate::math::floor_i32;
 
 use crate::surfel::{Moments, Shape, SurfelCriteria, SurfelReject};
 use crate::testutil::SplitMix as Rng;

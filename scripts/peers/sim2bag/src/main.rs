@@ -68,8 +68,7 @@ const IMU_FRAME: &str = "imu_link";
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
-    let sensor =
-        SensorModel::from_name(&cli.sensor).with_context(|| format!("unknown sensor {:?}", cli.sensor))?;
+    let sensor = SensorModel::from_name(&cli.sensor).with_context(|| format!("unknown sensor {:?}", cli.sensor))?;
     anyhow::ensure!(sensor.is_velodyne(), "only Velodyne models are exported (Velodyne cloud layout)");
     let kinds: Vec<ScenarioKind> = if cli.scenario.is_empty() {
         ScenarioKind::ALL
@@ -157,21 +156,14 @@ fn export(sc: &Scenario, dir: &Path) -> anyhow::Result<(u64, u64)> {
                 max_t = pts.iter().fold(max_t, |m, p| m.max(p.t));
                 bag.write_point_cloud2(c_pts, scan.end_ns, &cloud)?;
                 let _ = writeln!(scans_csv, "{},{},{},{}", scan.index, scan.start_ns, scan.end_ns, pts.len());
-                gt_times.extend([
-                    scan.start_ns,
-                    scan.start_ns + (scan.end_ns - scan.start_ns) / 2,
-                    scan.end_ns,
-                ]);
+                gt_times.extend([scan.start_ns, scan.start_ns + (scan.end_ns - scan.start_ns) / 2, scan.end_ns]);
                 n_scans += 1;
             }
         }
     }
     bag.finish()?;
     std::fs::write(dir.join("scans.csv"), scans_csv)?;
-    std::fs::write(
-        dir.join("groundtruth.tum"),
-        tum::trajectory(gt_times.iter().copied(), |t| sc.pose_at(t)),
-    )?;
+    std::fs::write(dir.join("groundtruth.tum"), tum::trajectory(gt_times.iter().copied(), |t| sc.pose_at(t)))?;
     std::fs::write(
         dir.join("lidar_groundtruth.tum"),
         tum::trajectory(gt_times.iter().copied(), |t| sc.lidar_pose_at(t)),
