@@ -102,6 +102,11 @@ pub enum AssociationMode {
 
 type V3 = Vector3<f64>;
 
+/// The measurement budget's default ([`AssociationConfig::max_points`]): downsampled points
+/// measured per scan. A VLP-32C street scan has about 18,000, a VLP-16 or OS1-16 one 5,000 to
+/// 7,000 ([`crate::selection`]).
+pub const DEFAULT_MAX_POINTS: u32 = 6000;
+
 /// Points whose k-NN queries go to the map together ([`VoxelMap::knn_many`]).
 pub const KNN_CHUNK: usize = 64;
 
@@ -140,8 +145,9 @@ pub struct AssociationConfig {
     /// Noise variance of a point-to-plane residual, m². Default 0.001.
     pub plane_variance: f64,
     /// Measurement budget: at most this many downsampled points (evenly spread over their
-    /// order, the voxels' Morton order) are associated and measured; the map still receives
-    /// them all. 0: no limit.
+    /// order, the voxels' Morton order) are associated and measured, each standing for its
+    /// share of the rest ([`crate::selection`]); the map still receives them all. 0: no limit.
+    /// Default [`DEFAULT_MAX_POINTS`].
     pub max_points: u32,
     /// Search again when the iterate's position moved more than this since the last search, m.
     pub research_pos: f64,
@@ -169,7 +175,7 @@ impl AssociationConfig {
         residual_gate: 81.0,
         surfel_variance: 0.001,
         plane_variance: 0.001,
-        max_points: 0,
+        max_points: DEFAULT_MAX_POINTS,
         research_pos: 0.05,
         research_rot: 0.005,
         knn_reach: KnnReach::Exact,
@@ -567,6 +573,7 @@ pub struct ScanAssociation<'a, 'm, C: Clock> {
     first: Option<AssociationCounts>,
     searched: Option<State>,
     searches: u32,
+    stands_for: f64,
     clock: &'a mut C,
     elapsed_ns: u64,
     /// The caller's threads and one k-NN scratch per extra thread ([`Self::with_parallel`]).
@@ -614,6 +621,7 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
             first: None,
             searched: None,
             searches: 0,
+            stands_for: 1.0,
             clock,
             elapsed_ns: 0,
             parallel: None,
@@ -624,6 +632,16 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
     /// the correspondences and counts are the same as without.
     pub fn with_parallel(mut self, parallel: &'a dyn Parallel, scratch: &'a mut [KnnScratch]) -> Self {
         self.parallel = Some((parallel, scratch));
+        self
+    }
+
+    /// Each point measured stands for `k >= 1` points of the scan (a measurement budget,
+    /// [`crate::selection`]): its residual's variance is divided by `k`, so the scan weighs in
+    /// the update as all its points would. 1 (the default) changes nothing.
+    pub fn standing_for(mut self, k: f64) -> Self {
+        if k.is_finite() && k >= 1.0 {
+            self.stands_for = k;
+        }
         self
     }
 
@@ -875,11 +893,16 @@ impl<C: Clock> Measurements for ScanAssociation<'_, '_, C> {
             self.search(x);
         }
         let h = PointToPlane::new(x);
+        let (surfel_var, plane_var) = if self.stands_for == 1.0 {
+            (self.cfg.surfel_variance, self.cfg.plane_variance)
+        } else {
+            (self.cfg.surfel_variance / self.stands_for, self.cfg.plane_variance / self.stands_for)
+        };
         for (p, c) in self.points.iter().zip(self.corr.iter()) {
             let var = match c.kind {
                 Kind::None => continue,
-                Kind::LargeSurfel | Kind::SmallSurfel => self.cfg.surfel_variance,
-                Kind::Plane => self.cfg.plane_variance,
+                Kind::LargeSurfel | Kind::SmallSurfel => surfel_var,
+                Kind::Plane => plane_var,
             };
             let [px, py, pz] = p.xyz;
             let p_l = V3::new(f64::from(px), f64::from(py), f64::from(pz));

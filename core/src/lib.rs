@@ -52,6 +52,7 @@ pub mod relocalise;
 pub mod ring_fals;
 pub mod scan;
 pub mod scan_assembly;
+pub mod selection;
 pub mod sensor;
 pub mod so3;
 pub mod standstill;

@@ -37,11 +37,12 @@
 //!    map's lookups then find the caches warm).
 //! 5. The first scan after initialisation only builds the map. Later scans run the iterated
 //!    update ([`Eskf::update`]) with the association of [`crate::association`]; the filter
-//!    handles degenerate directions (the status says [`Status::Degraded`]). With a
-//!    measurement budget (`association.max_points` > 0, off by default) at most that many
-//!    downsampled points, evenly spread over their (Morton) order, are associated and measured:
-//!    the association's cost is per point, and a dense scan gives more constraints than the
-//!    update needs (the reference subsamples every 4th raw point for the same reason).
+//!    handles degenerate directions (the status says [`Status::Degraded`]). Under the
+//!    measurement budget (`association.max_points`, 6,000 by default) at most that many
+//!    downsampled points, evenly spread over their (Morton) order, are associated and
+//!    measured, each standing for its share of the rest ([`crate::selection`]): the
+//!    association's cost is per point, and a dense scan gives more constraints than the update
+//!    needs (the reference subsamples every 4th raw point for the same reason).
 //! 6. The scan goes into the voxel map at the updated pose (also when it had too few
 //!    correspondences: the map must grow into new space).
 //!
@@ -364,13 +365,13 @@ struct PrevScan {
 type ParallelSlot<'a> = Option<(&'a dyn Parallel, &'a mut [KnnScratch])>;
 
 impl<const PIX: usize, const PTS: usize, const DS: usize> ScanStorage<PIX, PTS, DS> {
-    /// The measurements of the first `measured` points against `map`, split over `parallel`'s
-    /// threads where given.
+    /// The measurements of the first `measured` points (of `still` points the budget chose
+    /// from) against `map`, split over `parallel`'s threads where given.
     fn association<'x, 'm, C: Clock>(
         &'x mut self,
         map: &'x VoxelMap<'m>,
         cfg: &'x OdometryConfig,
-        measured: usize,
+        (measured, still): (usize, usize),
         parallel: &'x mut ParallelSlot<'_>,
         clock: &'x mut C,
     ) -> ScanAssociation<'x, 'm, C> {
@@ -385,6 +386,12 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> ScanStorage<PIX, PTS, 
             &mut self.neighbours,
             clock,
         );
+        // Under a budget each measured point stands for its share of the rest.
+        let assoc = if measured > 0 && still > measured {
+            assoc.standing_for(still as f64 / measured as f64)
+        } else {
+            assoc
+        };
         match parallel {
             Some((p, scratch)) => assoc.with_parallel(*p, scratch),
             None => assoc,
@@ -1042,7 +1049,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         let mut measured = 0;
         if kept > 0 && !building {
             // The measured points first; the map still gets them all (step 6).
-            measured = select_measured(
+            measured = crate::selection::select_even(
                 &mut st.points[..still],
                 &mut st.normals3[..still],
                 self.cfg.association.max_points,
@@ -1070,7 +1077,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         // The prediction, kept to fall back on when the scan disagrees with the map.
         let prior = (ic.lost_scans > 0 && kept > 0 && !building).then(|| f.clone());
         if kept > 0 && !building {
-            let mut assoc = st.association(&self.map, &self.cfg, measured, &mut self.parallel, clock);
+            let mut assoc =
+                st.association(&self.map, &self.cfg, (measured, still), &mut self.parallel, clock);
             let bridge_prior = bridged.then(|| f.clone());
             update = f.update(&mut assoc);
             counts = assoc.counts();
@@ -1099,7 +1107,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                     last_end = *f.state();
                     last = Some(span);
                     *f = prior.clone();
-                    let mut assoc = st.association(&self.map, &self.cfg, measured, &mut self.parallel, clock);
+                    let mut assoc =
+                        st.association(&self.map, &self.cfg, (measured, still), &mut self.parallel, clock);
                     update = f.update(&mut assoc);
                     counts = assoc.counts();
                     times.association_ns = times.association_ns.saturating_add(assoc.elapsed_ns());
@@ -1117,8 +1126,11 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             .saturating_add(first.no_plane)
             .saturating_add(first.rejected_consistency);
         let mut integrity = Integrity { near, measured: measured_n, share_pct: 100, nis: 0.0, low: false };
+        // Per point and in the residuals' own variance (a budget's points weigh more).
+        let per_point = if measured > 0 && still > measured { measured as f64 / still as f64 } else { 1.0 };
         if update.measurements[0] > 0 {
-            integrity.nis = (update.weighted_sq_residual[0] / f64::from(update.measurements[0])) as f32;
+            integrity.nis =
+                (per_point * update.weighted_sq_residual[0] / f64::from(update.measurements[0])) as f32;
         }
         // After a pause of either sensor the prediction is known to be off: the first scans
         // re-localise and are not judged (nor feed the means).
@@ -1146,7 +1158,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             let last = last.saturating_add(counts.rejected_consistency);
             let it = usize::from(update.iterations.max(1)) - 1;
             let nis_last = if update.measurements[it] > 0 {
-                (update.weighted_sq_residual[1] / f64::from(update.measurements[it])) as f32
+                (per_point * update.weighted_sq_residual[1] / f64::from(update.measurements[it])) as f32
             } else {
                 f32::INFINITY
             };
@@ -1342,24 +1354,6 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
     }
 }
 
-/// Moves an even selection of at most `budget` of `points` (and their normals) to the front,
-/// in their order, and returns how many: all of them when `budget` is 0 or not smaller. Element
-/// `floor(j n / budget)` goes to position `j`; those positions increase strictly, so each swap
-/// takes a point not yet moved.
-fn select_measured(points: &mut [ScanPoint], normals: &mut [[f32; 3]], budget: u32) -> usize {
-    let n = points.len().min(normals.len());
-    let b = budget as usize;
-    if b == 0 || b >= n {
-        return n;
-    }
-    for j in 0..b {
-        let src = (j as u64 * n as u64 / b as u64) as usize;
-        points.swap(j, src);
-        normals.swap(j, src);
-    }
-    b
-}
-
 /// The LiDAR-only prediction of a scan ending at `end_ns` ([`crate::motion_model`]): IMU
 /// samples queued anyway are discarded; the first scan starts the filter at the identity (at
 /// its end: one knot, no motion); every later one is propagated at the held rate and velocity,
@@ -1412,40 +1406,4 @@ fn reseed_after_jump(f: &mut Eskf, before_ns: u64) {
         p[(idx::ROT + k, idx::ROT + k)] += s.rough_tilt * s.rough_tilt;
     }
     *f = Eskf::from_state(cfg, x, p, f.time_ns(), f.held_sample().copied(), f.acc_scale());
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// The measurement budget takes `floor(j n / b)` for `j < b` (evenly spread, in order),
-    /// moves them to the front with their normals, and loses no point: the rest still go to the
-    /// map.
-    #[test]
-    fn measurement_budget_selects_evenly_and_keeps_every_point() {
-        for (n, b) in [(10usize, 3u32), (1000, 333), (1001, 1000), (7, 7), (7, 9), (5, 0), (0, 4), (4, 1)] {
-            let mut pts: [ScanPoint; 1001] = [ScanPoint::default(); 1001];
-            let mut nrm = [[0.0f32; 3]; 1001];
-            for i in 0..n {
-                pts[i].t = i as f32;
-                nrm[i] = [i as f32, 0.0, 1.0];
-            }
-            let m = select_measured(&mut pts[..n], &mut nrm[..n], b);
-            let want = if b == 0 || b as usize >= n { n } else { b as usize };
-            assert_eq!(m, want, "n {n} b {b}");
-            for j in 0..m {
-                let src = if m == n { j } else { j * n / m };
-                assert_eq!(pts[j].t, src as f32, "n {n} b {b} j {j}");
-                assert_eq!(nrm[j][0], src as f32);
-            }
-            // A permutation: every input point is still there, each with its own normal.
-            let mut seen = [false; 1001];
-            for i in 0..n {
-                let k = pts[i].t as usize;
-                assert!(!seen[k]);
-                seen[k] = true;
-                assert_eq!(nrm[i][0], pts[i].t);
-            }
-        }
-    }
 }

@@ -88,9 +88,9 @@ struct SimArgs {
     #[arg(long, value_enum)]
     mode: Option<AssociationMode>,
     /// Measurement budget (`mapping.max_points`): at most N downsampled points measured per
-    /// scan; 0 = all.
-    #[arg(long, default_value_t = 0, value_name = "N")]
-    max_points: u64,
+    /// scan; 0 = all [default: the configuration's, 6000]
+    #[arg(long, value_name = "N")]
+    max_points: Option<u64>,
     /// The association's k-NN (`mapping.knn_search`).
     #[arg(long, value_enum, default_value = "exact")]
     knn_search: KnnReach,
@@ -306,9 +306,9 @@ struct BenchArgs {
     #[arg(long, default_value_t = 12.0, value_name = "S")]
     seconds: f64,
     /// Measurement budget (`mapping.max_points`): at most N downsampled points measured per
-    /// scan, in both modes; 0 = all.
-    #[arg(long, default_value_t = 0, value_name = "N")]
-    max_points: u64,
+    /// scan, in both modes; 0 = all [default: the configuration's, 6000]
+    #[arg(long, value_name = "N")]
+    max_points: Option<u64>,
     /// The association's k-NN (`mapping.knn_search`), in both modes.
     #[arg(long, value_enum, default_value = "exact")]
     knn_search: KnnReach,
@@ -762,7 +762,7 @@ fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
         seed: 1,
         duration_s: Some(a.seconds),
         mode: None,
-        max_points: 0,
+        max_points: None,
         knn_search: KnnReach::Exact,
         out: Some(a.out),
         no_actors: false,

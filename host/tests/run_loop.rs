@@ -30,7 +30,7 @@ fn handheld(seconds: f64) -> SimOptions {
         seed: 1,
         duration_s: Some(seconds),
         mode: None,
-        max_points: 0,
+        max_points: None,
         knn_search: KnnReach::Exact,
         out: None,
         no_actors: false,

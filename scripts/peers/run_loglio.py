@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 
 
-def config_toml(info: dict, mode: str, max_points: int = 0) -> str:
+def config_toml(info: dict, mode: str, max_points: int | None = None) -> str:
     e = info["extrinsic_imu_lidar"]
     x, y, z, w = e["quaternion_xyzw"]
     t = e["translation_m"]
@@ -50,7 +50,7 @@ def config_toml(info: dict, mode: str, max_points: int = 0) -> str:
         f"rotation_quat_wxyz = [{w!r}, {x!r}, {y!r}, {z!r}]\n"
         "[mapping]\n"
         f'association = "{mode}"\n'
-        f"max_points = {max_points}\n"
+        + (f"max_points = {max_points}\n" if max_points is not None else "")
     )
 
 
@@ -60,7 +60,7 @@ def main():
     ap.add_argument("scenario_dir", type=Path)
     ap.add_argument("out_dir", type=Path)
     ap.add_argument("--mode", default="full", choices=("full", "plane-only", "plain"))
-    ap.add_argument("--max-points", type=int, default=0, help="measurement budget (mapping.max_points; 0 = all)")
+    ap.add_argument("--max-points", type=int, default=None, help="measurement budget (mapping.max_points; 0 = all; default: loglio's, 6000)")
     a = ap.parse_args()
     info = json.loads((a.scenario_dir / "scenario.json").read_text())
     name = info["scenario"]
@@ -86,7 +86,7 @@ def main():
     (run_dir / "stdout.txt").write_text(p.stdout)
     (run_dir / "stderr.txt").write_text(p.stderr)
     result = {
-        "method": f"loglio ({a.mode})" if a.max_points == 0 else f"loglio ({a.mode}, max_points {a.max_points})",
+        "method": f"loglio ({a.mode})" if a.max_points is None else f"loglio ({a.mode}, max_points {a.max_points})",
         "scenario": name,
         "bag": str(bag),
         "command": cmd,

@@ -72,11 +72,13 @@ fn time_mode(
     sc: &loglio_firmware_sim::scenario::Scenario,
     preset: Preset,
     mode: AssociationMode,
-    (max_points, knn_search, threads): (u64, KnnReach, usize),
+    (max_points, knn_search, threads): (Option<u64>, KnnReach, usize),
     scan_period_s: f64,
 ) -> Result<ModeTimes, PipelineError> {
     let mut cfg = sim::scenario_config(sc, preset, Some(mode));
-    cfg.mapping.max_points = max_points;
+    if let Some(m) = max_points {
+        cfg.mapping.max_points = m;
+    }
     cfg.mapping.knn_search = knn_search;
     let layout = sc.layout().clone();
     let class = StorageClass::choose(layout.rows(), layout.cols(), cfg.mapping.map_capacity)?;
@@ -150,14 +152,14 @@ enum Event2 {
 
 /// Runs the bench for `preset` over `seconds` of a simulated scenario (`None`: the vehicle
 /// drive for Velodyne presets, the handheld walk for Ouster), both modes with the measurement
-/// budget `max_points` (0: every downsampled point), the k-NN `knn_search` and `threads`
+/// budget `max_points` (0: every downsampled point; `None`: the configuration's), the k-NN `knn_search` and `threads`
 /// (0: the available cores) for the association.
 #[allow(clippy::too_many_arguments)]
 pub fn run(
     preset: Preset,
     scenario: Option<ScenarioKind>,
     seconds: f64,
-    max_points: u64,
+    max_points: Option<u64>,
     knn_search: KnnReach,
     threads: usize,
     progress: bool,
@@ -223,7 +225,7 @@ pub fn run(
     Ok(BenchReport {
         preset: preset.name().into(),
         scenario: kind.name().into(),
-        max_points,
+        max_points: max_points.unwrap_or_else(|| crate::config::Config::preset(preset).mapping.max_points),
         knn_search,
         threads,
         seconds,
@@ -291,7 +293,10 @@ impl BenchReport {
         s.push_str(&machine::describe());
         s.push('\n');
         if self.max_points > 0 {
-            s.push_str(&format!("measurement budget: at most {} points per scan\n", self.max_points));
+            s.push_str(&format!(
+                "measurement budget: at most {} points measured per scan\n",
+                self.max_points
+            ));
         }
         if self.knn_search == KnnReach::Block {
             s.push_str("k-NN: the octant block first (--knn-search block)\n");

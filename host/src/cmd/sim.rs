@@ -35,8 +35,9 @@ pub struct SimOptions {
     pub duration_s: Option<f64>,
     /// Association mode (`None`: the preset's).
     pub mode: Option<AssociationMode>,
-    /// Measurement budget (`mapping.max_points`; 0: every downsampled point).
-    pub max_points: u64,
+    /// Measurement budget (`mapping.max_points`; 0: every downsampled point; `None`: the
+    /// configuration's).
+    pub max_points: Option<u64>,
     /// The association's k-NN (`mapping.knn_search`).
     pub knn_search: KnnReach,
     /// Output directory (`None`: write nothing).
@@ -266,7 +267,9 @@ pub fn run(opt: &SimOptions) -> Result<SimReport, PipelineError> {
     let wall = Instant::now();
     let sc = scenario(opt)?;
     let mut cfg = scenario_config(&sc, preset_of(opt.sensor), opt.mode);
-    cfg.mapping.max_points = opt.max_points;
+    if let Some(m) = opt.max_points {
+        cfg.mapping.max_points = m;
+    }
     cfg.mapping.knn_search = opt.knn_search;
     cfg.filter.standstill = opt.standstill;
     cfg.mapping.clear_free_space = !opt.keep_free_space;
@@ -446,8 +449,9 @@ mod tests {
         assert_eq!(core.init.gravity, loglio_firmware_sim::trajectory::GRAVITY);
         let t = sc.extrinsic().translation.vector;
         assert_eq!(cfg.extrinsics.translation, [t.x, t.y, t.z]);
-        // No measurement budget unless asked for; `mapping.max_points` reaches the association.
-        assert_eq!(core.association.max_points, 0);
+        // The default measurement budget unless asked for; `mapping.max_points` reaches the
+        // association.
+        assert_eq!(core.association.max_points, loglio_core::association::DEFAULT_MAX_POINTS);
         let file = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nmax_points = 5000\n").unwrap();
         let core = crate::run::engine::odometry_config(&file, sc.layout().clone()).unwrap();
         assert_eq!(core.association.max_points, 5000);
