@@ -1,7 +1,8 @@
-//! The association split over threads ([`loglio_core::parallel`]): the trajectory is
-//! bit-identical to one thread's, for 2, 3 and 8 threads (each piece writes its own
-//! correspondences; the counts are integers summed in piece order; the update accumulates in
-//! point order afterwards).
+//! The association split over threads, and the Ring FALS normals beside the downsampling's
+//! voxel binning ([`loglio_core::parallel`]): the trajectory is bit-identical to one thread's,
+//! for 2, 3 and 8 threads (each piece writes its own correspondences; the counts are integers
+//! summed in piece order; the update accumulates in point order afterwards; the normals and the
+//! voxels write disjoint storage, and the voxels' normals are summed in point order after both).
 
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};

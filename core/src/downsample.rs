@@ -151,6 +151,10 @@ pub struct VoxelDownsampler<const N: usize> {
     /// The cells' Morton codes, read in the radix sort's random order (dense: the cells
     /// themselves are 56 bytes apart).
     codes: [u32; N],
+    /// Between the stages ([`Self::bin_with_scratch`], [`Self::finish`]): the cells in use
+    /// and the counters so far.
+    used: usize,
+    staged: DownsampleStats,
 }
 
 impl<const N: usize> Default for VoxelDownsampler<N> {
@@ -182,6 +186,14 @@ impl<const N: usize> VoxelDownsampler<N> {
             recent: [([0; 3], 0); RECENT],
             perm: [0; N],
             codes: [0; N],
+            used: 0,
+            staged: DownsampleStats {
+                kept: 0,
+                dropped_invalid: 0,
+                dropped_overflow: 0,
+                normals_invalid: 0,
+                normals_disagree: 0,
+            },
         }
     }
 
@@ -257,13 +269,60 @@ impl<const N: usize> VoxelDownsampler<N> {
         self.run(cfg, points, normals, Some(&mut scratch[..points.len()]))
     }
 
+    /// [`Self::downsample_with_scratch`] in three stages, so that the voxels can be found
+    /// while the normals are still being estimated (on another thread): this one bins the
+    /// points and picks each voxel's point, noting each point's voxel in `scratch` (at least
+    /// `points.len()` entries); [`Self::add_normals`] then sums the normals, and
+    /// [`Self::finish`] writes the output. The same output, bit for bit, as one call.
+    pub fn bin_with_scratch(
+        &mut self,
+        cfg: &DownsampleConfig,
+        points: &[ScanPoint],
+        scratch: &mut [u32],
+    ) -> Result<(), DownsampleError> {
+        if scratch.len() < points.len() {
+            return Err(DownsampleError::LengthMismatch);
+        }
+        self.bin(cfg, points, None, Some(&mut scratch[..points.len()]))
+    }
+
+    /// Adds each point's valid normal to its voxel, in the points' order (the sums of one
+    /// call). `normals` and `scratch` are those of the points given to
+    /// [`Self::bin_with_scratch`].
+    pub fn add_normals(&mut self, normals: &[[f32; 3]], scratch: &[u32]) {
+        let used = self.used;
+        for (n, &cell) in normals.iter().zip(scratch.iter()) {
+            if let Some(c) = self.cells[..used].get_mut(cell as usize)
+                && normal_is_valid(n)
+            {
+                c.ncount += 1;
+                for a in 0..3 {
+                    c.nsum[a] += n[a];
+                }
+            }
+        }
+    }
+
     fn run(
         &mut self,
         cfg: &DownsampleConfig,
         points: &mut [ScanPoint],
-        mut normals: Option<&mut [[f32; 3]]>,
-        mut cell_of: Option<&mut [u32]>,
+        normals: Option<&mut [[f32; 3]]>,
+        cell_of: Option<&mut [u32]>,
     ) -> Result<DownsampleStats, DownsampleError> {
+        self.bin(cfg, points, normals.as_deref(), cell_of)?;
+        Ok(self.finish(cfg, points, normals))
+    }
+
+    /// Passes 1 and 2: the voxels, their sums (normals too where given) and nearest points.
+    fn bin(
+        &mut self,
+        cfg: &DownsampleConfig,
+        points: &[ScanPoint],
+        normals: Option<&[[f32; 3]]>,
+        mut cell_of: Option<&mut [u32]>,
+    ) -> Result<(), DownsampleError> {
+        self.used = 0;
         if !N.is_power_of_two() || N < 4 {
             return Err(DownsampleError::Capacity);
         }
@@ -316,7 +375,7 @@ impl<const N: usize> VoxelDownsampler<N> {
             for a in 0..3 {
                 c.sum[a] += p.xyz[a] - key[a] as f32 * cfg.voxel;
             }
-            if let Some(ns) = normals.as_deref() {
+            if let Some(ns) = normals {
                 let n = &ns[i];
                 if normal_is_valid(n) {
                     c.ncount += 1;
@@ -355,6 +414,28 @@ impl<const N: usize> VoxelDownsampler<N> {
             }
         }
 
+        self.used = used;
+        self.staged = stats;
+        Ok(())
+    }
+
+    /// The last stage ([`Self::bin_with_scratch`]): writes the first `kept` points (and
+    /// normals, with the sums [`Self::add_normals`] made) in the voxels' Morton order and
+    /// empties the grid for the next scan. `points` are those binned.
+    pub fn finish(
+        &mut self,
+        cfg: &DownsampleConfig,
+        points: &mut [ScanPoint],
+        mut normals: Option<&mut [[f32; 3]]>,
+    ) -> DownsampleStats {
+        let (used, mut stats) = (core::mem::take(&mut self.used), self.staged);
+        if normals.as_ref().is_some_and(|n| n.len() < used) || points.len() < used {
+            // Not the points binned: nothing is written; the grid is emptied all the same.
+            for k in 0..used {
+                self.index[self.cells[k].pos as usize] = 0;
+            }
+            return DownsampleStats { kept: 0, ..stats };
+        }
         // Output, compacted in first-seen order; the index is emptied for the next scan, and
         // the cells' Morton codes noted for the reordering below.
         for k in 0..used {
@@ -382,7 +463,7 @@ impl<const N: usize> VoxelDownsampler<N> {
         }
         stats.kept = used as u32;
         self.morton_order(used, points, normals);
-        Ok(stats)
+        stats
     }
 
     /// Permutes the first `used` points (and normals), compacted in the cells' order, into the
@@ -627,6 +708,27 @@ mod tests {
             let k = s1.kept as usize;
             assert_eq!(p1[..k], p2[..k]);
             assert_eq!(n1[..k], n2[..k]);
+            // In stages (the voxels found before the normals are known): the same again, with
+            // normals that differ from point to point (and some invalid).
+            let mut rng = Rng::new(9);
+            let varied: Vec<[f32; 3]> = (0..input.len())
+                .map(|i| {
+                    let (a, b) = ((rng.uniform() - 0.5) as f32, (rng.uniform() - 0.5) as f32);
+                    let l = libm::sqrtf(a * a + b * b + 1.0);
+                    if i % 13 == 0 { INVALID_NORMAL } else { [a / l, b / l, 1.0 / l] }
+                })
+                .collect();
+            let (mut p3, mut n3) = (input.clone(), varied.clone());
+            let s3 = a.downsample_with_scratch(&cfg(0.4), &mut p3, Some(&mut n3), &mut scratch).unwrap();
+            let (mut p4, mut n4) = (input.clone(), varied.clone());
+            b.bin_with_scratch(&cfg(0.4), &p4, &mut scratch).unwrap();
+            b.add_normals(&n4, &scratch[..input.len()]);
+            let s4 = b.finish(&cfg(0.4), &mut p4, Some(&mut n4));
+            assert_eq!(s3, s4);
+            let k = s3.kept as usize;
+            assert_eq!(p3[..k], p4[..k]);
+            assert_eq!(n3[..k], n4[..k]);
+            assert!(s3.normals_invalid < s3.kept / 2, "{s3:?}");
         }
         let mut short = std::vec![0u32; pts.len() - 1];
         assert_eq!(

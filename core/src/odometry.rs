@@ -30,11 +30,12 @@
 //!    storage with their normals. The scan end is the latest kept point time.
 //! 3. The IMU samples up to the scan end propagate the filter (or feed its initialisation); the
 //!    state after every sample is a knot of the scan's [`ImuTrajectory`]; the filter is then
-//!    propagated to the scan end, and every point and normal is moved to the LiDAR frame at the
-//!    scan end (backward propagation).
-//! 4. Voxel downsampling on the map's grid keeps one point per voxel with the averaged normal,
-//!    in the Morton order of the voxels (nearby points together: the association's and the
-//!    map's lookups then find the caches warm).
+//!    propagated to the scan end.
+//! 4. Voxel downsampling of the raw scan keeps one point per voxel (a real return, the nearest
+//!    to the voxel's centroid) with the averaged normal, in the Morton order of the voxels
+//!    (nearby points together: the association's and the map's lookups then find the caches
+//!    warm). Only the points kept, with their normals, are then moved to the LiDAR frame at the
+//!    scan end (backward propagation): a third of the returns on a VLP-32C street scan.
 //! 5. The first scan after initialisation only builds the map. Later scans run the iterated
 //!    update ([`Eskf::update`]) with the association of [`crate::association`]; the filter
 //!    handles degenerate directions (the status says [`Status::Degraded`]). Under the
@@ -819,32 +820,25 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         }
         let use_normals = self.cfg.mode != AssociationMode::Plain;
 
-        // 1. Normals on the raw scan (the caller's points, not copied).
+        // 1. Copy the valid points into the storage (their normals come in step 3).
         let n_in = scan.points.len();
         let n = n_in.min(PTS);
         let overflow = (n_in - n).min(u32::MAX as usize) as u32;
         let st = &mut *self.scan;
         let input = &scan.points[..n];
-        if use_normals && st.ring.estimate(&st.table, input, &mut st.normals[..n]).is_err() {
-            st.normals[..n].fill(PointNormal::INVALID);
-        }
-        let t1 = clock.now_ns();
-        times.normals_ns = t1.saturating_sub(t0);
-
-        // 2. Copy the valid points into the storage, their normals beside them.
         let (blind2, max2) = (self.cfg.blind * self.cfg.blind, self.cfg.max_range * self.cfg.max_range);
-        let mut m = 0usize;
-        let mut t_max = 0.0f32;
-        for (i, &p) in input.iter().enumerate() {
+        let valid = |p: &ScanPoint| {
             let [x, y, z] = p.xyz;
             let r2 = x * x + y * y + z * z;
-            let ok = r2.is_finite() && r2 >= blind2 && r2 <= max2 && p.t >= 0.0 && p.t <= MAX_SCAN_SPAN_S;
-            if !ok {
+            r2.is_finite() && r2 >= blind2 && r2 <= max2 && p.t >= 0.0 && p.t <= MAX_SCAN_SPAN_S
+        };
+        let mut m = 0usize;
+        let mut t_max = 0.0f32;
+        for &p in input.iter() {
+            if !valid(&p) {
                 continue;
             }
             st.points[m] = p;
-            st.normals3[m] =
-                if use_normals { st.normals[i].get().unwrap_or(INVALID_NORMAL) } else { INVALID_NORMAL };
             if p.t > t_max {
                 t_max = p.t;
             }
@@ -949,33 +943,65 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             let d = 0.5 * a * gap_s * gap_s;
             f.widen_position(d * d);
         }
-        if m > 0 {
+        let t2 = clock.now_ns();
+
+        // 3. Ring FALS normals on the raw scan (the caller's points) and, beside them on a
+        // second thread where there is one, the voxels of the downsampling: neither needs the
+        // other. Then the normals of the points copied, and their voxels' mean normals.
+        let ds_cfg = self.cfg.downsample;
+        let mut binned = false;
+        {
+            let (ring, table, normals) = (&mut st.ring, &st.table, &mut st.normals[..n]);
+            let mut job_normals = || {
+                if use_normals && ring.estimate(table, input, normals).is_err() {
+                    normals.fill(PointNormal::INVALID);
+                }
+            };
+            let (ds, pts, cells) = (&mut st.downsampler, &st.points[..m], &mut st.cell_of[..m]);
+            let bin = &mut binned;
+            let mut job_voxels = || *bin = m > 0 && ds.bin_with_scratch(&ds_cfg, pts, cells).is_ok();
+            match &self.parallel {
+                Some((p, _)) if p.width() > 1 => p.run(&mut [&mut job_normals, &mut job_voxels]),
+                _ => {
+                    job_normals();
+                    job_voxels();
+                }
+            }
+        }
+        let t_n = clock.now_ns();
+        times.normals_ns = t_n.saturating_sub(t2);
+        let mut k = 0usize;
+        for (p, nr) in input.iter().zip(st.normals[..n].iter()) {
+            if valid(p) {
+                st.normals3[k] =
+                    if use_normals { nr.get().unwrap_or(INVALID_NORMAL) } else { INVALID_NORMAL };
+                k += 1;
+            }
+        }
+
+        // 4. Downsample, then undistort only the points kept: each is a real return with its
+        // own time (the nearest to its voxel's centroid), so it is moved exactly as before,
+        // at a third of the cost; the voxels are those of the raw scan.
+        let kept = if binned {
+            if use_normals {
+                st.downsampler.add_normals(&st.normals3[..m], &st.cell_of[..m]);
+            }
+            st.downsampler.finish(&ds_cfg, &mut st.points[..m], Some(&mut st.normals3[..m])).kept as usize
+        } else {
+            0
+        };
+        let t_ds = clock.now_ns();
+        times.downsample_ns = t_ds.saturating_sub(t_n);
+        if kept > 0 {
             // Cannot fail: the trajectory holds the end knot and the slices have equal lengths.
-            let (pts, nrm) = (&mut st.points[..m], Some(&mut st.normals3[..m]));
+            let (pts, nrm) = (&mut st.points[..kept], Some(&mut st.normals3[..kept]));
             let _ = match &self.parallel {
                 Some((p, _)) => st.trajectory.undistort_with(f.state(), pts, nrm, *p),
                 None => st.trajectory.undistort(f.state(), pts, nrm),
             };
         }
-        let t2 = clock.now_ns();
-        times.undistort_ns = t2.saturating_sub(t1);
-
-        // 4. Downsample on the map's grid.
-        let kept = if m > 0 {
-            match st.downsampler.downsample_with_scratch(
-                &self.cfg.downsample,
-                &mut st.points[..m],
-                Some(&mut st.normals3[..m]),
-                &mut st.cell_of[..m],
-            ) {
-                Ok(s) => s.kept as usize,
-                Err(_) => 0,
-            }
-        } else {
-            0
-        };
         let t3 = clock.now_ns();
-        times.downsample_ns = t3.saturating_sub(t2);
+        times.undistort_ns = t3.saturating_sub(t_ds).saturating_add(t2.saturating_sub(t0));
         let npoints = [npoints[0], kept as u32];
 
         // 4b. Moving points: where the previous scan's beams went through, something moved in.

@@ -178,11 +178,12 @@ impl PoseEstimate {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct StageTimes {
-    /// Ring FALS normals.
+    /// Ring FALS normals, with the downsampling's voxel binning beside them (on two threads at
+    /// once where the caller gives them, else one after the other).
     pub normals_ns: u64,
-    /// IMU propagation and undistortion.
+    /// Copying the points in, IMU propagation, and the undistortion of the downsampled points.
     pub undistort_ns: u64,
-    /// Voxel downsampling.
+    /// The rest of the voxel downsampling: the voxels' mean normals and the output.
     pub downsample_ns: u64,
     /// Association (all iterations).
     pub association_ns: u64,

@@ -1,7 +1,8 @@
 //! Work in independent ranges, run by the caller's threads.
 //!
 //! The core owns no threads and allocates nothing: where a stage splits into independent
-//! pieces (the association's search, point by point), it builds one job per piece over
+//! pieces (the association's search, point by point; the Ring FALS normals beside the
+//! downsampling's voxel binning), it builds one job per piece over
 //! disjoint slices and hands them to a [`Parallel`] the caller supplies (the host's thread pool;
 //! [`Sequential`] runs them one after another). Each piece writes only its own slots and the
 //! results are combined in piece order, so the output is bit-identical for any width.
