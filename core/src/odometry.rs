@@ -27,15 +27,16 @@
 //!    from the range image (skipped in [`AssociationMode::Plain`]).
 //! 2. Points with a non-finite position or time, a time outside `[0, MAX_SCAN_SPAN_S]`, or a
 //!    range outside `[blind, max_range]` are dropped (counted); the others are copied into the
-//!    storage with their normals. The scan end is the latest kept point time.
+//!    storage (their normals join them in step 3). The scan end is the latest kept point time.
 //! 3. The IMU samples up to the scan end propagate the filter (or feed its initialisation); the
 //!    state after every sample is a knot of the scan's [`ImuTrajectory`]; the filter is then
-//!    propagated to the scan end.
-//! 4. Voxel downsampling of the raw scan keeps one point per voxel (a real return, the nearest
-//!    to the voxel's centroid) with the averaged normal, in the Morton order of the voxels
-//!    (nearby points together: the association's and the map's lookups then find the caches
-//!    warm). Only the points kept, with their normals, are then moved to the LiDAR frame at the
-//!    scan end (backward propagation): a third of the returns on a VLP-32C street scan.
+//!    propagated to the scan end, and every point is moved to the LiDAR frame at the scan end
+//!    (backward propagation). Ring FALS (step 1) runs here, on two threads where the caller
+//!    lends them beside the downsampling's search for the voxels of the moved points; the
+//!    normals are then rotated as their points were.
+//! 4. Voxel downsampling keeps one point per voxel with the averaged normal, in the Morton
+//!    order of the voxels (nearby points together: the association's and the map's lookups
+//!    then find the caches warm).
 //! 5. The first scan after initialisation only builds the map. Later scans run the iterated
 //!    update ([`Eskf::update`]) with the association of [`crate::association`]; the filter
 //!    handles degenerate directions (the status says [`Status::Degraded`]). Under the
@@ -943,45 +944,87 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             let d = 0.5 * a * gap_s * gap_s;
             f.widen_position(d * d);
         }
-        let t2 = clock.now_ns();
-
-        // 3. Ring FALS normals on the raw scan (the caller's points) and, beside them on a
-        // second thread where there is one, the voxels of the downsampling: neither needs the
-        // other. Then the normals of the points copied, and their voxels' mean normals.
+        // 3. Every point to the LiDAR frame at the scan end (backward propagation), with its
+        // Ring FALS normal (on the raw scan, the caller's points); then the downsampling's voxels.
+        // With a second thread the normals are estimated beside the voxels' search (neither
+        // needs the other): the points are moved first and the normals rotated after, each by
+        // its point's own rotation, so the result is the same, bit for bit.
         let ds_cfg = self.cfg.downsample;
-        let mut binned = false;
-        {
-            let (ring, table, normals) = (&mut st.ring, &st.table, &mut st.normals[..n]);
-            let mut job_normals = || {
-                if use_normals && ring.estimate(table, input, normals).is_err() {
-                    normals.fill(PointNormal::INVALID);
+        let par = match &self.parallel {
+            Some((p, _)) if p.width() > 1 => Some(*p),
+            _ => None,
+        };
+        let overlap = use_normals && par.is_some();
+        let (ring, table, normals) = (&mut st.ring, &st.table, &mut st.normals[..n]);
+        let mut estimate = || {
+            if use_normals && ring.estimate(table, input, normals).is_err() {
+                normals.fill(PointNormal::INVALID);
+            }
+        };
+        if !overlap {
+            estimate();
+        }
+        let t_n0 = clock.now_ns();
+        let fill_normals = |st: &mut ScanStorage<PIX, PTS, DS>| {
+            let mut k = 0usize;
+            for (p, nr) in input.iter().zip(st.normals[..n].iter()) {
+                if valid(p) {
+                    st.normals3[k] =
+                        if use_normals { nr.get().unwrap_or(INVALID_NORMAL) } else { INVALID_NORMAL };
+                    k += 1;
                 }
+            }
+        };
+        if !overlap {
+            fill_normals(st);
+        }
+        if m > 0 {
+            // Cannot fail: the trajectory holds the end knot and the slices have equal lengths.
+            let (pts, nrm) = (&mut st.points[..m], (!overlap).then_some(&mut st.normals3[..m]));
+            let _ = match par {
+                Some(p) => st.trajectory.undistort_with(f.state(), pts, nrm, p),
+                None => st.trajectory.undistort(f.state(), pts, nrm),
             };
-            let (ds, pts, cells) = (&mut st.downsampler, &st.points[..m], &mut st.cell_of[..m]);
-            let bin = &mut binned;
-            let mut job_voxels = || *bin = m > 0 && ds.bin_with_scratch(&ds_cfg, pts, cells).is_ok();
-            match &self.parallel {
-                Some((p, _)) if p.width() > 1 => p.run(&mut [&mut job_normals, &mut job_voxels]),
-                _ => {
-                    job_normals();
-                    job_voxels();
+        }
+        let t_u = clock.now_ns();
+        let mut binned = false;
+        let t_r = if overlap {
+            {
+                let (ring, table, normals) = (&mut st.ring, &st.table, &mut st.normals[..n]);
+                let mut job_normals = || {
+                    if ring.estimate(table, input, normals).is_err() {
+                        normals.fill(PointNormal::INVALID);
+                    }
+                };
+                let (ds, pts, cells) = (&mut st.downsampler, &st.points[..m], &mut st.cell_of[..m]);
+                let bin = &mut binned;
+                let mut job_voxels = || *bin = m > 0 && ds.bin_with_scratch(&ds_cfg, pts, cells).is_ok();
+                if let Some(p) = par {
+                    p.run(&mut [&mut job_normals, &mut job_voxels]);
                 }
             }
-        }
-        let t_n = clock.now_ns();
-        times.normals_ns = t_n.saturating_sub(t2);
-        let mut k = 0usize;
-        for (p, nr) in input.iter().zip(st.normals[..n].iter()) {
-            if valid(p) {
-                st.normals3[k] =
-                    if use_normals { nr.get().unwrap_or(INVALID_NORMAL) } else { INVALID_NORMAL };
-                k += 1;
+            let t_n = clock.now_ns();
+            times.normals_ns = t_n.saturating_sub(t_u);
+            fill_normals(st);
+            if m > 0 {
+                // Cannot fail: as above.
+                let (pts, nrm) = (&mut st.points[..m], Some(&mut st.normals3[..m]));
+                if let Some(p) = par {
+                    let _ = st.trajectory.undistort_normals_with(f.state(), pts, nrm, p);
+                }
             }
-        }
+            let t_r = clock.now_ns();
+            times.undistort_ns = t_u.saturating_sub(t_n0).saturating_add(t_r.saturating_sub(t_n));
+            t_r
+        } else {
+            binned = m > 0
+                && st.downsampler.bin_with_scratch(&ds_cfg, &st.points[..m], &mut st.cell_of[..m]).is_ok();
+            times.normals_ns = t_n0.saturating_sub(t0);
+            times.undistort_ns = t_u.saturating_sub(t_n0);
+            t_u
+        };
 
-        // 4. Downsample, then undistort only the points kept: each is a real return with its
-        // own time (the nearest to its voxel's centroid), so it is moved exactly as before,
-        // at a third of the cost; the voxels are those of the raw scan.
+        // 4. The downsampling's output: one point per voxel with the mean normal.
         let kept = if binned {
             if use_normals {
                 st.downsampler.add_normals(&st.normals3[..m], &st.cell_of[..m]);
@@ -990,18 +1033,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         } else {
             0
         };
-        let t_ds = clock.now_ns();
-        times.downsample_ns = t_ds.saturating_sub(t_n);
-        if kept > 0 {
-            // Cannot fail: the trajectory holds the end knot and the slices have equal lengths.
-            let (pts, nrm) = (&mut st.points[..kept], Some(&mut st.normals3[..kept]));
-            let _ = match &self.parallel {
-                Some((p, _)) => st.trajectory.undistort_with(f.state(), pts, nrm, *p),
-                None => st.trajectory.undistort(f.state(), pts, nrm),
-            };
-        }
         let t3 = clock.now_ns();
-        times.undistort_ns = t3.saturating_sub(t_ds).saturating_add(t2.saturating_sub(t0));
+        times.downsample_ns = t3.saturating_sub(t_r);
         let npoints = [npoints[0], kept as u32];
 
         // 4b. Moving points: where the previous scan's beams went through, something moved in.

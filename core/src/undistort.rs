@@ -208,7 +208,7 @@ impl<const N: usize> ImuTrajectory<N> {
         points: &mut [ScanPoint],
         normals: Option<&mut [[f32; 3]]>,
     ) -> Result<UndistortStats, UndistortError> {
-        self.transform::<true>(end, points, normals)
+        self.transform::<true, true>(end, points, normals)
     }
 
     /// The pose model that holds at `t`: `(valid from, valid to, reference knot a, rate ω,
@@ -293,9 +293,21 @@ impl<const N: usize> ImuTrajectory<N> {
         normals: Option<&mut [[f32; 3]]>,
         parallel: &dyn Parallel,
     ) -> Result<UndistortStats, UndistortError> {
+        self.split(end, points, normals, parallel, Self::undistort)
+    }
+
+    /// `run` on pieces of `points` (and `normals`) on `parallel`'s threads, the stats summed.
+    fn split(
+        &self,
+        end: &State,
+        points: &mut [ScanPoint],
+        normals: Option<&mut [[f32; 3]]>,
+        parallel: &dyn Parallel,
+        run: Transform<N>,
+    ) -> Result<UndistortStats, UndistortError> {
         let n = points.len();
         if parallel.width() <= 1 || n < 2 * UNDISTORT_PIECE {
-            return self.undistort(end, points, normals);
+            return run(self, end, points, normals);
         }
         if normals.as_ref().is_some_and(|nr| nr.len() != n) {
             return Err(UndistortError::LengthMismatch);
@@ -319,7 +331,7 @@ impl<const N: usize> ImuTrajectory<N> {
                     None => None,
                 };
                 let mut piece_normals = piece_normals;
-                let _ = closures.push(move || *out = self.undistort(end, p, piece_normals.as_deref_mut()));
+                let _ = closures.push(move || *out = run(self, end, p, piece_normals.as_deref_mut()));
                 start = e;
             }
             let mut jobs = heapless::Vec::<crate::parallel::Job<'_>, { crate::parallel::MAX_WIDTH }>::new();
@@ -352,13 +364,38 @@ impl<const N: usize> ImuTrajectory<N> {
         points: &mut [ScanPoint],
         normals: Option<&mut [[f32; 3]]>,
     ) -> Result<UndistortStats, UndistortError> {
-        self.transform::<false>(end, points, normals)
+        self.transform::<false, true>(end, points, normals)
+    }
+
+    /// The normals' half of [`Self::undistort`]: `normals` rotated as it rotates them, from
+    /// the points' times, the points left as they are (only their times are read; points
+    /// already undistorted keep their times, so the rotations are the same, bit for bit). The
+    /// odometry moves every point first, finds the downsampling's voxels while Ring FALS is
+    /// still estimating the normals, and rotates the normals after.
+    pub fn undistort_normals(
+        &self,
+        end: &State,
+        points: &mut [ScanPoint],
+        normals: Option<&mut [[f32; 3]]>,
+    ) -> Result<UndistortStats, UndistortError> {
+        self.transform::<false, false>(end, points, normals)
+    }
+
+    /// [`Self::undistort_normals`] split over `parallel`'s threads, as [`Self::undistort_with`].
+    pub fn undistort_normals_with(
+        &self,
+        end: &State,
+        points: &mut [ScanPoint],
+        normals: Option<&mut [[f32; 3]]>,
+        parallel: &dyn Parallel,
+    ) -> Result<UndistortStats, UndistortError> {
+        self.split(end, points, normals, parallel, Self::undistort_normals)
     }
 
     /// [`Self::undistort`], or with `INVERSE` [`Self::redistort`] (each point's transform
     /// `q = A p + b` applied backwards, `p = Aᵀ (q - b)`: the exact inverse of the same
-    /// transform).
-    fn transform<const INVERSE: bool>(
+    /// transform); without `MOVE` only the normals ([`Self::undistort_normals`]).
+    fn transform<const INVERSE: bool, const MOVE: bool>(
         &self,
         end: &State,
         points: &mut [ScanPoint],
@@ -417,10 +454,12 @@ impl<const N: usize> ImuTrajectory<N> {
                     (a, b)
                 }
             };
-            let q = V3::new(x as f64, y as f64, z as f64);
-            let p = if INVERSE { a.transpose() * (q - b) } else { a * q + b };
-            pt.xyz = [p.x as f32, p.y as f32, p.z as f32];
-            stats.moved += 1;
+            if MOVE {
+                let q = V3::new(x as f64, y as f64, z as f64);
+                let p = if INVERSE { a.transpose() * (q - b) } else { a * q + b };
+                pt.xyz = [p.x as f32, p.y as f32, p.z as f32];
+                stats.moved += 1;
+            }
             if let Some(ns) = normals.as_deref_mut() {
                 let n = &mut ns[i];
                 if crate::downsample::normal_is_valid(n) {
@@ -433,6 +472,14 @@ impl<const N: usize> ImuTrajectory<N> {
         Ok(stats)
     }
 }
+
+/// One of the transforms [`ImuTrajectory::split`] runs in pieces.
+type Transform<const N: usize> = fn(
+    &ImuTrajectory<N>,
+    &State,
+    &mut [ScanPoint],
+    Option<&mut [[f32; 3]]>,
+) -> Result<UndistortStats, UndistortError>;
 
 /// Cubic Hermite weights of `(a.pos, a.vel, b.pos, b.vel)` at `tau` into a segment of length
 /// `h`.

@@ -222,11 +222,10 @@ fn sim_imu_clock_offset_and_its_compensation() {
 /// The same 20 ms with nothing said about it: the scans' warp tells the offset
 /// (`time.estimate_offset`, on by default), it is applied to the IMU stamps, and the error is
 /// near the one-clock run's: only the first scans, before the estimate is certain, are bent.
-/// Measured (handheld, 20 s, 2026-11-28, the measurement budget and the undistortion after the
-/// downsampling): -19.82 ms applied; ATE 4.02 mm against 3.14 mm on one clock (1.28x) and
-/// 7.85 mm with the offset kept (1.95x the estimated). The bounds hold the spread over seeds:
-/// seeds 2 and 3 give 1.36x / 1.15x one clock and 2.08x / 2.30x below the offset kept (with
-/// every point measured: 1.37x / 1.15x, 2.05x / 2.34x). The ATEs are read from `eval.json` (the
+/// Measured (handheld, 20 s, 2026-11-28, under the measurement budget): -19.82 ms applied; ATE
+/// 3.94 mm against 3.04 mm on one clock (1.30x) and 7.81 mm with the offset kept (1.98x the
+/// estimated). The bounds hold the spread over seeds: seeds 2 and 3 give 1.47x / 1.15x one clock
+/// and 1.94x / 2.42x below the offset kept. The ATEs are read from `eval.json` (the
 /// summary's three decimals of a metre cannot tell 1.15x from 1.3x at 3 mm).
 #[test]
 fn sim_imu_clock_offset_is_estimated_from_the_scans() {
@@ -262,8 +261,8 @@ fn sim_imu_clock_offset_is_estimated_from_the_scans() {
         "{line}"
     );
     assert!(kept > 2.0 * one_clock, "20 ms kept: {kept} m against {one_clock} m");
-    assert!(estimated < 1.45 * one_clock, "estimated: {estimated} m against {one_clock} m\n{text}");
-    assert!(1.8 * estimated < kept, "estimated: {estimated} m against {kept} m kept\n{text}");
+    assert!(estimated < 1.6 * one_clock, "estimated: {estimated} m against {one_clock} m\n{text}");
+    assert!(1.7 * estimated < kept, "estimated: {estimated} m against {kept} m kept\n{text}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 
