@@ -673,6 +673,47 @@ mod tests {
         assert_eq!(st.invalid, 0);
     }
 
+    /// The odometry's two steps (points first, while Ring FALS runs; normals after) give the
+    /// points and normals of one call, bit for bit, also in pieces on threads.
+    #[test]
+    fn points_then_normals_equal_both_at_once() {
+        struct Two;
+        impl Parallel for Two {
+            fn width(&self) -> usize {
+                2
+            }
+            fn run(&self, jobs: &mut [crate::parallel::Job<'_>]) {
+                for j in jobs.iter_mut().rev() {
+                    j();
+                }
+            }
+        }
+        let h = Helix::standard();
+        let t_start = 3.0;
+        let (pts, ns, _) = scan(&h, t_start);
+        let mut traj = ImuTrajectory::<64>::new();
+        let f = propagate(&h, t_start, &mut traj);
+        let (mut p1, mut n1) = (pts.clone(), ns.clone());
+        traj.undistort(f.state(), &mut p1, Some(&mut n1)).unwrap();
+        for par in [None, Some(&Two as &dyn Parallel)] {
+            let (mut p2, mut n2) = (pts.clone(), ns.clone());
+            match par {
+                None => {
+                    traj.undistort(f.state(), &mut p2, None).unwrap();
+                    let st = traj.undistort_normals(f.state(), &mut p2, Some(&mut n2)).unwrap();
+                    assert_eq!(st.moved, 0);
+                }
+                Some(p) => {
+                    traj.undistort_with(f.state(), &mut p2, None, p).unwrap();
+                    traj.undistort_normals_with(f.state(), &mut p2, Some(&mut n2), p).unwrap();
+                }
+            }
+            assert_eq!(p1, p2);
+            assert_eq!(n1, n2);
+            assert_ne!(ns, n2, "the normals were rotated");
+        }
+    }
+
     /// The segment evaluation is the documented formula with `pose_at`, regrouped: on times
     /// before, between and after the knots (in scan order and shuffled) the two agree to f32
     /// rounding, and extrapolated times are counted alike.
