@@ -949,6 +949,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         // With a second thread the normals are estimated beside the voxels' search (neither
         // needs the other): the points are moved first and the normals rotated after, each by
         // its point's own rotation, so the result is the same, bit for bit.
+        let t_p = clock.now_ns();
         let ds_cfg = self.cfg.downsample;
         let par = match &self.parallel {
             Some((p, _)) if p.width() > 1 => Some(*p),
@@ -1014,13 +1015,15 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 }
             }
             let t_r = clock.now_ns();
-            times.undistort_ns = t_u.saturating_sub(t_n0).saturating_add(t_r.saturating_sub(t_n));
+            times.undistort_ns = (t_p.saturating_sub(t0))
+                .saturating_add(t_u.saturating_sub(t_n0))
+                .saturating_add(t_r.saturating_sub(t_n));
             t_r
         } else {
             binned = m > 0
                 && st.downsampler.bin_with_scratch(&ds_cfg, &st.points[..m], &mut st.cell_of[..m]).is_ok();
-            times.normals_ns = t_n0.saturating_sub(t0);
-            times.undistort_ns = t_u.saturating_sub(t_n0);
+            times.normals_ns = t_n0.saturating_sub(t_p);
+            times.undistort_ns = t_p.saturating_sub(t0).saturating_add(t_u.saturating_sub(t_n0));
             t_u
         };
 
