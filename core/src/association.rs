@@ -893,11 +893,9 @@ impl<C: Clock> Measurements for ScanAssociation<'_, '_, C> {
             self.search(x);
         }
         let h = PointToPlane::new(x);
-        let (surfel_var, plane_var) = if self.stands_for == 1.0 {
-            (self.cfg.surfel_variance, self.cfg.plane_variance)
-        } else {
-            (self.cfg.surfel_variance / self.stands_for, self.cfg.plane_variance / self.stands_for)
-        };
+        // Exact when a point stands for itself (`v / 1.0 == v`).
+        let (surfel_var, plane_var) =
+            (self.cfg.surfel_variance / self.stands_for, self.cfg.plane_variance / self.stands_for);
         for (p, c) in self.points.iter().zip(self.corr.iter()) {
             let var = match c.kind {
                 Kind::None => continue,

@@ -116,6 +116,17 @@ struct Cell {
 }
 
 impl Cell {
+    /// Adds `n` to the voxel's normal sum if it is a usable normal.
+    #[inline(always)]
+    fn add_normal(&mut self, n: &[f32; 3]) {
+        if normal_is_valid(n) {
+            self.ncount += 1;
+            for a in 0..3 {
+                self.nsum[a] += n[a];
+            }
+        }
+    }
+
     const EMPTY: Cell = Cell {
         key: [0; 3],
         count: 0,
@@ -292,13 +303,8 @@ impl<const N: usize> VoxelDownsampler<N> {
     pub fn add_normals(&mut self, normals: &[[f32; 3]], scratch: &[u32]) {
         let used = self.used;
         for (n, &cell) in normals.iter().zip(scratch.iter()) {
-            if let Some(c) = self.cells[..used].get_mut(cell as usize)
-                && normal_is_valid(n)
-            {
-                c.ncount += 1;
-                for a in 0..3 {
-                    c.nsum[a] += n[a];
-                }
+            if let Some(c) = self.cells[..used].get_mut(cell as usize) {
+                c.add_normal(n);
             }
         }
     }
@@ -376,13 +382,7 @@ impl<const N: usize> VoxelDownsampler<N> {
                 c.sum[a] += p.xyz[a] - key[a] as f32 * cfg.voxel;
             }
             if let Some(ns) = normals {
-                let n = &ns[i];
-                if normal_is_valid(n) {
-                    c.ncount += 1;
-                    for a in 0..3 {
-                        c.nsum[a] += n[a];
-                    }
-                }
+                c.add_normal(&ns[i]);
             }
         }
 

@@ -956,22 +956,19 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             _ => None,
         };
         let overlap = use_normals && par.is_some();
-        let (ring, table, normals) = (&mut st.ring, &st.table, &mut st.normals[..n]);
-        let mut estimate = || {
-            if use_normals && ring.estimate(table, input, normals).is_err() {
-                normals.fill(PointNormal::INVALID);
-            }
-        };
-        if !overlap {
-            estimate();
+        if use_normals && !overlap {
+            ring_fals(&mut st.ring, &st.table, input, &mut st.normals[..n]);
         }
         let t_n0 = clock.now_ns();
         let fill_normals = |st: &mut ScanStorage<PIX, PTS, DS>| {
+            if !use_normals {
+                st.normals3[..m].fill(INVALID_NORMAL);
+                return;
+            }
             let mut k = 0usize;
             for (p, nr) in input.iter().zip(st.normals[..n].iter()) {
                 if valid(p) {
-                    st.normals3[k] =
-                        if use_normals { nr.get().unwrap_or(INVALID_NORMAL) } else { INVALID_NORMAL };
+                    st.normals3[k] = nr.get().unwrap_or(INVALID_NORMAL);
                     k += 1;
                 }
             }
@@ -992,11 +989,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         let t_r = if overlap {
             {
                 let (ring, table, normals) = (&mut st.ring, &st.table, &mut st.normals[..n]);
-                let mut job_normals = || {
-                    if ring.estimate(table, input, normals).is_err() {
-                        normals.fill(PointNormal::INVALID);
-                    }
-                };
+                let mut job_normals = || ring_fals(ring, table, input, normals);
                 let (ds, pts, cells) = (&mut st.downsampler, &st.points[..m], &mut st.cell_of[..m]);
                 let bin = &mut binned;
                 let mut job_voxels = || *bin = m > 0 && ds.bin_with_scratch(&ds_cfg, pts, cells).is_ok();
@@ -1413,6 +1406,19 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             points: npoints,
             integrity,
         }
+    }
+}
+
+/// Ring FALS normals of `input` into `out`; all invalid if the table or storage refuses the
+/// scan.
+fn ring_fals<const PIX: usize>(
+    ring: &mut RingFals<PIX>,
+    table: &RingTable,
+    input: &[ScanPoint],
+    out: &mut [PointNormal],
+) {
+    if ring.estimate(table, input, out).is_err() {
+        out.fill(PointNormal::INVALID);
     }
 }
 
