@@ -1299,13 +1299,21 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 let (free, fsc) = (&st.free, &fs);
                 // Every voxel at least every 4 scans on a small map; a fixed cost on a large one.
                 let budget = (fs.voxels_per_scan as usize).min(self.map.len().div_ceil(4));
-                let sus = &mut st.suspects;
-                let cleared = self.map.clear_seen_through(origin, fs.max_range, budget, sus, |q, slack| {
+                let judge = |q: [f32; 3], slack| {
                     let d = [q[0] - origin[0], q[1] - origin[1], q[2] - origin[2]];
                     let l: [f32; 3] =
                         core::array::from_fn(|i| rt[i][0] * d[0] + rt[i][1] * d[1] + rt[i][2] * d[2]);
                     free.verdict_with_slack(l, slack, fsc)
-                });
+                };
+                // The judgements in pieces on the caller's threads (the voxels' scratch is free
+                // by now).
+                let (sus, reach) = (&mut st.suspects, fs.max_range);
+                let cleared = match &self.parallel {
+                    Some((p, _)) => {
+                        self.map.clear_seen_through_with(origin, reach, budget, sus, judge, *p, &mut st.cell_of)
+                    }
+                    None => self.map.clear_seen_through(origin, reach, budget, sus, judge),
+                };
                 self.stats.cleared = self.stats.cleared.saturating_add(u64::from(cleared));
                 // The reference image and pose for the next scans' moving points, renewed every
                 // `reference_every_s`.

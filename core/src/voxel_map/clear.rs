@@ -7,6 +7,7 @@
 use super::voxel::rep;
 use super::{OCTANTS, VoxelMap, d2f};
 use crate::free_space::Verdict;
+use crate::parallel::{self, Parallel, Sequential};
 
 /// Voxels a scan found seen through, judged again by the next ([`VoxelMap::clear_seen_through`]);
 /// caller-owned, all zeros when empty.
@@ -44,6 +45,9 @@ impl<const N: usize> Suspects<N> {
     }
 }
 
+/// A voxel judged seen through, in the scratch of [`VoxelMap::clear_seen_through_with`].
+const THROUGH: u32 = 1;
+
 impl VoxelMap<'_> {
     /// Judges last call's `suspects` again and removes those seen through again, then judges
     /// `budget` voxels round robin and makes suspects of those seen through. A voxel within
@@ -56,7 +60,26 @@ impl VoxelMap<'_> {
         reach: f32,
         budget: usize,
         suspects: &mut Suspects<N>,
-        mut judge: impl FnMut([f32; 3], f32) -> Verdict,
+        judge: impl Fn([f32; 3], f32) -> Verdict + Sync,
+    ) -> u32 {
+        self.clear_seen_through_with(sensor, reach, budget, suspects, judge, &Sequential, &mut [])
+    }
+
+    /// [`Self::clear_seen_through`] with the round robin's judgements (read-only, one voxel at
+    /// a time) split over `parallel`'s threads, each piece noting its verdicts in its own part
+    /// of `scratch` (one entry per voxel judged; a longer budget goes in rounds of
+    /// `scratch.len()`, none at all judges one at a time). The suspects are then taken in
+    /// order, so the result is the same, bit for bit, for any width.
+    #[allow(clippy::too_many_arguments)]
+    pub fn clear_seen_through_with<const N: usize>(
+        &mut self,
+        sensor: [f32; 3],
+        reach: f32,
+        budget: usize,
+        suspects: &mut Suspects<N>,
+        judge: impl Fn([f32; 3], f32) -> Verdict + Sync,
+        parallel: &dyn Parallel,
+        scratch: &mut [u32],
     ) -> u32 {
         let reach = reach + self.cfg.voxel_size;
         let reach2 = reach * reach;
@@ -67,22 +90,68 @@ impl VoxelMap<'_> {
         for k in 0..n {
             let key = suspects.keys[k];
             let Some(i) = self.find_slot(key) else { continue };
-            if self.seen_through(i as usize, sensor, reach2, slack, &mut judge) == Some(true) {
+            if self.seen_through(i as usize, sensor, reach2, slack, &judge) == Some(true) {
                 self.remove_slot(i as usize);
                 removed += 1;
             }
         }
-        // Round robin: new suspects.
-        for _ in 0..budget.min(self.len) {
+        // Round robin: new suspects, judged in rounds of at most `scratch.len()` voxels.
+        let total = budget.min(self.len);
+        let round = if parallel.width() > 1 { scratch.len() } else { 0 };
+        let mut done = 0;
+        while done < total {
             if self.clear_cursor >= self.len {
                 self.clear_cursor = 0;
             }
-            let i = self.clear_cursor;
-            if self.seen_through(i, sensor, reach2, slack, &mut judge) == Some(true) && suspects.len < N {
-                suspects.keys[suspects.len] = self.pool[i].key;
-                suspects.len += 1;
+            let start = self.clear_cursor;
+            // One voxel at a time: straight into the suspects.
+            if round == 0 {
+                let i = start;
+                if self.seen_through(i, sensor, reach2, slack, &judge) == Some(true) && suspects.len < N {
+                    suspects.keys[suspects.len] = self.pool[i].key;
+                    suspects.len += 1;
+                }
+                self.clear_cursor += 1;
+                done += 1;
+                continue;
             }
-            self.clear_cursor += 1;
+            // A round, up to the pool's end (the next one starts at 0).
+            let len = (total - done).min(round).min(self.len - start);
+            let verdicts = &mut scratch[..len];
+            {
+                let map = &*self;
+                let judge = &judge;
+                let ends = parallel::split(len, parallel.width(), 64);
+                let mut rest = &mut *verdicts;
+                let mut closures = heapless::Vec::<_, { parallel::MAX_WIDTH }>::new();
+                let mut from = 0;
+                for &end in &ends {
+                    let (piece, r) = core::mem::take(&mut rest).split_at_mut(end - from);
+                    rest = r;
+                    let first = start + from;
+                    // Cannot fail: at most MAX_WIDTH pieces.
+                    let _ = closures.push(move || {
+                        for (k, v) in piece.iter_mut().enumerate() {
+                            let through = map.seen_through(first + k, sensor, reach2, slack, judge);
+                            *v = if through == Some(true) { THROUGH } else { 0 };
+                        }
+                    });
+                    from = end;
+                }
+                let mut jobs = heapless::Vec::<parallel::Job<'_>, { parallel::MAX_WIDTH }>::new();
+                for c in closures.iter_mut() {
+                    let _ = jobs.push(c);
+                }
+                parallel.run(&mut jobs);
+            }
+            for (k, &v) in verdicts.iter().enumerate() {
+                if v == THROUGH && suspects.len < N {
+                    suspects.keys[suspects.len] = self.pool[start + k].key;
+                    suspects.len += 1;
+                }
+            }
+            self.clear_cursor = start + len;
+            done += len;
         }
         self.counters.cleared += u64::from(removed);
         removed
@@ -96,7 +165,7 @@ impl VoxelMap<'_> {
         sensor: [f32; 3],
         reach2: f32,
         slack: f32,
-        judge: &mut impl FnMut([f32; 3], f32) -> Verdict,
+        judge: &impl Fn([f32; 3], f32) -> Verdict,
     ) -> Option<bool> {
         let v = &self.pool[i];
         let c = self.centre(v.key);
