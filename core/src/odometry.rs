@@ -960,21 +960,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             ring_fals(&mut st.ring, &st.table, input, &mut st.normals[..n]);
         }
         let t_n0 = clock.now_ns();
-        let fill_normals = |st: &mut ScanStorage<PIX, PTS, DS>| {
-            if !use_normals {
-                st.normals3[..m].fill(INVALID_NORMAL);
-                return;
-            }
-            let mut k = 0usize;
-            for (p, nr) in input.iter().zip(st.normals[..n].iter()) {
-                if valid(p) {
-                    st.normals3[k] = nr.get().unwrap_or(INVALID_NORMAL);
-                    k += 1;
-                }
-            }
-        };
         if !overlap {
-            fill_normals(st);
+            fill_normals(use_normals, input, &st.normals[..n], &mut st.normals3[..m], valid);
         }
         if m > 0 {
             // Cannot fail: the trajectory holds the end knot and the slices have equal lengths.
@@ -987,31 +974,27 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         let t_u = clock.now_ns();
         let mut binned = false;
         let t_r = if overlap {
-            {
-                let (ring, table, normals) = (&mut st.ring, &st.table, &mut st.normals[..n]);
-                let mut job_normals = || ring_fals(ring, table, input, normals);
-                let (ds, pts, cells) = (&mut st.downsampler, &st.points[..m], &mut st.cell_of[..m]);
-                let bin = &mut binned;
-                let mut job_voxels = || *bin = m > 0 && ds.bin_with_scratch(&ds_cfg, pts, cells).is_ok();
-                if let Some(p) = par {
-                    p.run(&mut [&mut job_normals, &mut job_voxels]);
-                }
+            // One job estimates, compacts and rotates the normals; the other bins the points
+            // (both only read them).
+            let (ring, table, normals) = (&mut st.ring, &st.table, &mut st.normals[..n]);
+            let (traj, nrm3, x) = (&st.trajectory, &mut st.normals3[..m], f.state());
+            let pts = &st.points[..m];
+            let mut job_normals = || {
+                ring_fals(ring, table, input, normals);
+                fill_normals(true, input, normals, nrm3, valid);
+                // Cannot fail: as above.
+                let _ = traj.undistort_normals(x, pts, nrm3);
+            };
+            let (ds, cells) = (&mut st.downsampler, &mut st.cell_of[..m]);
+            let bin = &mut binned;
+            let mut job_voxels = || *bin = m > 0 && ds.bin_with_scratch(&ds_cfg, pts, cells).is_ok();
+            if let Some(p) = par {
+                p.run(&mut [&mut job_normals, &mut job_voxels]);
             }
             let t_n = clock.now_ns();
             times.normals_ns = t_n.saturating_sub(t_u);
-            fill_normals(st);
-            if m > 0 {
-                // Cannot fail: as above.
-                let (pts, nrm) = (&mut st.points[..m], Some(&mut st.normals3[..m]));
-                if let Some(p) = par {
-                    let _ = st.trajectory.undistort_normals_with(f.state(), pts, nrm, p);
-                }
-            }
-            let t_r = clock.now_ns();
-            times.undistort_ns = (t_p.saturating_sub(t0))
-                .saturating_add(t_u.saturating_sub(t_n0))
-                .saturating_add(t_r.saturating_sub(t_n));
-            t_r
+            times.undistort_ns = (t_p.saturating_sub(t0)).saturating_add(t_u.saturating_sub(t_n0));
+            t_n
         } else {
             binned = m > 0
                 && st.downsampler.bin_with_scratch(&ds_cfg, &st.points[..m], &mut st.cell_of[..m]).is_ok();
@@ -1058,18 +1041,25 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             let m: [[f32; 3]; 3] = core::array::from_fn(|i| core::array::from_fn(|j| m[(i, j)] as f32));
             let b = [b.x as f32, b.y as f32, b.z as f32];
             let (img, fs) = (&st.prev_free, &self.cfg.free_space);
-            let moved = |p: &ScanPoint| {
-                let l: [f32; 3] = core::array::from_fn(|i| {
-                    m[i][0] * p.xyz[0] + m[i][1] * p.xyz[1] + m[i][2] * p.xyz[2] + b[i]
-                });
-                img.verdict(l, fs) == Verdict::SeenThrough
+            // Each point's verdict (in pieces on the caller's threads), then the partition.
+            let (pts, flags) = (&st.points[..kept], &mut st.cell_of[..kept]);
+            let moved = |k: usize| {
+                let p = &pts[k].xyz;
+                let l: [f32; 3] =
+                    core::array::from_fn(|i| m[i][0] * p[0] + m[i][1] * p[1] + m[i][2] * p[2] + b[i]);
+                u32::from(img.verdict(l, fs) == Verdict::SeenThrough)
             };
+            match par {
+                Some(p) => crate::parallel::map_indexed(p, flags, moved),
+                None => flags.iter_mut().enumerate().for_each(|(k, v)| *v = moved(k)),
+            }
             let (mut i, mut end) = (0usize, kept);
             while i < end {
-                if moved(&st.points[i]) {
+                if st.cell_of[i] != 0 {
                     end -= 1;
                     st.points.swap(i, end);
                     st.normals3.swap(i, end);
+                    st.cell_of.swap(i, end);
                 } else {
                     i += 1;
                 }
@@ -1308,10 +1298,16 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 // The judgements in pieces on the caller's threads (the voxels' scratch is free
                 // by now).
                 let (sus, reach) = (&mut st.suspects, fs.max_range);
-                let cleared = match &self.parallel {
-                    Some((p, _)) => {
-                        self.map.clear_seen_through_with(origin, reach, budget, sus, judge, *p, &mut st.cell_of)
-                    }
+                let cleared = match par {
+                    Some(p) => self.map.clear_seen_through_with(
+                        origin,
+                        reach,
+                        budget,
+                        sus,
+                        judge,
+                        p,
+                        &mut st.cell_of,
+                    ),
                     None => self.map.clear_seen_through(origin, reach, budget, sus, judge),
                 };
                 self.stats.cleared = self.stats.cleared.saturating_add(u64::from(cleared));
@@ -1413,6 +1409,30 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             propagation: flags,
             points: npoints,
             integrity,
+        }
+    }
+}
+
+/// The valid points' normals (`valid`, as step 1 kept the points) compacted into `out`, or
+/// none at all without normals.
+fn fill_normals(
+    use_normals: bool,
+    input: &[ScanPoint],
+    normals: &[PointNormal],
+    out: &mut [[f32; 3]],
+    valid: impl Fn(&ScanPoint) -> bool,
+) {
+    if !use_normals {
+        out.fill(INVALID_NORMAL);
+        return;
+    }
+    let mut k = 0usize;
+    for (p, nr) in input.iter().zip(normals.iter()) {
+        if valid(p)
+            && let Some(o) = out.get_mut(k)
+        {
+            *o = nr.get().unwrap_or(INVALID_NORMAL);
+            k += 1;
         }
     }
 }

@@ -57,8 +57,36 @@ pub fn split(n: usize, pieces: usize, align: usize) -> heapless::Vec<usize, MAX_
     ends
 }
 
+/// Fills `out[k] = f(k)` for every `k`, in pieces on `parallel`'s threads (each piece writes
+/// only its own slots; starts aligned to 64 entries): the same as one loop for any width.
+pub fn map_indexed<U: Send>(parallel: &dyn Parallel, out: &mut [U], f: impl Fn(usize) -> U + Sync) {
+    let ends = split(out.len(), parallel.width(), 64);
+    let f = &f;
+    let mut rest = out;
+    let mut closures = heapless::Vec::<_, MAX_WIDTH>::new();
+    let mut from = 0;
+    for &end in &ends {
+        let (piece, r) = core::mem::take(&mut rest).split_at_mut(end - from);
+        rest = r;
+        let first = from;
+        // Cannot fail: at most MAX_WIDTH pieces.
+        let _ = closures.push(move || {
+            for (k, v) in piece.iter_mut().enumerate() {
+                *v = f(first + k);
+            }
+        });
+        from = end;
+    }
+    let mut jobs = heapless::Vec::<Job<'_>, MAX_WIDTH>::new();
+    for c in closures.iter_mut() {
+        let _ = jobs.push(c);
+    }
+    parallel.run(&mut jobs);
+}
+
 #[cfg(test)]
 mod tests {
+    extern crate std;
     use super::*;
 
     #[test]
@@ -74,6 +102,35 @@ mod tests {
                     assert_eq!(start % 64, 0, "{n} {pieces} {ends:?}");
                     start = e;
                 }
+            }
+        }
+    }
+
+    /// Runs the jobs on scoped threads (the host's way), to check the pieces.
+    struct Threads(usize);
+
+    impl Parallel for Threads {
+        fn width(&self) -> usize {
+            self.0
+        }
+        fn run(&self, jobs: &mut [Job<'_>]) {
+            std::thread::scope(|s| {
+                for j in jobs.iter_mut() {
+                    s.spawn(j);
+                }
+            });
+        }
+    }
+
+    #[test]
+    fn map_indexed_equals_one_loop_for_any_width() {
+        for n in [0usize, 1, 64, 65, 1000] {
+            let want: std::vec::Vec<u64> =
+                (0..n).map(|k| (k as u64).wrapping_mul(0x9E37_79B9) >> 3).collect();
+            for w in 1..=MAX_WIDTH + 1 {
+                let mut got = std::vec![0u64; n];
+                map_indexed(&Threads(w), &mut got, |k| (k as u64).wrapping_mul(0x9E37_79B9) >> 3);
+                assert_eq!(got, want, "n {n} width {w}");
             }
         }
     }

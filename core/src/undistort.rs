@@ -208,7 +208,7 @@ impl<const N: usize> ImuTrajectory<N> {
         points: &mut [ScanPoint],
         normals: Option<&mut [[f32; 3]]>,
     ) -> Result<UndistortStats, UndistortError> {
-        self.transform::<true, true>(end, points, normals)
+        self.transform::<true, true, _>(end, points, normals)
     }
 
     /// The pose model that holds at `t`: `(valid from, valid to, reference knot a, rate ω,
@@ -364,41 +364,30 @@ impl<const N: usize> ImuTrajectory<N> {
         points: &mut [ScanPoint],
         normals: Option<&mut [[f32; 3]]>,
     ) -> Result<UndistortStats, UndistortError> {
-        self.transform::<false, true>(end, points, normals)
+        self.transform::<false, true, _>(end, points, normals)
     }
 
     /// The normals' half of [`Self::undistort`]: `normals` rotated as it rotates them, from
-    /// the points' times, the points left as they are (only their times are read; points
-    /// already undistorted keep their times, so the rotations are the same, bit for bit). The
-    /// odometry moves every point first, finds the downsampling's voxels while Ring FALS is
-    /// still estimating the normals, and rotates the normals after.
+    /// the points' times (only their times and finiteness are read; points already undistorted
+    /// keep their times, so the rotations are the same, bit for bit). The odometry moves every
+    /// point first, then rotates the normals after Ring FALS, on the thread that estimated them,
+    /// while another finds the downsampling's voxels among the same points.
     pub fn undistort_normals(
         &self,
         end: &State,
-        points: &mut [ScanPoint],
-        normals: Option<&mut [[f32; 3]]>,
+        points: &[ScanPoint],
+        normals: &mut [[f32; 3]],
     ) -> Result<UndistortStats, UndistortError> {
-        self.transform::<false, false>(end, points, normals)
-    }
-
-    /// [`Self::undistort_normals`] split over `parallel`'s threads, as [`Self::undistort_with`].
-    pub fn undistort_normals_with(
-        &self,
-        end: &State,
-        points: &mut [ScanPoint],
-        normals: Option<&mut [[f32; 3]]>,
-        parallel: &dyn Parallel,
-    ) -> Result<UndistortStats, UndistortError> {
-        self.split(end, points, normals, parallel, Self::undistort_normals)
+        self.transform::<false, false, _>(end, points, Some(normals))
     }
 
     /// [`Self::undistort`], or with `INVERSE` [`Self::redistort`] (each point's transform
     /// `q = A p + b` applied backwards, `p = Aᵀ (q - b)`: the exact inverse of the same
     /// transform); without `MOVE` only the normals ([`Self::undistort_normals`]).
-    fn transform<const INVERSE: bool, const MOVE: bool>(
+    fn transform<const INVERSE: bool, const MOVE: bool, P: Points>(
         &self,
         end: &State,
-        points: &mut [ScanPoint],
+        mut points: P,
         mut normals: Option<&mut [[f32; 3]]>,
     ) -> Result<UndistortStats, UndistortError> {
         if self.knots.is_empty() {
@@ -415,7 +404,8 @@ impl<const N: usize> ImuTrajectory<N> {
         let mut stats = UndistortStats::default();
         let mut seg: Option<Segment> = None;
         let mut cached: Option<(u32, M3, V3)> = None;
-        for (i, pt) in points.iter_mut().enumerate() {
+        for i in 0..points.len() {
+            let pt = points.get(i);
             let [x, y, z] = pt.xyz;
             if !(x.is_finite() && y.is_finite() && z.is_finite() && pt.t.is_finite()) {
                 stats.invalid += 1;
@@ -457,7 +447,7 @@ impl<const N: usize> ImuTrajectory<N> {
             if MOVE {
                 let q = V3::new(x as f64, y as f64, z as f64);
                 let p = if INVERSE { a.transpose() * (q - b) } else { a * q + b };
-                pt.xyz = [p.x as f32, p.y as f32, p.z as f32];
+                points.set_xyz(i, [p.x as f32, p.y as f32, p.z as f32]);
                 stats.moved += 1;
             }
             if let Some(ns) = normals.as_deref_mut() {
@@ -471,6 +461,42 @@ impl<const N: usize> ImuTrajectory<N> {
         }
         Ok(stats)
     }
+}
+
+/// The points a transform reads (and, moving them, writes).
+trait Points {
+    fn len(&self) -> usize;
+    fn get(&self, i: usize) -> ScanPoint;
+    fn set_xyz(&mut self, i: usize, xyz: [f32; 3]);
+}
+
+impl Points for &mut [ScanPoint] {
+    #[inline(always)]
+    fn len(&self) -> usize {
+        <[ScanPoint]>::len(self)
+    }
+    #[inline(always)]
+    fn get(&self, i: usize) -> ScanPoint {
+        self[i]
+    }
+    #[inline(always)]
+    fn set_xyz(&mut self, i: usize, xyz: [f32; 3]) {
+        self[i].xyz = xyz;
+    }
+}
+
+/// Read only: for the normals alone.
+impl Points for &[ScanPoint] {
+    #[inline(always)]
+    fn len(&self) -> usize {
+        <[ScanPoint]>::len(self)
+    }
+    #[inline(always)]
+    fn get(&self, i: usize) -> ScanPoint {
+        self[i]
+    }
+    #[inline(always)]
+    fn set_xyz(&mut self, _: usize, _: [f32; 3]) {}
 }
 
 /// One of the transforms [`ImuTrajectory::split`] runs in pieces.
@@ -700,12 +726,12 @@ mod tests {
             match par {
                 None => {
                     traj.undistort(f.state(), &mut p2, None).unwrap();
-                    let st = traj.undistort_normals(f.state(), &mut p2, Some(&mut n2)).unwrap();
+                    let st = traj.undistort_normals(f.state(), &p2, &mut n2).unwrap();
                     assert_eq!(st.moved, 0);
                 }
                 Some(p) => {
                     traj.undistort_with(f.state(), &mut p2, None, p).unwrap();
-                    traj.undistort_normals_with(f.state(), &mut p2, Some(&mut n2), p).unwrap();
+                    traj.undistort_normals(f.state(), &p2, &mut n2).unwrap();
                 }
             }
             assert_eq!(p1, p2);

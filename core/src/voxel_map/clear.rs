@@ -45,9 +45,6 @@ impl<const N: usize> Suspects<N> {
     }
 }
 
-/// A voxel judged seen through, in the scratch of [`VoxelMap::clear_seen_through_with`].
-const THROUGH: u32 = 1;
-
 impl VoxelMap<'_> {
     /// Judges last call's `suspects` again and removes those seen through again, then judges
     /// `budget` voxels round robin and makes suspects of those seen through. A voxel within
@@ -118,34 +115,12 @@ impl VoxelMap<'_> {
             // A round, up to the pool's end (the next one starts at 0).
             let len = (total - done).min(round).min(self.len - start);
             let verdicts = &mut scratch[..len];
-            {
-                let map = &*self;
-                let judge = &judge;
-                let ends = parallel::split(len, parallel.width(), 64);
-                let mut rest = &mut *verdicts;
-                let mut closures = heapless::Vec::<_, { parallel::MAX_WIDTH }>::new();
-                let mut from = 0;
-                for &end in &ends {
-                    let (piece, r) = core::mem::take(&mut rest).split_at_mut(end - from);
-                    rest = r;
-                    let first = start + from;
-                    // Cannot fail: at most MAX_WIDTH pieces.
-                    let _ = closures.push(move || {
-                        for (k, v) in piece.iter_mut().enumerate() {
-                            let through = map.seen_through(first + k, sensor, reach2, slack, judge);
-                            *v = if through == Some(true) { THROUGH } else { 0 };
-                        }
-                    });
-                    from = end;
-                }
-                let mut jobs = heapless::Vec::<parallel::Job<'_>, { parallel::MAX_WIDTH }>::new();
-                for c in closures.iter_mut() {
-                    let _ = jobs.push(c);
-                }
-                parallel.run(&mut jobs);
-            }
+            let map = &*self;
+            parallel::map_indexed(parallel, verdicts, |k| {
+                u32::from(map.seen_through(start + k, sensor, reach2, slack, &judge) == Some(true))
+            });
             for (k, &v) in verdicts.iter().enumerate() {
-                if v == THROUGH && suspects.len < N {
+                if v != 0 && suspects.len < N {
                     suspects.keys[suspects.len] = self.pool[start + k].key;
                     suspects.len += 1;
                 }
