@@ -105,7 +105,8 @@ pub struct DownsampleStats {
 struct Cell {
     key: [i32; 3],
     count: u32,
-    /// Sum of positions relative to the voxel's corner (small numbers: f32 is enough).
+    /// Sum of positions relative to the voxel's corner (small numbers: f32 is enough); after
+    /// the first pass their mean, the centroid.
     sum: [f32; 3],
     nsum: [f32; 3],
     ncount: u32,
@@ -386,11 +387,17 @@ impl<const N: usize> VoxelDownsampler<N> {
             }
         }
 
-        // Pass 2: the point nearest to each centroid.
+        // Pass 2: the point nearest to each centroid (each cell's sum becomes its centroid,
+        // relative to the corner, once: not one division per point).
+        for c in self.cells[..used].iter_mut() {
+            for a in 0..3 {
+                c.sum[a] /= c.count as f32;
+            }
+        }
         let nearest = |c: &mut Cell, p: &ScanPoint, i: usize| {
             let mut d2 = 0.0;
             for a in 0..3 {
-                let centroid = c.sum[a] / c.count as f32;
+                let centroid = c.sum[a];
                 let d = (p.xyz[a] - c.key[a] as f32 * cfg.voxel) - centroid;
                 d2 += d * d;
             }

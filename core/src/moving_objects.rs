@@ -172,20 +172,35 @@ impl<const N: usize> MovingObjects<N> {
             return 0;
         }
         let inv = 1.0 / cfg.cell;
-        let mut used = 0usize;
-        // 1. Cells of every point that is not ground-like; flagged points make seeds.
-        for i in 0..kept {
-            cell_of[i] = NONE;
+        let cell = |i: usize| {
             let n = normals[i];
             let vertical = (n[0] * up[0] + n[1] * up[1] + n[2] * up[2]).abs();
             let unit = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2] - 1.0).abs() < 0.1;
-            if unit && vertical >= cfg.ground_cos {
-                continue;
-            }
             let p = points[i].xyz;
-            let c = [p[0] * inv, p[1] * inv, p[2] * inv].map(floor_i32);
+            (!(unit && vertical >= cfg.ground_cos))
+                .then(|| [p[0] * inv, p[1] * inv, p[2] * inv].map(floor_i32))
+        };
+        // 0. Fewer flagged cells than a set needs (a few false alarms, the usual case): nothing
+        // can grow, and the scan's other points need no cells.
+        let mut seeds = heapless::Vec::<[i32; 3], SEED_CHECK>::new();
+        for i in still..kept {
+            if let Some(c) = cell(i)
+                && !seeds.contains(&c)
+                && seeds.push(c).is_err()
+            {
+                break;
+            }
+        }
+        if seeds.len() < SEED_CHECK && seeds.len() < usize::from(cfg.min_seeds) {
+            return 0;
+        }
+        let mut used = 0usize;
+        // 1. Cells of every point that is not ground-like; flagged points make seeds.
+        for (i, co) in cell_of[..kept].iter_mut().enumerate() {
+            *co = NONE;
+            let Some(c) = cell(i) else { continue };
             if let Some(s) = self.insert(key(c), &mut used) {
-                cell_of[i] = s as u32;
+                *co = s as u32;
                 if i >= still {
                     self.state[s] = SEED;
                 }
@@ -278,6 +293,10 @@ impl<const N: usize> MovingObjects<N> {
         still - end
     }
 }
+
+/// Distinct flagged cells counted before the growth (at most), to skip it when a set cannot
+/// hold [`GrowConfig::min_seeds`] of them.
+const SEED_CHECK: usize = 8;
 
 /// The cell indices of a key.
 fn unkey(k: u64) -> [i32; 3] {

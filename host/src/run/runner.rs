@@ -291,7 +291,8 @@ pub struct Runner<'e> {
     imu_offset_ns: i64,
     imu: VecDeque<ImuSample>,
     last_imu_ns: Option<u64>,
-    scans: VecDeque<(OwnedScan, u64)>,
+    /// Waiting scans: each with its arrival and its end (found once: a fold over the points).
+    scans: VecDeque<(OwnedScan, u64, u64)>,
     spare: Vec<Vec<ScanPoint>>,
     /// The outputs.
     pub outputs: Outputs,
@@ -564,7 +565,8 @@ impl<'e> Runner<'e> {
 
     fn accept_scan(&mut self, scan: OwnedScan, arrival: u64) -> Result<(), PipelineError> {
         // A point time past a second into the scan is damage (a flipped bit), not a pause.
-        let end = scan.end_ns().min(scan.start_ns.saturating_add(1_000_000_000));
+        let scan_end = scan.end_ns();
+        let end = scan_end.min(scan.start_ns.saturating_add(1_000_000_000));
         // Gaps from start to start: the starts are packet stamps the stream checked.
         if let Some(last) = self.last_scan_start_ns
             && scan.start_ns > last
@@ -585,7 +587,7 @@ impl<'e> Runner<'e> {
         self.last_scan_start_ns =
             Some(self.last_scan_start_ns.map_or(scan.start_ns, |t| t.max(scan.start_ns)));
         widen(&mut self.stats.lidar_span, end);
-        self.scans.push_back((scan, arrival));
+        self.scans.push_back((scan, arrival, scan_end));
         self.process_ready(false, None)
     }
 
@@ -597,18 +599,18 @@ impl<'e> Runner<'e> {
     /// Processes the waiting scans the IMU covers; with `force`, every waiting scan; with
     /// `older_than`, those that arrived before it (a caller's wall clock: the live wait bound).
     pub fn process_ready(&mut self, force: bool, older_than: Option<u64>) -> Result<(), PipelineError> {
-        while let Some((front, arrival)) = self.scans.front() {
-            let end = self.imu_time(front.end_ns());
+        while let Some(&(_, arrival, scan_end)) = self.scans.front() {
+            let end = self.imu_time(scan_end);
             let covered = self.lidar_only || self.last_imu_ns.is_some_and(|t| t >= end);
-            let waited = older_than.is_some_and(|t| *arrival <= t);
+            let waited = older_than.is_some_and(|t| arrival <= t);
             if !(covered || force || waited || self.scans.len() > MAX_PENDING_SCANS) {
                 break;
             }
-            let Some((scan, arrival)) = self.scans.pop_front() else { break };
+            let Some((scan, arrival, scan_end)) = self.scans.pop_front() else { break };
             if !covered {
                 self.stats.scans_without_imu += 1;
             }
-            self.process(scan, arrival)?;
+            self.process(scan, arrival, scan_end)?;
         }
         Ok(())
     }
@@ -620,8 +622,8 @@ impl<'e> Runner<'e> {
         lidar_ns.saturating_add_signed(-self.engine.time_offset().applied_ns)
     }
 
-    fn process(&mut self, scan: OwnedScan, arrival: u64) -> Result<(), PipelineError> {
-        let end = self.imu_time(scan.end_ns());
+    fn process(&mut self, scan: OwnedScan, arrival: u64, scan_end: u64) -> Result<(), PipelineError> {
+        let end = self.imu_time(scan_end);
         let stale_before = scan.start_ns.saturating_sub(1_000_000_000);
         // After the first scan, samples that old are the IMU through a LiDAR pause: integrated
         // without a scan (dropping them made the filter step over the pause: a re-initialising
