@@ -34,7 +34,7 @@ use loglio_core::imu_guard::ImuGuardConfig;
 use loglio_core::motion_model::MotionModel;
 use loglio_core::odometry::{Clock, Odometry, OdometryConfig, OdometryError, OdometryStorage};
 use loglio_core::output::ScanResult;
-use loglio_core::parallel::{Job, Parallel};
+use loglio_core::parallel::Parallel;
 use loglio_core::range_image::{MAX_COLS, MAX_ROWS, RangeImageLayout};
 use loglio_core::ring_fals::storage_pixels;
 use loglio_core::scan::ScanView;
@@ -358,7 +358,7 @@ fn run_class<const PIX: usize, const PTS: usize, const DS: usize, const V: usize
 ) -> Result<R, PipelineError> {
     let mut storage = boxed_storage(OdometryStorage::<PIX, PTS, DS, V, I>::new)?;
     let bytes = OdometryStorage::<PIX, PTS, DS, V, I>::bytes();
-    let pool = ScopedThreads::new(threads);
+    let pool = super::pool::Pool::new(threads);
     let mut scratch = vec![KnnScratch::new(); pool.width().saturating_sub(1)];
     let mut odo = storage.odometry(cfg).map_err(odometry_error)?;
     if pool.width() > 1 {
@@ -366,39 +366,6 @@ fn run_class<const PIX: usize, const PTS: usize, const DS: usize, const V: usize
     }
     let mut engine = CoreEngine { odo, bytes };
     Ok(f(&mut engine))
-}
-
-/// The core's parallel work ([`loglio_core::parallel`]) on scoped threads: the first job on
-/// the calling thread, each other on a thread of its own for the call (spawning costs tens of
-/// microseconds a thread, against milliseconds of search).
-#[derive(Clone, Copy, Debug)]
-pub struct ScopedThreads {
-    width: usize,
-}
-
-impl ScopedThreads {
-    /// Up to `width` jobs at once (1..=[`loglio_core::parallel::MAX_WIDTH`]).
-    pub fn new(width: usize) -> Self {
-        Self { width: width.clamp(1, loglio_core::parallel::MAX_WIDTH) }
-    }
-}
-
-impl Parallel for ScopedThreads {
-    fn width(&self) -> usize {
-        self.width
-    }
-    fn run(&self, jobs: &mut [Job<'_>]) {
-        match jobs {
-            [] => {}
-            [only] => only(),
-            [first, rest @ ..] => std::thread::scope(|s| {
-                for j in rest.iter_mut() {
-                    s.spawn(j);
-                }
-                first();
-            }),
-        }
-    }
 }
 
 fn odometry_error(e: OdometryError) -> PipelineError {

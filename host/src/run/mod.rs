@@ -35,6 +35,7 @@
 //! ```
 
 pub mod engine;
+pub mod pool;
 pub mod runner;
 pub mod setup;
 
