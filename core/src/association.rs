@@ -105,7 +105,7 @@ type V3 = Vector3<f64>;
 /// The measurement budget's default ([`AssociationConfig::max_points`]): downsampled points
 /// measured per scan. A VLP-32C street scan has about 18,000, a VLP-16 or OS1-16 one 5,000 to
 /// 7,000 ([`crate::selection`]).
-pub const DEFAULT_MAX_POINTS: u32 = 6000;
+pub const DEFAULT_MAX_POINTS: u32 = 5000;
 
 /// Points whose k-NN queries go to the map together ([`VoxelMap::knn_many`]).
 pub const KNN_CHUNK: usize = 64;
