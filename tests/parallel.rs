@@ -17,7 +17,8 @@ use loglio_tests::odom::{StdClock, config_for};
 
 static STORE: Mutex<Vlp32cStorage> = Mutex::new(Vlp32cStorage::new());
 
-/// Scoped threads, one per job but the first (as the host's pool); counts the split runs.
+/// Scoped threads, one per job but the first; counts the split runs. (The host's pool, whose
+/// threads live as long as it, is run below too.)
 struct Threads(usize, AtomicUsize);
 
 impl Parallel for Threads {
@@ -42,12 +43,19 @@ impl Parallel for Threads {
 /// Every scan's pose (bits) and association counts with `threads` (1: no split), and how many
 /// searches were split.
 fn run(sc: &Scenario, threads: usize) -> (Vec<([u64; 7], u32)>, usize) {
-    let mut store = STORE.lock().unwrap_or_else(|e| e.into_inner());
     let pool = Threads(threads, AtomicUsize::new(0));
+    let out = run_on(sc, &pool);
+    (out, pool.1.load(Ordering::Relaxed))
+}
+
+/// Every scan's pose (bits) and association counts with the jobs on `pool`.
+fn run_on(sc: &Scenario, pool: &dyn Parallel) -> Vec<([u64; 7], u32)> {
+    let mut store = STORE.lock().unwrap_or_else(|e| e.into_inner());
+    let threads = pool.width();
     let mut scratch = vec![KnnScratch::new(); MAX_WIDTH];
     let mut odo = store.odometry(&config_for(sc, AssociationMode::Full)).unwrap();
     if threads > 1 {
-        odo.set_parallel(&pool, &mut scratch[..threads - 1]);
+        odo.set_parallel(pool, &mut scratch[..threads - 1]);
     }
     let mut clock = StdClock::default();
     let mut out = Vec::new();
@@ -65,7 +73,7 @@ fn run(sc: &Scenario, threads: usize) -> (Vec<([u64; 7], u32)>, usize) {
             }
         }
     }
-    (out, pool.1.load(Ordering::Relaxed))
+    out
 }
 
 #[test]
@@ -83,6 +91,15 @@ fn threads_give_the_same_trajectory_bit_for_bit() {
         assert_eq!(many.len(), one.len());
         for (i, (a, b)) in one.iter().zip(&many).enumerate() {
             assert_eq!(a, b, "scan {i} differs with {threads} threads");
+        }
+    }
+    // The host's pool (workers started once, waiting between batches).
+    for width in [2, 3] {
+        let pool = loglio_host::run::pool::Pool::new(width);
+        let many = run_on(&sc, &pool);
+        assert_eq!(many.len(), one.len());
+        for (i, (a, b)) in one.iter().zip(&many).enumerate() {
+            assert_eq!(a, b, "scan {i} differs on the host's pool of {width}");
         }
     }
 }

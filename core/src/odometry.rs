@@ -40,7 +40,7 @@
 //! 5. The first scan after initialisation only builds the map. Later scans run the iterated
 //!    update ([`Eskf::update`]) with the association of [`crate::association`]; the filter
 //!    handles degenerate directions (the status says [`Status::Degraded`]). Under the
-//!    measurement budget (`association.max_points`, 6,000 by default) at most that many
+//!    measurement budget (`association.max_points`, 5,000 by default) at most that many
 //!    downsampled points, evenly spread over their (Morton) order, are associated and
 //!    measured, each standing for its share of the rest ([`crate::selection`]): the
 //!    association's cost is per point, and a dense scan gives more constraints than the update

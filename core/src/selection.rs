@@ -2,7 +2,7 @@
 //!
 //! The association costs the same for every point it measures, and a dense scan gives more
 //! constraints than the update needs: under the measurement budget (`association.max_points`,
-//! 6,000 by default) an even spread of the downsampled points is measured, `floor(j n / budget)`
+//! 5,000 by default) an even spread of the downsampled points is measured, `floor(j n / budget)`
 //! for `j < budget` over their (Morton) order, as the reference subsamples every 4th raw point.
 //! Every point still goes to the map.
 //!
@@ -11,7 +11,7 @@
 //! scan's information, and with it the balance between the scan and the IMU's prediction, is
 //! what all the points would give. Without that the budget costs accuracy: on the simulated
 //! vehicle drive (seeds 1-4) 9,000 of about 17,900 points gave 1.13x the ATE of all of them;
-//! weighted, 9,000 gave 0.99x and 6,000 1.01x (`docs/performance-log.md`, 2026-11-28).
+//! weighted, 9,000 gave 0.99x, 6,000 1.01x and 5,000 0.97x (`docs/estimation.md`, 2026-11-28).
 //!
 //! Measured and not kept: choosing by leverage first (the points that hold most of the
 //! information along the pose's weakest directions, then an even fill) gave no lower ATE than

@@ -413,7 +413,7 @@ pub struct MappingConfig {
     pub scan_voxel_size: f64,
     /// Most voxels the map holds (the preallocated pool).
     pub map_capacity: u64,
-    /// Most downsampled points measured per scan (0: all; default 6,000).
+    /// Most downsampled points measured per scan (0: all; default 5,000).
     pub max_points: u64,
     /// Association mode.
     pub association: AssociationMode,
@@ -726,7 +726,7 @@ static SPECS: &[Spec] = &[
         "mapping.max_points",
         Kind::Int { min: 0, max: 10_000_000 },
         "points",
-        "Measurement budget: at most this many downsampled points per scan are associated and measured, evenly spread over the scan, each standing for its share of the rest (0 = all; default 6000). The map still receives every point. Bounds the association's time on dense sensors (see docs/estimation.md).",
+        "Measurement budget: at most this many downsampled points per scan are associated and measured, evenly spread over the scan, each standing for its share of the rest (0 = all; default 5000). The map still receives every point. Bounds the association's time on dense sensors (see docs/estimation.md).",
     ),
     spec(
         "mapping.association",

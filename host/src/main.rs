@@ -88,7 +88,7 @@ struct SimArgs {
     #[arg(long, value_enum)]
     mode: Option<AssociationMode>,
     /// Measurement budget (`mapping.max_points`): at most N downsampled points measured per
-    /// scan; 0 = all [default: the configuration's, 6000]
+    /// scan; 0 = all [default: the configuration's, 5000]
     #[arg(long, value_name = "N")]
     max_points: Option<u64>,
     /// The association's k-NN (`mapping.knn_search`).
@@ -306,7 +306,7 @@ struct BenchArgs {
     #[arg(long, default_value_t = 12.0, value_name = "S")]
     seconds: f64,
     /// Measurement budget (`mapping.max_points`): at most N downsampled points measured per
-    /// scan, in both modes; 0 = all [default: the configuration's, 6000]
+    /// scan, in both modes; 0 = all [default: the configuration's, 5000]
     #[arg(long, value_name = "N")]
     max_points: Option<u64>,
     /// The association's k-NN (`mapping.knn_search`), in both modes.

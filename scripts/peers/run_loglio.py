@@ -60,7 +60,7 @@ def main():
     ap.add_argument("scenario_dir", type=Path)
     ap.add_argument("out_dir", type=Path)
     ap.add_argument("--mode", default="full", choices=("full", "plane-only", "plain"))
-    ap.add_argument("--max-points", type=int, default=None, help="measurement budget (mapping.max_points; 0 = all; default: loglio's, 6000)")
+    ap.add_argument("--max-points", type=int, default=None, help="measurement budget (mapping.max_points; 0 = all; default: loglio's, 5000)")
     a = ap.parse_args()
     info = json.loads((a.scenario_dir / "scenario.json").read_text())
     name = info["scenario"]
