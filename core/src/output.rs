@@ -178,18 +178,22 @@ impl PoseEstimate {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct StageTimes {
-    /// Ring FALS normals, with the downsampling's voxel binning beside them (on two threads at
-    /// once where the caller gives them, else one after the other).
+    /// Ring FALS normals. Where the caller gives two threads or more: with the normals'
+    /// compaction and rotation, and the downsampling's voxel binning beside them (the two jobs'
+    /// time together).
     pub normals_ns: u64,
-    /// Copying the points in, IMU propagation, and the undistortion of the downsampled points.
+    /// Copying the points in, the IMU propagation and the undistortion of every point (of its
+    /// normal too on one thread).
     pub undistort_ns: u64,
-    /// The rest of the voxel downsampling: the voxels' mean normals and the output.
+    /// The rest of the voxel downsampling (on one thread with the voxel binning): the voxels'
+    /// mean normals and the output.
     pub downsample_ns: u64,
     /// Association (all iterations).
     pub association_ns: u64,
-    /// Filter update (all iterations, without association).
+    /// Filter update (all iterations, without association), with the moving points' verdicts
+    /// and the measured points' selection.
     pub update_ns: u64,
-    /// Map insertion.
+    /// The map: its free-space clearing and the insertion.
     pub map_ns: u64,
     /// The whole scan.
     pub total_ns: u64,

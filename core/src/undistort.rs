@@ -393,7 +393,7 @@ impl<const N: usize> ImuTrajectory<N> {
         if self.knots.is_empty() {
             return Err(UndistortError::NoPoses);
         }
-        if normals.as_ref().is_some_and(|n| n.len() != points.len()) {
+        if normals.as_ref().is_some_and(|n| n.len() != points.as_ref().len()) {
             return Err(UndistortError::LengthMismatch);
         }
         let r_e_t = end.rot.to_rotation_matrix().into_inner().transpose();
@@ -404,8 +404,8 @@ impl<const N: usize> ImuTrajectory<N> {
         let mut stats = UndistortStats::default();
         let mut seg: Option<Segment> = None;
         let mut cached: Option<(u32, M3, V3)> = None;
-        for i in 0..points.len() {
-            let pt = points.get(i);
+        for i in 0..points.as_ref().len() {
+            let pt = points.as_ref()[i];
             let [x, y, z] = pt.xyz;
             if !(x.is_finite() && y.is_finite() && z.is_finite() && pt.t.is_finite()) {
                 stats.invalid += 1;
@@ -464,21 +464,11 @@ impl<const N: usize> ImuTrajectory<N> {
 }
 
 /// The points a transform reads (and, moving them, writes).
-trait Points {
-    fn len(&self) -> usize;
-    fn get(&self, i: usize) -> ScanPoint;
+trait Points: AsRef<[ScanPoint]> {
     fn set_xyz(&mut self, i: usize, xyz: [f32; 3]);
 }
 
 impl Points for &mut [ScanPoint] {
-    #[inline(always)]
-    fn len(&self) -> usize {
-        <[ScanPoint]>::len(self)
-    }
-    #[inline(always)]
-    fn get(&self, i: usize) -> ScanPoint {
-        self[i]
-    }
     #[inline(always)]
     fn set_xyz(&mut self, i: usize, xyz: [f32; 3]) {
         self[i].xyz = xyz;
@@ -487,14 +477,6 @@ impl Points for &mut [ScanPoint] {
 
 /// Read only: for the normals alone.
 impl Points for &[ScanPoint] {
-    #[inline(always)]
-    fn len(&self) -> usize {
-        <[ScanPoint]>::len(self)
-    }
-    #[inline(always)]
-    fn get(&self, i: usize) -> ScanPoint {
-        self[i]
-    }
     #[inline(always)]
     fn set_xyz(&mut self, _: usize, _: [f32; 3]) {}
 }
