@@ -333,17 +333,26 @@ fn clouds_without_ring_and_time_run_from_geometry_with_one_warning_each() {
 }
 
 /// One header stamp a minute late among the clouds or the IMU messages (the bag's record
-/// times right): dropped as a wrong stamp and said; the run as the clean one (ATE at most
-/// 1.05x). Before 2026-11-27 one such cloud ended the tracking (503 of 593 poses on one stamp)
-/// and one such IMU message gave 95 re-initialising scans.
+/// times right): dropped as a wrong stamp and said; every scan but the dropped one tracked, none
+/// re-initialising, the ATE as the clean run's (at most 1.25x: on this 29-pose drive a scan
+/// less moves the exact ATE by up to 1.17x over measurement budgets of 0-7,000 points).
+/// Before 2026-11-27 one such cloud ended the tracking (503 of 593 poses on one stamp) and one
+/// such IMU message gave 95 re-initialising scans.
 #[test]
 fn a_header_stamp_a_minute_late_is_dropped_and_said() {
     let dir = scratch("late-stamp");
     write_sim_bag(&dir, true);
     let clean = run_bag(&dir, &[]);
-    let text = String::from_utf8_lossy(&clean.stdout).to_string();
     assert!(clean.status.success(), "{}", String::from_utf8_lossy(&clean.stderr));
-    let base = number_after(&text, "rmse");
+    // The exact ATE and the poses written (the printed ATE is rounded to millimetres).
+    let result = |dir: &Path| {
+        let j = std::fs::read_to_string(dir.join("out").join("eval.json")).unwrap();
+        let v: serde_json::Value = serde_json::from_str(&j).unwrap();
+        let traj = std::fs::read_to_string(dir.join("out").join("trajectory.tum")).unwrap();
+        let poses = traj.lines().filter(|l| !l.starts_with('#')).count();
+        (v["ape_trans_m"]["rmse"].as_f64().unwrap(), poses)
+    };
+    let (base, base_poses) = result(&dir);
     for late in [LateStamp::Cloud, LateStamp::Imu] {
         write_sim_bag_with(&dir, true, late);
         let out = run_bag(&dir, &[]);
@@ -353,9 +362,10 @@ fn a_header_stamp_a_minute_late_is_dropped_and_said() {
         assert!(out.status.success() && !err.contains("panicked"), "{what}: {err}");
         assert!(err.to_lowercase().contains("stamp"), "{what}: no warning names the stamp: {err}");
         assert!(!text.contains("re-initialising"), "{what}: {text}");
-        let ate = number_after(&text, "rmse");
-        println!("late {what} stamp: ATE {ate:.4} m, clean {base:.4} m");
-        assert!(ate <= 1.05 * base + 1e-4, "{what}: ATE {ate} m against {base} m: {text}\n{err}");
+        let (ate, poses) = result(&dir);
+        println!("late {what} stamp: ATE {ate:.5} m, clean {base:.5} m; {poses} poses of {base_poses}");
+        assert!(poses + 1 >= base_poses, "{what}: {poses} poses against {base_poses}: {text}");
+        assert!(ate <= 1.25 * base, "{what}: ATE {ate} m against {base} m: {text}\n{err}");
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
