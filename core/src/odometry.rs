@@ -95,7 +95,7 @@ use crate::output::{
     AssociationCounts, BridgeReason, ImuOnlyReason, Integrity, PoseEstimate, ReinitReason, ScanResult,
     StageTimes, Status,
 };
-use crate::parallel::Parallel;
+use crate::parallel::{Parallel, Sequential};
 use crate::range_image::RangeImageLayout;
 use crate::relocalise::{self, Relocalisation, RelocaliseConfig};
 use crate::ring_fals::{PointNormal, RingFals, RingFalsConfig, RingTable, TableError, storage_pixels};
@@ -1049,10 +1049,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                     core::array::from_fn(|i| m[i][0] * p[0] + m[i][1] * p[1] + m[i][2] * p[2] + b[i]);
                 u32::from(img.verdict(l, fs) == Verdict::SeenThrough)
             };
-            match par {
-                Some(p) => crate::parallel::map_indexed(p, flags, moved),
-                None => flags.iter_mut().enumerate().for_each(|(k, v)| *v = moved(k)),
-            }
+            crate::parallel::map_indexed(par.unwrap_or(&Sequential), flags, moved);
             let (mut i, mut end) = (0usize, kept);
             while i < end {
                 if st.cell_of[i] != 0 {
@@ -1297,19 +1294,9 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 };
                 // The judgements in pieces on the caller's threads (the voxels' scratch is free
                 // by now).
-                let (sus, reach) = (&mut st.suspects, fs.max_range);
-                let cleared = match par {
-                    Some(p) => self.map.clear_seen_through_with(
-                        origin,
-                        reach,
-                        budget,
-                        sus,
-                        judge,
-                        p,
-                        &mut st.cell_of,
-                    ),
-                    None => self.map.clear_seen_through(origin, reach, budget, sus, judge),
-                };
+                let (sus, reach, p) = (&mut st.suspects, fs.max_range, par.unwrap_or(&Sequential));
+                let cleared =
+                    self.map.clear_seen_through_with(origin, reach, budget, sus, judge, p, &mut st.cell_of);
                 self.stats.cleared = self.stats.cleared.saturating_add(u64::from(cleared));
                 // The reference image and pose for the next scans' moving points, renewed every
                 // `reference_every_s`.

@@ -293,21 +293,9 @@ impl<const N: usize> ImuTrajectory<N> {
         normals: Option<&mut [[f32; 3]]>,
         parallel: &dyn Parallel,
     ) -> Result<UndistortStats, UndistortError> {
-        self.split(end, points, normals, parallel, Self::undistort)
-    }
-
-    /// `run` on pieces of `points` (and `normals`) on `parallel`'s threads, the stats summed.
-    fn split(
-        &self,
-        end: &State,
-        points: &mut [ScanPoint],
-        normals: Option<&mut [[f32; 3]]>,
-        parallel: &dyn Parallel,
-        run: Transform<N>,
-    ) -> Result<UndistortStats, UndistortError> {
         let n = points.len();
         if parallel.width() <= 1 || n < 2 * UNDISTORT_PIECE {
-            return run(self, end, points, normals);
+            return self.undistort(end, points, normals);
         }
         if normals.as_ref().is_some_and(|nr| nr.len() != n) {
             return Err(UndistortError::LengthMismatch);
@@ -331,7 +319,7 @@ impl<const N: usize> ImuTrajectory<N> {
                     None => None,
                 };
                 let mut piece_normals = piece_normals;
-                let _ = closures.push(move || *out = run(self, end, p, piece_normals.as_deref_mut()));
+                let _ = closures.push(move || *out = self.undistort(end, p, piece_normals.as_deref_mut()));
                 start = e;
             }
             let mut jobs = heapless::Vec::<crate::parallel::Job<'_>, { crate::parallel::MAX_WIDTH }>::new();
@@ -480,14 +468,6 @@ impl Points for &[ScanPoint] {
     #[inline(always)]
     fn set_xyz(&mut self, _: usize, _: [f32; 3]) {}
 }
-
-/// One of the transforms [`ImuTrajectory::split`] runs in pieces.
-type Transform<const N: usize> = fn(
-    &ImuTrajectory<N>,
-    &State,
-    &mut [ScanPoint],
-    Option<&mut [[f32; 3]]>,
-) -> Result<UndistortStats, UndistortError>;
 
 /// Cubic Hermite weights of `(a.pos, a.vel, b.pos, b.vel)` at `tau` into a segment of length
 /// `h`.

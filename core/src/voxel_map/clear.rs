@@ -65,7 +65,7 @@ impl VoxelMap<'_> {
     /// [`Self::clear_seen_through`] with the round robin's judgements (read-only, one voxel at
     /// a time) split over `parallel`'s threads, each piece noting its verdicts in its own part
     /// of `scratch` (one entry per voxel judged; a longer budget goes in rounds of
-    /// `scratch.len()`, none at all judges one at a time). The suspects are then taken in
+    /// `scratch.len()`, an empty scratch in rounds of 64). The suspects are then taken in
     /// order, so the result is the same, bit for bit, for any width.
     #[allow(clippy::too_many_arguments)]
     pub fn clear_seen_through_with<const N: usize>(
@@ -93,27 +93,17 @@ impl VoxelMap<'_> {
             }
         }
         // Round robin: new suspects, judged in rounds of at most `scratch.len()` voxels.
+        let mut local = [0u32; 64];
+        let scratch = if scratch.is_empty() { &mut local[..] } else { scratch };
         let total = budget.min(self.len);
-        let round = if parallel.width() > 1 { scratch.len() } else { 0 };
         let mut done = 0;
         while done < total {
             if self.clear_cursor >= self.len {
                 self.clear_cursor = 0;
             }
             let start = self.clear_cursor;
-            // One voxel at a time: straight into the suspects.
-            if round == 0 {
-                let i = start;
-                if self.seen_through(i, sensor, reach2, slack, &judge) == Some(true) && suspects.len < N {
-                    suspects.keys[suspects.len] = self.pool[i].key;
-                    suspects.len += 1;
-                }
-                self.clear_cursor += 1;
-                done += 1;
-                continue;
-            }
             // A round, up to the pool's end (the next one starts at 0).
-            let len = (total - done).min(round).min(self.len - start);
+            let len = (total - done).min(scratch.len()).min(self.len - start);
             let verdicts = &mut scratch[..len];
             let map = &*self;
             parallel::map_indexed(parallel, verdicts, |k| {
