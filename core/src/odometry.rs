@@ -985,9 +985,17 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 // Cannot fail: as above.
                 let _ = traj.undistort_normals(x, pts, nrm3);
             };
-            let (ds, cells) = (&mut st.downsampler, &mut st.cell_of[..m]);
+            let (ds, cells, free) = (&mut st.downsampler, &mut st.cell_of[..m], &mut st.free);
             let bin = &mut binned;
-            let mut job_voxels = || *bin = m > 0 && ds.bin_with_scratch(&ds_cfg, pts, cells).is_ok();
+            // Which cells of the free-space image no return fell in (every point, before the
+            // downsampling keeps one a voxel): the map's clearing reads them as gone through.
+            let mark = self.cfg.free_space.enabled;
+            let mut job_voxels = || {
+                *bin = m > 0 && ds.bin_with_scratch(&ds_cfg, pts, cells).is_ok();
+                if mark {
+                    free.mark_returns(pts);
+                }
+            };
             if let Some(p) = par {
                 p.run(&mut [&mut job_normals, &mut job_voxels]);
             }
@@ -998,6 +1006,9 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         } else {
             binned = m > 0
                 && st.downsampler.bin_with_scratch(&ds_cfg, &st.points[..m], &mut st.cell_of[..m]).is_ok();
+            if self.cfg.free_space.enabled {
+                st.free.mark_returns(&st.points[..m]);
+            }
             times.normals_ns = t_n0.saturating_sub(t_p);
             times.undistort_ns = t_p.saturating_sub(t0).saturating_add(t_u.saturating_sub(t_n0));
             t_u
