@@ -137,9 +137,12 @@ fn standstill_updates_only_where_the_platform_stands() {
     }
 }
 
+/// Full against plane-only by the mean of three seeds, as on the drone: on seed 7 alone they are
+/// within what a handful of points changes (`loglio sim`, seed 7, at `1ef3c66`: full 5.31-5.72 mm
+/// over the measurement budgets 4990-5010, plane-only 5.43 mm).
 #[test]
 fn vehicle_vlp32c() {
-    well_posed(ScenarioKind::Vehicle);
+    well_posed_over(ScenarioKind::Vehicle, &[7, 1, 2]);
 }
 
 #[test]

@@ -9,10 +9,15 @@
 //! - **the map's ghosts**: after the update, the map's representatives near the sensor are put in
 //!   the scan's image, and a voxel whose representatives lie well in front of what the beams
 //!   around them hit is removed ([`crate::voxel_map::VoxelMap::clear_seen_through`]);
-//! - **moving points**: a point of this scan that lies where the beams of a reference scan (up
-//!   to `2 reference_every_s` old) went through has moved in; it is kept out of the association
-//!   and the map. An object moving with the sensor (a bus overtaking at 1.5 m/s more) shifts
-//!   only centimetres between two scans, hence the older reference.
+//! - **moving points**: a point of this scan that lies where the beams of a reference scan went
+//!   through has moved in; it is kept out of the association and the map. References are
+//!   renewed every `reference_every_s` and the older of the last two is used, `reference_every_s`
+//!   to twice that old. An object moving with the sensor (a bus overtaking at 1.5 m/s more)
+//!   shifts only centimetres between two scans, hence an old reference; and the newest one alone
+//!   is as young as one scan right after its renewal, when a bus closing in at 1.5 m/s from 40 m
+//!   (a margin of 1.2 m) has not yet left the space it held then. With the older reference the
+//!   traffic scenario's map held 0.71 / 1.22 / 1.06 % of its points where the actors drove
+//!   (seeds 1-3) instead of 0.92 / 1.89 / 1.60 %.
 //!
 //! The test is conservative, because a wrong removal costs a static surface:
 //! - the image holds the *nearest* return of each cell (row by elevation x 1 degree of azimuth,
@@ -75,8 +80,9 @@ pub struct FreeSpaceConfig {
     /// beyond it, or, for the map's ghosts on the point's own beam, no return at all; cells
     /// with returns but no representative say nothing).
     pub min_beyond: u8,
-    /// Moving points are judged against the image of a scan at most twice this old (seconds),
-    /// renewed this often: an object moving with the sensor shifts too little between two scans.
+    /// References for the moving points are renewed this often (seconds), and the older of the
+    /// last two is used (this to twice this old): an object moving with the sensor shifts too
+    /// little between two scans.
     pub reference_every_s: f32,
     /// Moving points grown into the rest of their objects ([`crate::moving_objects`]).
     pub grow: crate::moving_objects::GrowConfig,

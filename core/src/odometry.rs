@@ -327,6 +327,8 @@ pub struct ScanStorage<const PIX: usize, const PTS: usize, const DS: usize> {
     /// The previous scan's ([`PrevScan`]): where its beams went through, something that is there
     /// now moved in.
     prev_free: FreeSpaceImage<PIX>,
+    /// The reference before it (`Odometry::old_scan`), `reference_every_s` to twice that old.
+    old_free: FreeSpaceImage<PIX>,
     /// Map voxels the last scan saw through, for this one to judge again.
     suspects: Suspects<SUSPECTS>,
     /// The scan's coarse cells, to grow moving points into their objects.
@@ -416,6 +418,7 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> ScanStorage<PIX, PTS, 
             corr: [Correspondence::NONE; DS],
             free: FreeSpaceImage::new(),
             prev_free: FreeSpaceImage::new(),
+            old_free: FreeSpaceImage::new(),
             suspects: Suspects::new(),
             objects: MovingObjects::new(),
             queries: [[0.0; 3]; KNN_CHUNK],
@@ -541,6 +544,10 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     last_relocalisation: Option<Relocalisation>,
     /// The previous scan's pose, when its image is in `scan.prev_free`.
     prev_scan: Option<PrevScan>,
+    /// The reference before it, when its image is in `scan.old_free`: the moving points are
+    /// judged against it, so that an object approaching slowly has moved by its speed times at
+    /// least `reference_every_s` (the newer reference is one scan to that old).
+    old_scan: Option<PrevScan>,
     /// The caller's threads and their k-NN scratch ([`Odometry::set_parallel`]).
     parallel: ParallelSlot<'a>,
     /// Running means of the agreeing scans' shares of matching points and innovations.
@@ -604,6 +611,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         // A layout the image cannot hold judges nothing: the map then keeps everything.
         let _ = scan.free.set_layout(&cfg.layout, cfg.free_space.columns);
         let _ = scan.prev_free.set_layout(&cfg.layout, cfg.free_space.columns);
+        let _ = scan.old_free.set_layout(&cfg.layout, cfg.free_space.columns);
         scan.imu.clear();
         let map = map.map(cfg.map).map_err(OdometryError::Map)?;
         Ok(Self {
@@ -627,6 +635,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             last_end: None,
             last_relocalisation: None,
             prev_scan: None,
+            old_scan: None,
             parallel: None,
             share_mean: None,
             nis_mean: None,
@@ -796,6 +805,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         self.last_scan_end_ns = None;
         self.last_end = None;
         self.prev_scan = None;
+        self.old_scan = None;
         self.scan.suspects.clear();
         self.share_mean = None;
         self.nis_mean = None;
@@ -1032,12 +1042,22 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         let mut moving = 0usize;
         let fs = self.cfg.free_space;
         let ref_max_ns = (2.0 * f64::from(fs.reference_every_s) * 1e9) as u64 + 150_000_000;
-        if reinit.is_some()
-            || self.prev_scan.is_some_and(|p| end_ns <= p.end_ns || end_ns - p.end_ns > ref_max_ns)
-        {
+        let stale = |p: Option<PrevScan>, max_ns: u64| {
+            reinit.is_some() || p.is_some_and(|p| end_ns <= p.end_ns || end_ns - p.end_ns > max_ns)
+        };
+        if stale(self.prev_scan, ref_max_ns) {
             self.prev_scan = None;
         }
-        if let Some(prev) = self.prev_scan
+        if stale(self.old_scan, ref_max_ns + 100_000_000) {
+            self.old_scan = None;
+        }
+        // Against the older reference (`reference_every_s` to twice that old), where there is one:
+        // it saw where a slowly approaching object was far enough away.
+        let reference = match self.old_scan {
+            Some(o) => Some((o, &st.old_free)),
+            None => self.prev_scan.map(|p| (p, &st.prev_free)),
+        };
+        if let Some((prev, img)) = reference
             && kept > 0
             && fs.enabled
             && fs.moving_points
@@ -1046,12 +1066,12 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             let r = x.rot.to_rotation_matrix().into_inner();
             let r_wl = r * x.ext_rot.to_rotation_matrix().into_inner();
             let p_wl = r * x.ext_pos + x.pos;
-            // This scan's sensor frame to the previous one's.
+            // This scan's sensor frame to the reference's.
             let m = prev.rot_t * r_wl;
             let b = prev.rot_t * (p_wl - prev.origin);
             let m: [[f32; 3]; 3] = core::array::from_fn(|i| core::array::from_fn(|j| m[(i, j)] as f32));
             let b = [b.x as f32, b.y as f32, b.z as f32];
-            let (img, fs) = (&st.prev_free, &self.cfg.free_space);
+            let fs = &self.cfg.free_space;
             // Each point's verdict (in pieces on the caller's threads), then the partition.
             let (pts, flags) = (&st.points[..kept], &mut st.cell_of[..kept]);
             let moved = |k: usize| {
@@ -1288,6 +1308,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             let well_posed = update.outcome == UpdateOutcome::Updated && update.degeneracy.count == 0;
             if !well_posed {
                 self.prev_scan = None;
+                self.old_scan = None;
             }
             if fs.enabled && !building && well_posed {
                 st.free.fill(&st.points[..kept]);
@@ -1313,7 +1334,9 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 // `reference_every_s`.
                 let renew_ns = (f64::from(fs.reference_every_s) * 1e9) as u64;
                 if self.prev_scan.is_none_or(|p| end_ns.saturating_sub(p.end_ns) >= renew_ns) {
+                    core::mem::swap(&mut st.prev_free, &mut st.old_free);
                     core::mem::swap(&mut st.free, &mut st.prev_free);
+                    self.old_scan = self.prev_scan;
                     self.prev_scan = Some(PrevScan { end_ns, rot_t: r_wl.transpose(), origin: p_wl });
                 }
             }
