@@ -322,13 +322,13 @@ pub struct ScanStorage<const PIX: usize, const PTS: usize, const DS: usize> {
     imu: ImuQueue<IMU_QUEUE>,
     trajectory: ImuTrajectory<TRAJECTORY_KNOTS>,
     corr: [Correspondence; DS],
-    /// The scan's nearest returns per coarse cell ([`crate::free_space`]).
-    free: FreeSpaceImage<PIX>,
-    /// The previous scan's ([`PrevScan`]): where its beams went through, something that is there
-    /// now moved in.
-    prev_free: FreeSpaceImage<PIX>,
-    /// The reference before it (`Odometry::old_scan`), `reference_every_s` to twice that old.
-    old_free: FreeSpaceImage<PIX>,
+    /// Three free-space images ([`crate::free_space`]), named by `free_at`: this scan's nearest
+    /// returns per coarse cell; the previous reference's ([`PrevScan`]: where its beams went
+    /// through, something that is there now moved in); the one before it (`Odometry::old_scan`,
+    /// `reference_every_s` to twice that old). A renewal rotates the names, not the images.
+    frees: [FreeSpaceImage<PIX>; 3],
+    /// Which of `frees` is this scan's, the previous reference's and the older one's.
+    free_at: [usize; 3],
     /// Map voxels the last scan saw through, for this one to judge again.
     suspects: Suspects<SUSPECTS>,
     /// The scan's coarse cells, to grow moving points into their objects.
@@ -416,9 +416,8 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> ScanStorage<PIX, PTS, 
             imu: ImuQueue::new(),
             trajectory: ImuTrajectory::new(),
             corr: [Correspondence::NONE; DS],
-            free: FreeSpaceImage::new(),
-            prev_free: FreeSpaceImage::new(),
-            old_free: FreeSpaceImage::new(),
+            frees: [FreeSpaceImage::new(), FreeSpaceImage::new(), FreeSpaceImage::new()],
+            free_at: [0, 1, 2],
             suspects: Suspects::new(),
             objects: MovingObjects::new(),
             queries: [[0.0; 3]; KNN_CHUNK],
@@ -542,9 +541,9 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     last_end: Option<(u64, UnitQuaternion<f64>, Vector3<f64>)>,
     /// The last re-localisation search (whether or not it moved the prediction).
     last_relocalisation: Option<Relocalisation>,
-    /// The previous scan's pose, when its image is in `scan.prev_free`.
+    /// The previous reference's pose, when its image is in `scan.frees[scan.free_at[1]]`.
     prev_scan: Option<PrevScan>,
-    /// The reference before it, when its image is in `scan.old_free`: the moving points are
+    /// The reference before it, when its image is in `scan.frees[scan.free_at[2]]`: the moving points are
     /// judged against it, so that an object approaching slowly has moved by its speed times at
     /// least `reference_every_s` (the newer reference is one scan to that old).
     old_scan: Option<PrevScan>,
@@ -609,9 +608,9 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         }
         scan.table.build(&cfg.layout, &cfg.ring_fals).map_err(OdometryError::RingTable)?;
         // A layout the image cannot hold judges nothing: the map then keeps everything.
-        let _ = scan.free.set_layout(&cfg.layout, cfg.free_space.columns);
-        let _ = scan.prev_free.set_layout(&cfg.layout, cfg.free_space.columns);
-        let _ = scan.old_free.set_layout(&cfg.layout, cfg.free_space.columns);
+        for free in &mut scan.frees {
+            let _ = free.set_layout(&cfg.layout, cfg.free_space.columns);
+        }
         scan.imu.clear();
         let map = map.map(cfg.map).map_err(OdometryError::Map)?;
         Ok(Self {
@@ -995,7 +994,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 // Cannot fail: as above.
                 let _ = traj.undistort_normals(x, pts, nrm3);
             };
-            let (ds, cells, free) = (&mut st.downsampler, &mut st.cell_of[..m], &mut st.free);
+            let (ds, cells, free) = (&mut st.downsampler, &mut st.cell_of[..m], &mut st.frees[st.free_at[0]]);
             let bin = &mut binned;
             // Which cells of the free-space image no return fell in (every point, before the
             // downsampling keeps one a voxel): the map's clearing reads them as gone through.
@@ -1017,7 +1016,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             binned = m > 0
                 && st.downsampler.bin_with_scratch(&ds_cfg, &st.points[..m], &mut st.cell_of[..m]).is_ok();
             if self.cfg.free_space.enabled {
-                st.free.mark_returns(&st.points[..m]);
+                st.frees[st.free_at[0]].mark_returns(&st.points[..m]);
             }
             times.normals_ns = t_n0.saturating_sub(t_p);
             times.undistort_ns = t_p.saturating_sub(t0).saturating_add(t_u.saturating_sub(t_n0));
@@ -1048,14 +1047,16 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         if stale(self.prev_scan, ref_max_ns) {
             self.prev_scan = None;
         }
+        // The older one's bound is one scan (0.1 s) longer: each renewal may come a scan after
+        // `reference_every_s`, so the older reference can be that much older than the newer's bound.
         if stale(self.old_scan, ref_max_ns + 100_000_000) {
             self.old_scan = None;
         }
         // Against the older reference (`reference_every_s` to twice that old), where there is one:
         // it saw where a slowly approaching object was far enough away.
         let reference = match self.old_scan {
-            Some(o) => Some((o, &st.old_free)),
-            None => self.prev_scan.map(|p| (p, &st.prev_free)),
+            Some(o) => Some((o, &st.frees[st.free_at[2]])),
+            None => self.prev_scan.map(|p| (p, &st.frees[st.free_at[1]])),
         };
         if let Some((prev, img)) = reference
             && kept > 0
@@ -1311,11 +1312,11 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 self.old_scan = None;
             }
             if fs.enabled && !building && well_posed {
-                st.free.fill(&st.points[..kept]);
+                st.frees[st.free_at[0]].fill(&st.points[..kept]);
                 // World to sensor in f32: the map's points are f32, the margins decimetres.
                 let rt: [[f32; 3]; 3] =
                     core::array::from_fn(|i| core::array::from_fn(|j| r_wl[(j, i)] as f32));
-                let (free, fsc) = (&st.free, &fs);
+                let (free, fsc) = (&st.frees[st.free_at[0]], &fs);
                 // Every voxel at least every 4 scans on a small map; a fixed cost on a large one.
                 let budget = (fs.voxels_per_scan as usize).min(self.map.len().div_ceil(4));
                 let judge = |q: [f32; 3], slack| {
@@ -1334,8 +1335,10 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 // `reference_every_s`.
                 let renew_ns = (f64::from(fs.reference_every_s) * 1e9) as u64;
                 if self.prev_scan.is_none_or(|p| end_ns.saturating_sub(p.end_ns) >= renew_ns) {
-                    core::mem::swap(&mut st.prev_free, &mut st.old_free);
-                    core::mem::swap(&mut st.free, &mut st.prev_free);
+                    // This scan's image becomes the newer reference, the newer the older, and the
+                    // older one is written over by the next scan.
+                    let [cur, prev, old] = st.free_at;
+                    st.free_at = [old, cur, prev];
                     self.old_scan = self.prev_scan;
                     self.prev_scan = Some(PrevScan { end_ns, rot_t: r_wl.transpose(), origin: p_wl });
                 }
