@@ -3,6 +3,8 @@
 //! for 2, 3 and 8 threads (each piece writes its own correspondences; the counts are integers
 //! summed in piece order; the update accumulates in point order afterwards; the normals and the
 //! voxels write disjoint storage, and the voxels' normals are summed in point order after both).
+//! With more than one thread each scan's map insertion waits for the next scan's normals stage
+//! (`Odometry::set_deferred_map`); the map at the end is the same too.
 
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -10,7 +12,9 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use loglio_core::association::KnnScratch;
 use loglio_core::odometry::{AssociationMode, Vlp32cStorage};
 use loglio_core::parallel::{Job, MAX_WIDTH, Parallel};
+use loglio_core::ring_fals::storage_pixels;
 use loglio_core::scan::ScanView;
+use loglio_core::voxel_map::MapPoint;
 use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKind};
 use loglio_tests::odom::{StdClock, config_for};
@@ -40,22 +44,24 @@ impl Parallel for Threads {
     }
 }
 
-/// Every scan's pose (bits) and association counts with `threads` (1: no split), and how many
-/// searches were split.
+/// Every scan's pose (bits) and association counts, then the map's voxel count and a digest of
+/// its points, with `threads` (1: no split); and how many searches were split.
 fn run(sc: &Scenario, threads: usize) -> (Vec<([u64; 7], u32)>, usize) {
     let pool = Threads(threads, AtomicUsize::new(0));
     let out = run_on(sc, &pool);
     (out, pool.1.load(Ordering::Relaxed))
 }
 
-/// Every scan's pose (bits) and association counts with the jobs on `pool`.
+/// [`run`]'s records with the jobs on `pool`.
 fn run_on(sc: &Scenario, pool: &dyn Parallel) -> Vec<([u64; 7], u32)> {
     let mut store = STORE.lock().unwrap_or_else(|e| e.into_inner());
     let threads = pool.width();
     let mut scratch = vec![KnnScratch::new(); MAX_WIDTH];
+    let mut deferred = vec![MapPoint::default(); 32768];
     let mut odo = store.odometry(&config_for(sc, AssociationMode::Full)).unwrap();
     if threads > 1 {
         odo.set_parallel(pool, &mut scratch[..threads - 1]);
+        odo.set_deferred_map(&mut deferred);
     }
     let mut clock = StdClock::default();
     let mut out = Vec::new();
@@ -73,6 +79,31 @@ fn run_on(sc: &Scenario, pool: &dyn Parallel) -> Vec<([u64; 7], u32)> {
             }
         }
     }
+    // The last scan's insertion waits with more than one thread; the flush puts it in.
+    let points = |odo: &loglio_core::odometry::Odometry<'_, { storage_pixels(32, 1800) }, 65536, 32768>| {
+        let mut n = 0usize;
+        odo.map().for_each_point(|_, _, _| n += 1);
+        n
+    };
+    let before = points(&odo);
+    odo.flush_map();
+    let (after, voxels) = (points(&odo), odo.map().len());
+    if threads > 1 {
+        assert!(after > before, "the last scan's insertion did not wait ({before} -> {after} points)");
+    } else {
+        assert_eq!(after, before);
+    }
+    let mut digest = [0u64; 7];
+    let mut k = 0u64;
+    odo.map().for_each_point(|_, xyz, normal| {
+        k += 1;
+        let n = normal.unwrap_or([f32::NAN; 3]);
+        for (d, v) in digest.iter_mut().zip(xyz.iter().chain(&n)) {
+            *d = d.rotate_left(5) ^ u64::from(v.to_bits()) ^ k;
+        }
+    });
+    digest[6] = k;
+    out.push((digest, voxels as u32));
     out
 }
 

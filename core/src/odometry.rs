@@ -368,6 +368,23 @@ struct PrevScan {
 /// The caller's threads and their k-NN scratch ([`Odometry::set_parallel`]).
 type ParallelSlot<'a> = Option<(&'a dyn Parallel, &'a mut [KnnScratch])>;
 
+/// A scan's map insertion waiting in the caller's buffer ([`Odometry::set_deferred_map`]).
+#[derive(Clone, Copy, Debug)]
+struct PendingInsert {
+    origin: [f32; 3],
+    stamp: u32,
+    /// The first `points` of the buffer.
+    points: usize,
+}
+
+/// Inserts the waiting points, if any (the same call as an insertion without waiting).
+fn insert_pending(map: &mut VoxelMap<'_>, pending: &mut Option<PendingInsert>, buf: Option<&[MapPoint]>) {
+    if let (Some(p), Some(buf)) = (pending.take(), buf) {
+        // Cannot fail: as at the insertion (a finite origin, stamps only increasing).
+        let _ = map.insert_slice(&buf[..p.points], p.origin, p.stamp);
+    }
+}
+
 impl<const PIX: usize, const PTS: usize, const DS: usize> ScanStorage<PIX, PTS, DS> {
     /// The measurements of the first `measured` points (of `still` points the budget chose
     /// from) against `map`, split over `parallel`'s threads where given.
@@ -549,6 +566,11 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     old_scan: Option<PrevScan>,
     /// The caller's threads and their k-NN scratch ([`Odometry::set_parallel`]).
     parallel: ParallelSlot<'a>,
+    /// The caller's buffer for a scan's map points whose insertion waits for the next scan
+    /// ([`Odometry::set_deferred_map`]).
+    deferred: Option<&'a mut [MapPoint]>,
+    /// The insertion waiting in `deferred`, if any.
+    pending: Option<PendingInsert>,
     /// Running means of the agreeing scans' shares of matching points and innovations.
     share_mean: Option<f32>,
     nis_mean: Option<f32>,
@@ -636,6 +658,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             prev_scan: None,
             old_scan: None,
             parallel: None,
+            deferred: None,
+            pending: None,
             share_mean: None,
             nis_mean: None,
             low_run: 0,
@@ -758,6 +782,22 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         self.parallel = Some((parallel, scratch));
     }
 
+    /// With [`Self::set_parallel`]'s threads, lets a scan's map insertion wait in `buffer` (at
+    /// least `DS` points; a smaller one defers only scans that fit) until the next scan, whose
+    /// Ring FALS and voxel search it then runs beside: the pose is returned before the insertion,
+    /// and the insertion takes no time of its own. The map and every result are the same, bit
+    /// for bit; only [`Self::map`] may lag one scan until [`Self::flush_map`].
+    pub fn set_deferred_map(&mut self, buffer: &'a mut [MapPoint]) {
+        self.flush_map();
+        self.deferred = Some(buffer);
+    }
+
+    /// Inserts the last scan's points if their insertion is waiting ([`Self::set_deferred_map`]),
+    /// so that [`Self::map`] holds every scan processed.
+    pub fn flush_map(&mut self) {
+        insert_pending(&mut self.map, &mut self.pending, self.deferred.as_deref());
+    }
+
     /// The last re-localisation search ([`crate::relocalise`]), whether or not it moved the
     /// prediction; `None` before the first.
     pub fn last_relocalisation(&self) -> Option<Relocalisation> {
@@ -797,6 +837,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
 
     /// Forgets the filter and the map; the IMU initialisation starts again.
     fn restart(&mut self) {
+        // What came before still goes in first (the map's counters stay those of one thread).
+        self.flush_map();
         self.filter = None;
         self.initializer.reset();
         self.map.clear();
@@ -829,6 +871,12 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             reinit = Some(ReinitReason::ImuJump);
         }
         let use_normals = self.cfg.mode != AssociationMode::Plain;
+        // A waiting insertion goes in beside Ring FALS (step 3) only where that runs on a
+        // second thread; else now.
+        let par_width = self.parallel.as_ref().map_or(1, |(p, _)| p.width());
+        if !(use_normals && par_width > 1 && self.filter.is_some()) {
+            self.flush_map();
+        }
 
         // 1. Copy the valid points into the storage (their normals come in step 3).
         let n_in = scan.points.len();
@@ -1005,8 +1053,19 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                     free.mark_returns(pts);
                 }
             };
+            // The last scan's map insertion, where it waits: it writes the map only, which
+            // nothing of this scan reads before the association.
+            let deferred = self.pending.is_some();
+            let (map, pending, buf) = (&mut self.map, &mut self.pending, self.deferred.as_deref());
+            let mut job_map = || insert_pending(map, pending, buf);
             if let Some(p) = par {
-                p.run(&mut [&mut job_normals, &mut job_voxels]);
+                if deferred {
+                    // The voxels and the map on one thread (the caller's when two), about the
+                    // normals' time.
+                    p.run(&mut [&mut job_voxels, &mut job_normals, &mut job_map]);
+                } else {
+                    p.run(&mut [&mut job_normals, &mut job_voxels]);
+                }
             }
             let t_n = clock.now_ns();
             times.normals_ns = t_n.saturating_sub(t_u);
@@ -1344,8 +1403,19 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 }
             }
             self.stamp = self.stamp.saturating_add(1);
-            // Cannot fail: the origin is finite (the state is) and stamps only increase.
-            let _ = self.map.insert(pts, origin, self.stamp);
+            match self.deferred.as_deref_mut() {
+                // With a second thread, the insertion waits for the next scan's normals stage.
+                Some(buf) if par.is_some() && buf.len() >= still => {
+                    for (slot, p) in buf.iter_mut().zip(pts) {
+                        *slot = p;
+                    }
+                    self.pending = Some(PendingInsert { origin, stamp: self.stamp, points: still });
+                }
+                // Cannot fail: the origin is finite (the state is) and stamps only increase.
+                _ => {
+                    let _ = self.map.insert(pts, origin, self.stamp);
+                }
+            }
         }
         let t5 = clock.now_ns();
         times.map_ns = t5.saturating_sub(t4);

@@ -166,7 +166,10 @@ pub trait Engine {
     fn push_imu(&mut self, s: ImuSample) -> ImuPush;
     /// Processes one scan, timing the stages with `clock`.
     fn process_scan(&mut self, scan: ScanView<'_>, clock: &mut StdClock) -> ScanResult;
-    /// Voxels in the map.
+    /// Inserts a scan's map points whose insertion waits for the next scan
+    /// ([`Odometry::set_deferred_map`]): the map accessors below then hold every scan.
+    fn flush_map(&mut self);
+    /// Voxels in the map (before the last scan's points while their insertion waits).
     fn map_voxels(&self) -> usize;
     /// The map's life counters (voxels created and evicted, points dropped) and its pool's
     /// capacity in voxels.
@@ -210,6 +213,9 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> Engine for CoreEngine<
     }
     fn process_scan(&mut self, scan: ScanView<'_>, clock: &mut StdClock) -> ScanResult {
         self.odo.process_scan_timed(scan, clock)
+    }
+    fn flush_map(&mut self) {
+        self.odo.flush_map();
     }
     fn map_voxels(&self) -> usize {
         self.odo.map().len()
@@ -360,9 +366,14 @@ fn run_class<const PIX: usize, const PTS: usize, const DS: usize, const V: usize
     let bytes = OdometryStorage::<PIX, PTS, DS, V, I>::bytes();
     let pool = super::pool::Pool::new(threads);
     let mut scratch = vec![KnnScratch::new(); pool.width().saturating_sub(1)];
+    // A scan's map insertion waits here for the next scan's Ring FALS, beside it.
+    let mut deferred =
+        vec![loglio_core::voxel_map::MapPoint::default(); if pool.width() > 1 { DS } else { 0 }];
+    let bytes = bytes + std::mem::size_of_val(deferred.as_slice());
     let mut odo = storage.odometry(cfg).map_err(odometry_error)?;
     if pool.width() > 1 {
         odo.set_parallel(&pool, &mut scratch);
+        odo.set_deferred_map(&mut deferred);
     }
     let mut engine = CoreEngine { odo, bytes };
     Ok(f(&mut engine))

@@ -425,6 +425,7 @@ impl<'e> Runner<'e> {
         let map = map_due.then(|| {
             self.map_sent_ns = Some(res.pose.t_ns);
             let mut v = Vec::new();
+            self.engine.flush_map();
             self.engine.map_points(&mut v);
             std::sync::Arc::new(v)
         });
@@ -701,6 +702,7 @@ impl<'e> Runner<'e> {
             self.accept_scan(h, ha)?;
         }
         self.process_ready(true, None)?;
+        self.engine.flush_map();
         self.stats.faults.imu_guard = self.engine.imu_guard_stats();
         self.stats.faults.relocalisations = self.engine.relocalisations();
         (self.stats.cleared_voxels, self.stats.moving_points) = self.engine.free_space();
