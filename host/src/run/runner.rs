@@ -600,6 +600,7 @@ impl<'e> Runner<'e> {
     /// Processes the waiting scans the IMU covers; with `force`, every waiting scan; with
     /// `older_than`, those that arrived before it (a caller's wall clock: the live wait bound).
     pub fn process_ready(&mut self, force: bool, older_than: Option<u64>) -> Result<(), PipelineError> {
+        let mut processed = false;
         while let Some(&(_, arrival, scan_end)) = self.scans.front() {
             let end = self.imu_time(scan_end);
             let covered = self.lidar_only || self.last_imu_ns.is_some_and(|t| t >= end);
@@ -612,6 +613,12 @@ impl<'e> Runner<'e> {
                 self.stats.scans_without_imu += 1;
             }
             self.process(scan, arrival, scan_end)?;
+            processed = true;
+        }
+        // The poses are out; with no scan waiting, the last one's map insertion (where it waits
+        // for the next scan) runs now, in the time before the next scan.
+        if processed && self.scans.is_empty() {
+            self.engine.flush_map();
         }
         Ok(())
     }
