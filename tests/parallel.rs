@@ -48,17 +48,17 @@ impl Parallel for Threads {
 /// its points, with `threads` (1: no split); and how many searches were split.
 fn run(sc: &Scenario, threads: usize) -> (Vec<([u64; 7], u32)>, usize) {
     let pool = Threads(threads, AtomicUsize::new(0));
-    let out = run_on(sc, &pool);
+    let out = run_on(sc, &pool, AssociationMode::Full);
     (out, pool.1.load(Ordering::Relaxed))
 }
 
 /// [`run`]'s records with the jobs on `pool`.
-fn run_on(sc: &Scenario, pool: &dyn Parallel) -> Vec<([u64; 7], u32)> {
+fn run_on(sc: &Scenario, pool: &dyn Parallel, mode: AssociationMode) -> Vec<([u64; 7], u32)> {
     let mut store = STORE.lock().unwrap_or_else(|e| e.into_inner());
     let threads = pool.width();
     let mut scratch = vec![KnnScratch::new(); MAX_WIDTH];
     let mut deferred = vec![MapPoint::default(); 32768];
-    let mut odo = store.odometry(&config_for(sc, AssociationMode::Full)).unwrap();
+    let mut odo = store.odometry(&config_for(sc, mode)).unwrap();
     if threads > 1 {
         odo.set_parallel(pool, &mut scratch[..threads - 1]);
         odo.set_deferred_map(&mut deferred);
@@ -127,10 +127,22 @@ fn threads_give_the_same_trajectory_bit_for_bit() {
     // The host's pool (workers started once, waiting between batches).
     for width in [2, 3] {
         let pool = loglio_host::run::pool::Pool::new(width);
-        let many = run_on(&sc, &pool);
+        let many = run_on(&sc, &pool, AssociationMode::Full);
         assert_eq!(many.len(), one.len());
         for (i, (a, b)) in one.iter().zip(&many).enumerate() {
             assert_eq!(a, b, "scan {i} differs on the host's pool of {width}");
         }
     }
+}
+
+/// Plain mode (no Ring FALS) defers the insertion too, beside the voxel search alone.
+#[test]
+fn plain_mode_gives_the_same_trajectory_and_map_on_two_threads() {
+    let mut c = ScenarioConfig::new(ScenarioKind::Vehicle, SensorModel::Vlp32c, 5);
+    c.duration_s = 4.0;
+    let sc = Scenario::from_config(c).unwrap();
+    let one = run_on(&sc, &Threads(1, AtomicUsize::new(0)), AssociationMode::Plain);
+    let two = run_on(&sc, &Threads(2, AtomicUsize::new(0)), AssociationMode::Plain);
+    assert!(one.iter().filter(|(_, n)| *n > 0).count() >= 15);
+    assert_eq!(one, two);
 }

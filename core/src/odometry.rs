@@ -871,10 +871,10 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             reinit = Some(ReinitReason::ImuJump);
         }
         let use_normals = self.cfg.mode != AssociationMode::Plain;
-        // A waiting insertion goes in beside Ring FALS (step 3) only where that runs on a
-        // second thread; else now.
+        // A waiting insertion goes in beside Ring FALS and the voxel search (step 3) where
+        // there is a second thread; else now.
         let par_width = self.parallel.as_ref().map_or(1, |(p, _)| p.width());
-        if !(use_normals && par_width > 1 && self.filter.is_some()) {
+        if !(par_width > 1 && self.filter.is_some()) {
             self.flush_map();
         }
 
@@ -1049,6 +1049,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             let mark = self.cfg.free_space.enabled;
             let mut job_voxels = || {
                 *bin = m > 0 && ds.bin_with_scratch(&ds_cfg, pts, cells).is_ok();
+            };
+            let mut job_mark = || {
                 if mark {
                     free.mark_returns(pts);
                 }
@@ -1059,12 +1061,26 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             let (map, pending, buf) = (&mut self.map, &mut self.pending, self.deferred.as_deref());
             let mut job_map = || insert_pending(map, pending, buf);
             if let Some(p) = par {
-                if deferred {
-                    // The voxels and the map on one thread (the caller's when two), about the
-                    // normals' time.
-                    p.run(&mut [&mut job_voxels, &mut job_normals, &mut job_map]);
+                if !deferred {
+                    let mut voxels = || {
+                        job_voxels();
+                        job_mark();
+                    };
+                    p.run(&mut [&mut job_normals, &mut voxels]);
+                } else if p.width() >= 3 {
+                    p.run(&mut [&mut job_normals, &mut job_voxels, &mut job_map, &mut job_mark]);
                 } else {
-                    p.run(&mut [&mut job_normals, &mut job_voxels]);
+                    // Two threads, about half the work each (AMD EPYC Zen 3: the voxel search
+                    // and the insertion 3.9-4.9 ms, the normals and the marks 3.8-5.3 ms).
+                    let mut first = || {
+                        job_voxels();
+                        job_map();
+                    };
+                    let mut second = || {
+                        job_normals();
+                        job_mark();
+                    };
+                    p.run(&mut [&mut first, &mut second]);
                 }
             }
             let t_n = clock.now_ns();
@@ -1072,10 +1088,22 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             times.undistort_ns = (t_p.saturating_sub(t0)).saturating_add(t_u.saturating_sub(t_n0));
             t_n
         } else {
-            binned = m > 0
-                && st.downsampler.bin_with_scratch(&ds_cfg, &st.points[..m], &mut st.cell_of[..m]).is_ok();
-            if self.cfg.free_space.enabled {
-                st.frees[st.free_at[0]].mark_returns(&st.points[..m]);
+            let (ds, cells, pts) = (&mut st.downsampler, &mut st.cell_of[..m], &st.points[..m]);
+            let (free, mark, bin) = (&mut st.frees[st.free_at[0]], self.cfg.free_space.enabled, &mut binned);
+            let mut job_voxels = || {
+                *bin = m > 0 && ds.bin_with_scratch(&ds_cfg, pts, cells).is_ok();
+                if mark {
+                    free.mark_returns(pts);
+                }
+            };
+            match par {
+                // Plain mode: the last scan's insertion beside the voxel search.
+                Some(p) if self.pending.is_some() => {
+                    let (map, pending, buf) = (&mut self.map, &mut self.pending, self.deferred.as_deref());
+                    let mut job_map = || insert_pending(map, pending, buf);
+                    p.run(&mut [&mut job_voxels, &mut job_map]);
+                }
+                _ => job_voxels(),
             }
             times.normals_ns = t_n0.saturating_sub(t_p);
             times.undistort_ns = t_p.saturating_sub(t0).saturating_add(t_u.saturating_sub(t_n0));

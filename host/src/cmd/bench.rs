@@ -89,6 +89,8 @@ fn time_mode(
         threads,
         |engine| -> Result<Vec<(u64, [u64; 6])>, PipelineError> {
             let mut runner = Runner::new(engine, Outputs::new(OutputOptions::default())?, 0.0);
+            // Every insertion inside a timed scan: with a second thread the next scan's.
+            runner.flush_map_when_idle = false;
             let timed = std::rc::Rc::new(std::cell::RefCell::new(Vec::new()));
             let sink = timed.clone();
             runner.on_scan = Some(Box::new(move |res, _, _| {

@@ -300,6 +300,10 @@ pub struct Runner<'e> {
     pub stats: RunStats,
     /// Called after each processed scan with its result.
     pub on_scan: Option<ScanCallback<'e>>,
+    /// Whether a scan's waiting map insertion ([`Engine::flush_map`]) runs as soon as no scan
+    /// waits (the default: a live run inserts between scans, after the pose is out). Off, it
+    /// runs inside the next scan's processing, where `loglio bench` times it.
+    pub flush_map_when_idle: bool,
     /// The live outputs (ROS 2, MAVLink, Foxglove, an embedding program's), each behind its
     /// own bounded queue: offered every scan's result and, between scans, the IMU-propagated
     /// pose; they never hold the odometry up.
@@ -342,6 +346,7 @@ impl<'e> Runner<'e> {
             outputs,
             stats: RunStats::default(),
             on_scan: None,
+            flush_map_when_idle: true,
             sinks: Sinks::default(),
             latest: None,
             predictor: None,
@@ -617,7 +622,7 @@ impl<'e> Runner<'e> {
         }
         // The poses are out; with no scan waiting, the last one's map insertion (where it waits
         // for the next scan) runs now, in the time before the next scan.
-        if processed && self.scans.is_empty() {
+        if processed && self.scans.is_empty() && self.flush_map_when_idle {
             self.engine.flush_map();
         }
         Ok(())
