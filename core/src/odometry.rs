@@ -676,7 +676,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         &self.cfg
     }
 
-    /// The map.
+    /// The map; without the last scan's points while their insertion waits
+    /// ([`Self::set_deferred_map`]; [`Self::flush_map`] puts them in).
     pub fn map(&self) -> &VoxelMap<'a> {
         &self.map
     }
