@@ -322,13 +322,15 @@ pub struct ScanStorage<const PIX: usize, const PTS: usize, const DS: usize> {
     imu: ImuQueue<IMU_QUEUE>,
     trajectory: ImuTrajectory<TRAJECTORY_KNOTS>,
     corr: [Correspondence; DS],
-    /// Three free-space images ([`crate::free_space`]), named by `free_at`: this scan's nearest
+    /// Three free-space images ([`crate::free_space`]), named by `free_turn`: this scan's nearest
     /// returns per coarse cell; the previous reference's ([`PrevScan`]: where its beams went
     /// through, something that is there now moved in); the one before it (`Odometry::old_scan`,
     /// `reference_every_s` to twice that old). A renewal rotates the names, not the images.
     frees: [FreeSpaceImage<PIX>; 3],
-    /// Which of `frees` is this scan's, the previous reference's and the older one's.
-    free_at: [usize; 3],
+    /// Which of `frees` is this scan's, the previous reference's and the older one's
+    /// ([`free_slot`]); zero at first, as every field, so that the storage is all zeros and a
+    /// `static` of it takes no flash.
+    free_turn: usize,
     /// Map voxels the last scan saw through, for this one to judge again.
     suspects: Suspects<SUSPECTS>,
     /// The scan's coarse cells, to grow moving points into their objects.
@@ -367,6 +369,13 @@ struct PrevScan {
 
 /// The caller's threads and their k-NN scratch ([`Odometry::set_parallel`]).
 type ParallelSlot<'a> = Option<(&'a dyn Parallel, &'a mut [KnnScratch])>;
+
+/// The image of `role` (0: this scan's, 1: the previous reference's, 2: the older one's) at
+/// `turn`: each renewal advances the turn by one, so this scan's image becomes the previous
+/// reference's, that one the older's, and the older's is written over by the next scan.
+const fn free_slot(turn: usize, role: usize) -> usize {
+    (turn + 3 - role) % 3
+}
 
 /// A scan's map insertion waiting in the caller's buffer ([`Odometry::set_deferred_map`]).
 #[derive(Clone, Copy, Debug)]
@@ -434,7 +443,7 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> ScanStorage<PIX, PTS, 
             trajectory: ImuTrajectory::new(),
             corr: [Correspondence::NONE; DS],
             frees: [FreeSpaceImage::new(), FreeSpaceImage::new(), FreeSpaceImage::new()],
-            free_at: [0, 1, 2],
+            free_turn: 0,
             suspects: Suspects::new(),
             objects: MovingObjects::new(),
             queries: [[0.0; 3]; KNN_CHUNK],
@@ -558,9 +567,9 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     last_end: Option<(u64, UnitQuaternion<f64>, Vector3<f64>)>,
     /// The last re-localisation search (whether or not it moved the prediction).
     last_relocalisation: Option<Relocalisation>,
-    /// The previous reference's pose, when its image is in `scan.frees[scan.free_at[1]]`.
+    /// The previous reference's pose, when its image is in `scan.frees[free_slot(scan.free_turn, 1)]`.
     prev_scan: Option<PrevScan>,
-    /// The reference before it, when its image is in `scan.frees[scan.free_at[2]]`: the moving points are
+    /// The reference before it, when its image is in `scan.frees[free_slot(scan.free_turn, 2)]`: the moving points are
     /// judged against it, so that an object approaching slowly has moved by its speed times at
     /// least `reference_every_s` (the newer reference is one scan to that old).
     old_scan: Option<PrevScan>,
@@ -1043,7 +1052,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 // Cannot fail: as above.
                 let _ = traj.undistort_normals(x, pts, nrm3);
             };
-            let (ds, cells, free) = (&mut st.downsampler, &mut st.cell_of[..m], &mut st.frees[st.free_at[0]]);
+            let (ds, cells, free) =
+                (&mut st.downsampler, &mut st.cell_of[..m], &mut st.frees[free_slot(st.free_turn, 0)]);
             let bin = &mut binned;
             // Which cells of the free-space image no return fell in (every point, before the
             // downsampling keeps one a voxel): the map's clearing reads them as gone through.
@@ -1090,7 +1100,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             t_n
         } else {
             let (ds, cells, pts) = (&mut st.downsampler, &mut st.cell_of[..m], &st.points[..m]);
-            let (free, mark, bin) = (&mut st.frees[st.free_at[0]], self.cfg.free_space.enabled, &mut binned);
+            let (free, mark, bin) =
+                (&mut st.frees[free_slot(st.free_turn, 0)], self.cfg.free_space.enabled, &mut binned);
             let mut job_voxels = || {
                 *bin = m > 0 && ds.bin_with_scratch(&ds_cfg, pts, cells).is_ok();
                 if mark {
@@ -1143,8 +1154,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         // Against the older reference (`reference_every_s` to twice that old), where there is one:
         // it saw where a slowly approaching object was far enough away.
         let reference = match self.old_scan {
-            Some(o) => Some((o, &st.frees[st.free_at[2]])),
-            None => self.prev_scan.map(|p| (p, &st.frees[st.free_at[1]])),
+            Some(o) => Some((o, &st.frees[free_slot(st.free_turn, 2)])),
+            None => self.prev_scan.map(|p| (p, &st.frees[free_slot(st.free_turn, 1)])),
         };
         if let Some((prev, img)) = reference
             && kept > 0
@@ -1400,11 +1411,11 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 self.old_scan = None;
             }
             if fs.enabled && !building && well_posed {
-                st.frees[st.free_at[0]].fill(&st.points[..kept]);
+                st.frees[free_slot(st.free_turn, 0)].fill(&st.points[..kept]);
                 // World to sensor in f32: the map's points are f32, the margins decimetres.
                 let rt: [[f32; 3]; 3] =
                     core::array::from_fn(|i| core::array::from_fn(|j| r_wl[(j, i)] as f32));
-                let (free, fsc) = (&st.frees[st.free_at[0]], &fs);
+                let (free, fsc) = (&st.frees[free_slot(st.free_turn, 0)], &fs);
                 // Every voxel at least every 4 scans on a small map; a fixed cost on a large one.
                 let budget = (fs.voxels_per_scan as usize).min(self.map.len().div_ceil(4));
                 let judge = |q: [f32; 3], slack| {
@@ -1425,8 +1436,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 if self.prev_scan.is_none_or(|p| end_ns.saturating_sub(p.end_ns) >= renew_ns) {
                     // This scan's image becomes the newer reference, the newer the older, and the
                     // older one is written over by the next scan.
-                    let [cur, prev, old] = st.free_at;
-                    st.free_at = [old, cur, prev];
+                    st.free_turn = (st.free_turn + 1) % 3;
                     self.old_scan = self.prev_scan;
                     self.prev_scan = Some(PrevScan { end_ns, rot_t: r_wl.transpose(), origin: p_wl });
                 }
