@@ -12,9 +12,8 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use loglio_core::association::KnnScratch;
 use loglio_core::odometry::{AssociationMode, Vlp32cStorage};
 use loglio_core::parallel::{Job, MAX_WIDTH, Parallel};
-use loglio_core::ring_fals::storage_pixels;
 use loglio_core::scan::ScanView;
-use loglio_core::voxel_map::MapPoint;
+use loglio_core::voxel_map::{MapPoint, VoxelMap};
 use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKind};
 use loglio_tests::odom::{StdClock, config_for};
@@ -80,14 +79,14 @@ fn run_on(sc: &Scenario, pool: &dyn Parallel, mode: AssociationMode) -> Vec<([u6
         }
     }
     // The last scan's insertion waits with more than one thread; the flush puts it in.
-    let points = |odo: &loglio_core::odometry::Odometry<'_, { storage_pixels(32, 1800) }, 65536, 32768>| {
+    let points = |map: &VoxelMap<'_>| {
         let mut n = 0usize;
-        odo.map().for_each_point(|_, _, _| n += 1);
+        map.for_each_point(|_, _, _| n += 1);
         n
     };
-    let before = points(&odo);
+    let before = points(odo.map());
     odo.flush_map();
-    let (after, voxels) = (points(&odo), odo.map().len());
+    let (after, voxels) = (points(odo.map()), odo.map().len());
     if threads > 1 {
         assert!(after > before, "the last scan's insertion did not wait ({before} -> {after} points)");
     } else {
