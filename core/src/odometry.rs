@@ -858,6 +858,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         self.prev_scan = None;
         self.old_scan = None;
         self.scan.suspects.clear();
+        self.scan.objects.forget_tracks();
         self.share_mean = None;
         self.nis_mean = None;
         self.low_run = 0;
@@ -1178,12 +1179,17 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 let p = &pts[k].xyz;
                 let l: [f32; 3] =
                     core::array::from_fn(|i| m[i][0] * p[0] + m[i][1] * p[1] + m[i][2] * p[2] + b[i]);
-                u32::from(img.verdict(l, fs) == Verdict::SeenThrough)
+                // 1: moving; 2: the reference saw it there (static: no tracked object's).
+                match img.verdict(l, fs) {
+                    Verdict::SeenThrough => 1,
+                    Verdict::Seen => 2,
+                    Verdict::Unknown => 0,
+                }
             };
             crate::parallel::map_indexed(par.unwrap_or(&Sequential), flags, moved);
             let (mut i, mut end) = (0usize, kept);
             while i < end {
-                if st.cell_of[i] != 0 {
+                if st.cell_of[i] == 1 {
                     end -= 1;
                     st.points.swap(i, end);
                     st.normals3.swap(i, end);
@@ -1195,18 +1201,25 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             moving = kept - end;
             // The rest of the objects those points belong to ([`crate::moving_objects`]).
             let grow = &self.cfg.free_space.grow;
-            if grow.enabled && moving > 0 {
+            if grow.enabled && (moving > 0 || st.objects.tracking()) {
                 let up = [r_wl[(2, 0)] as f32, r_wl[(2, 1)] as f32, r_wl[(2, 2)] as f32];
+                let to_world: [[f32; 4]; 3] = core::array::from_fn(|i| {
+                    [r_wl[(i, 0)] as f32, r_wl[(i, 1)] as f32, r_wl[(i, 2)] as f32, p_wl[i] as f32]
+                });
                 moving += st.objects.grow(
                     &mut st.points[..kept],
                     &mut st.normals3[..kept],
                     end,
                     grow,
                     up,
+                    &to_world,
                     &mut st.cell_of[..kept],
                 );
             }
             self.stats.moving = self.stats.moving.saturating_add(moving as u64);
+        } else {
+            // Tracks are in scans: a scan without the test breaks them.
+            st.objects.forget_tracks();
         }
         let still = kept - moving;
 
