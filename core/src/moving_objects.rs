@@ -69,11 +69,10 @@ pub struct GrowConfig {
 impl GrowConfig {
     /// The defaults: 1 m cells, 8 cells deep, 2 flagged cells, 4 grown per flagged cell plus 32
     /// (on the traffic scenario, seed 1: map points where actors drove 2.62 % without the
-    /// growth, 1.86 % with it; docs/voxel-map.md). Tracking is off (`track_scans` 0): with 40
-    /// scans, 2 hits of 4 cells and a slack of 32 it took the traffic's trails from 0.71 / 1.22
-    /// / 1.06 % to 0.49 / 0.81 / 0.71 % (seeds 1-3), but left out 0.126 % of the static
-    /// vehicle drive's points (seed 7; the bound is 0.1 %) and the ATE ratio to the empty
-    /// street went from 1.22 to 1.25 on the mean (docs/voxel-map.md).
+    /// growth, 1.86 % with it; docs/voxel-map.md). Objects are tracked for 40 scans after 2 hits
+    /// of 8 flagged cells, and grow by 32 cells without flagged ones (seeds 1-3 of the traffic:
+    /// trails 0.48 / 0.82 / 0.74 % instead of 0.71 / 1.22 / 1.06 %; hits of 4 cells left out
+    /// 0.125 % of the static vehicle drive's points, over the 0.1 % bound, 8 cells 0.071 %).
     pub const DEFAULT: Self = Self {
         enabled: true,
         cell: 1.0,
@@ -82,10 +81,10 @@ impl GrowConfig {
         max_grown_per_seed: 4.0,
         slack: 32,
         ground_cos: 0.8,
-        track_scans: 0,
+        track_scans: 40,
         track_hits: 2,
         track_slack: 32,
-        track_flagged: 4,
+        track_flagged: 8,
     };
 }
 
