@@ -155,6 +155,23 @@ fn hash(k: u64) -> usize {
     (k.wrapping_mul(0x9e37_79b9_7f4a_7c15) >> 40) as usize
 }
 
+/// Where `k` is in an open-addressing `table` (a power of two long) (`Ok`), or the empty slot
+/// where it would go (`Err(Some)`; `Err(None)`: the table is full).
+fn probe(table: &[u64], k: u64) -> Result<usize, Option<usize>> {
+    let mask = table.len().wrapping_sub(1);
+    let mut i = hash(k) & mask;
+    for _ in 0..table.len() {
+        if table[i] == k {
+            return Ok(i);
+        }
+        if table[i] == EMPTY {
+            return Err(Some(i));
+        }
+        i = (i + 1) & mask;
+    }
+    Err(None)
+}
+
 impl<const N: usize> MovingObjects<N> {
     /// Empty storage.
     pub const fn new() -> Self {
@@ -165,10 +182,10 @@ impl<const N: usize> MovingObjects<N> {
             used: [0; N],
             queue: [0; N],
             age: [0; N],
+            hits: [0; N],
             tracks: [EMPTY; TRACKS],
             track_age: [0; TRACKS],
             track_hits: [0; TRACKS],
-            hits: [0; N],
             track_used: [0; TRACKS],
             track_n: 0,
         }
@@ -187,47 +204,15 @@ impl<const N: usize> MovingObjects<N> {
         self.track_n = 0;
     }
 
-    /// The slot of world cell `k` in the tracks: `Ok` present, `Err` the empty slot for it.
-    fn track_probe(&self, k: u64) -> Result<usize, usize> {
-        let mask = TRACKS - 1;
-        let mut i = hash(k) & mask;
-        loop {
-            if self.tracks[i] == k {
-                return Ok(i);
-            }
-            if self.tracks[i] == EMPTY {
-                return Err(i);
-            }
-            i = (i + 1) & mask;
-        }
-    }
-
-    /// Where `k` is (`Ok`), or the empty slot where it would go (`Err(Some)`; `Err(None)`: the
-    /// table is full).
-    fn probe(&self, k: u64) -> Result<usize, Option<usize>> {
-        let mask = N - 1;
-        let mut i = hash(k) & mask;
-        for _ in 0..N {
-            if self.keys[i] == k {
-                return Ok(i);
-            }
-            if self.keys[i] == EMPTY {
-                return Err(Some(i));
-            }
-            i = (i + 1) & mask;
-        }
-        Err(None)
-    }
-
     /// The slot of `k`, if present.
     fn find(&self, k: u64) -> Option<usize> {
-        self.probe(k).ok()
+        probe(&self.keys, k).ok()
     }
 
     /// The slot of `k`, inserted (as `STATIC`) if absent; `None` when the table is three
     /// quarters full (a quarter stays free so that every probe ends soon).
     fn insert(&mut self, k: u64, used: &mut usize) -> Option<usize> {
-        match self.probe(k) {
+        match probe(&self.keys, k) {
             Ok(i) => Some(i),
             Err(Some(i)) if *used * 4 < N * 3 => {
                 self.keys[i] = k;
@@ -246,21 +231,19 @@ impl<const N: usize> MovingObjects<N> {
     /// Grows the moving points `points[still..kept]` into the still points `points[..still]`
     /// of the same objects (see the module docs). The grown points are moved to the end of
     /// `points[..still]` (with their `normals`, same order of operations as the caller's
-    /// partition); returns how many. `up` is the vertical in the points' frame, `to_world`
-    /// their pose in the world (rotation rows, translation last: the tracked objects' cells);
-    /// `cell_of` is scratch of at least `kept` entries.
+    /// partition); returns how many. `to_world` is the points' pose in the world (rotation
+    /// rows, translation last: the world's vertical for the ground test, the tracked objects'
+    /// cells); `cell_of` is scratch of at least `kept` entries.
     ///
     /// The world cells of this scan's objects are kept for the next call, where a still point
     /// in one of them (and not marked [`SEEN`] in `cell_of` on entry) is a seed of a confirmed
     /// object (module docs). Only the cells themselves carry on, not their neighbours.
-    #[allow(clippy::too_many_arguments)]
     pub fn grow(
         &mut self,
         points: &mut [ScanPoint],
         normals: &mut [[f32; 3]],
         still: usize,
         cfg: &GrowConfig,
-        up: [f32; 3],
         to_world: &[[f32; 4]; 3],
         cell_of: &mut [u32],
     ) -> usize {
@@ -271,6 +254,8 @@ impl<const N: usize> MovingObjects<N> {
             return 0;
         }
         let inv = 1.0 / cfg.cell;
+        // The world's vertical in the points' frame: the rotation's last row.
+        let up = [to_world[2][0], to_world[2][1], to_world[2][2]];
         let world_key = |p: &[f32; 3]| {
             let w: [f32; 3] = core::array::from_fn(|a| {
                 let r = &to_world[a];
@@ -316,7 +301,7 @@ impl<const N: usize> MovingObjects<N> {
                 } else if carry
                     && !seen
                     && self.state[s] != SEED
-                    && let Ok(t) = self.track_probe(world_key(&points[i].xyz))
+                    && let Ok(t) = probe(&self.tracks, world_key(&points[i].xyz))
                 {
                     let a = CARRIED.saturating_add(self.track_age[t]);
                     if self.state[s] == STATIC || a < self.state[s] {
@@ -452,12 +437,12 @@ impl<const N: usize> MovingObjects<N> {
                     continue;
                 }
                 let (a, h, k) = (self.age[s as usize], self.hits[s as usize], world_key(&points[i].xyz));
-                match self.track_probe(k) {
+                match probe(&self.tracks, k) {
                     Ok(t) => {
                         self.track_age[t] = self.track_age[t].min(a);
                         self.track_hits[t] = self.track_hits[t].max(h);
                     }
-                    Err(t) if self.track_n * 4 < TRACKS * 3 => {
+                    Err(Some(t)) if self.track_n * 4 < TRACKS * 3 => {
                         self.tracks[t] = k;
                         self.track_age[t] = a;
                         self.track_hits[t] = h;
@@ -554,8 +539,7 @@ mod tests {
         let obj = &mut MovingObjects::<4096>::new();
         let (mut pts, mut nrm, still, _) = scene();
         let mut cell_of = [0u32; 2048];
-        let grown =
-            obj.grow(&mut pts, &mut nrm, still, &GrowConfig::DEFAULT, [0.0, 0.0, 1.0], &ID, &mut cell_of);
+        let grown = obj.grow(&mut pts, &mut nrm, still, &GrowConfig::DEFAULT, &ID, &mut cell_of);
         // The bus's unflagged 4 m (8 x 6 points) and nothing of the ground or the wall.
         assert_eq!(grown, 48);
         for p in &pts[still - grown..still] {
@@ -566,28 +550,26 @@ mod tests {
         }
         // Again with the same storage: the same answer (the cells were cleared).
         let (mut pts2, mut nrm2, still2, _) = scene();
-        let again =
-            obj.grow(&mut pts2, &mut nrm2, still2, &GrowConfig::DEFAULT, [0.0, 0.0, 1.0], &ID, &mut cell_of);
+        let again = obj.grow(&mut pts2, &mut nrm2, still2, &GrowConfig::DEFAULT, &ID, &mut cell_of);
         assert_eq!(again, 48);
         // Off: nothing.
         let off = GrowConfig { enabled: false, ..GrowConfig::DEFAULT };
         let (mut pts3, mut nrm3, still3, _) = scene();
-        assert_eq!(obj.grow(&mut pts3, &mut nrm3, still3, &off, [0.0, 0.0, 1.0], &ID, &mut cell_of), 0);
+        assert_eq!(obj.grow(&mut pts3, &mut nrm3, still3, &off, &ID, &mut cell_of), 0);
         // Without the depth to reach the rear: only what lies within it (and the wall's patch,
         // which reaches less of the wall now, is small enough to grow: 3 seeds, 8 cells).
         let shallow = GrowConfig { depth: 1, ..GrowConfig::DEFAULT };
         let (mut pts4, mut nrm4, still4, _) = scene();
-        let some = obj.grow(&mut pts4, &mut nrm4, still4, &shallow, [0.0, 0.0, 1.0], &ID, &mut cell_of);
+        let some = obj.grow(&mut pts4, &mut nrm4, still4, &shallow, &ID, &mut cell_of);
         let bus = pts4[still4 - some..still4].iter().filter(|p| p.xyz[1] == 3.0).count();
         assert_eq!(bus, 12, "the 1 m column behind the flagged front: 2 x 6 points");
     }
 
     /// A bus side 12 m long from `x0` (y 3) whose points from `flag_from` on are flagged, and
-    /// a 60 m wall (y 10); `seen` marks the wall's points as seen by the older scan.
+    /// a 60 m wall (y 10).
     fn bus(
         x0: f32,
         flag_from: f32,
-        seen: bool,
     ) -> (heapless::Vec<ScanPoint, 2048>, heapless::Vec<[f32; 3], 2048>, [u32; 2048], usize) {
         let side = [0.0, -1.0, 0.0];
         let (mut still, mut moving) = (heapless::Vec::<_, 2048>::new(), heapless::Vec::<_, 2048>::new());
@@ -600,11 +582,7 @@ mod tests {
         }
         for i in 0..120 {
             for k in 0..6 {
-                let p = (
-                    pt(-20.0 + 0.5 * i as f32, 10.0, -1.5 + 0.5 * k as f32),
-                    side,
-                    if seen { SEEN } else { 0 },
-                );
+                let p = (pt(-20.0 + 0.5 * i as f32, 10.0, -1.5 + 0.5 * k as f32), side, 0);
                 still.push(p).unwrap();
             }
         }
@@ -624,10 +602,9 @@ mod tests {
         cfg: &GrowConfig,
         x0: f32,
         flag_from: f32,
-        seen: bool,
     ) -> (usize, usize) {
-        let (mut pts, mut nrm, mut cell_of, still) = bus(x0, flag_from, seen);
-        let grown = obj.grow(&mut pts, &mut nrm, still, cfg, [0.0, 0.0, 1.0], &ID, &mut cell_of);
+        let (mut pts, mut nrm, mut cell_of, still) = bus(x0, flag_from);
+        let grown = obj.grow(&mut pts, &mut nrm, still, cfg, &ID, &mut cell_of);
         let moving = &pts[still - grown..];
         let on_bus = moving.iter().filter(|p| p.xyz[1] == 3.0).count();
         (on_bus, moving.len() - on_bus)
@@ -638,21 +615,21 @@ mod tests {
         let obj = &mut MovingObjects::<4096>::new();
         let cfg = GrowConfig { track_scans: 3, ..GrowConfig::DEFAULT };
         // Flagged in two scans (its front, as it moves 0.5 m a scan): confirmed.
-        assert_eq!(moving_after(obj, &cfg, 0.0, 4.0, false), (144, 0));
-        assert_eq!(moving_after(obj, &cfg, 0.5, 5.0, false), (144, 0));
+        assert_eq!(moving_after(obj, &cfg, 0.0, 4.0), (144, 0));
+        assert_eq!(moving_after(obj, &cfg, 0.5, 5.0), (144, 0));
         // Then nothing flagged: the whole bus still moves (its cells of the last scan carry, the
         // growth takes its new front), for `track_scans` scans; the wall never does.
         for k in 2..5 {
-            assert_eq!(moving_after(obj, &cfg, 0.5 * k as f32, 100.0, false), (144, 0), "scan {k}");
+            assert_eq!(moving_after(obj, &cfg, 0.5 * k as f32, 100.0), (144, 0), "scan {k}");
         }
-        assert_eq!(moving_after(obj, &cfg, 2.5, 100.0, false), (0, 0), "tracked too long");
+        assert_eq!(moving_after(obj, &cfg, 2.5, 100.0), (0, 0), "tracked too long");
         assert!(!obj.tracking());
         // Without the tracks (`track_scans` 0) the second scan's growth is the same, and the
         // unflagged scans move nothing.
         let off = GrowConfig { track_scans: 0, ..GrowConfig::DEFAULT };
-        assert_eq!(moving_after(obj, &off, 0.0, 4.0, false), (144, 0));
-        assert_eq!(moving_after(obj, &off, 0.5, 5.0, false), (144, 0));
-        assert_eq!(moving_after(obj, &off, 1.0, 100.0, false), (0, 0));
+        assert_eq!(moving_after(obj, &off, 0.0, 4.0), (144, 0));
+        assert_eq!(moving_after(obj, &off, 0.5, 5.0), (144, 0));
+        assert_eq!(moving_after(obj, &off, 1.0, 100.0), (0, 0));
     }
 
     #[test]
@@ -660,21 +637,21 @@ mod tests {
         let obj = &mut MovingObjects::<4096>::new();
         let cfg = GrowConfig { track_scans: 40, ..GrowConfig::DEFAULT };
         // Flagged once only (one hit): the next scan without flags moves nothing.
-        assert_eq!(moving_after(obj, &cfg, 0.0, 4.0, false), (144, 0));
-        assert_eq!(moving_after(obj, &cfg, 0.0, 100.0, false), (0, 0));
+        assert_eq!(moving_after(obj, &cfg, 0.0, 4.0), (144, 0));
+        assert_eq!(moving_after(obj, &cfg, 0.0, 100.0), (0, 0));
         // Flagged in two scans, but in fewer cells than a hit needs (4 against 5): no hits.
         let few = GrowConfig { track_flagged: 5, ..cfg };
-        assert!(moving_after(obj, &few, 0.0, 11.0, false).0 >= 12);
-        assert!(moving_after(obj, &few, 0.0, 11.0, false).0 >= 12);
-        assert_eq!(moving_after(obj, &few, 0.0, 100.0, false), (0, 0));
+        assert!(moving_after(obj, &few, 0.0, 11.0).0 >= 12);
+        assert!(moving_after(obj, &few, 0.0, 11.0).0 >= 12);
+        assert_eq!(moving_after(obj, &few, 0.0, 100.0), (0, 0));
         // Confirmed, but the older scan saw every point where it is now: static after all.
-        assert_eq!(moving_after(obj, &cfg, 0.0, 4.0, false), (144, 0));
-        assert_eq!(moving_after(obj, &cfg, 0.0, 4.0, false), (144, 0));
-        let (mut pts, mut nrm, mut cell_of, still) = bus(0.0, 100.0, false);
+        assert_eq!(moving_after(obj, &cfg, 0.0, 4.0), (144, 0));
+        assert_eq!(moving_after(obj, &cfg, 0.0, 4.0), (144, 0));
+        let (mut pts, mut nrm, mut cell_of, still) = bus(0.0, 100.0);
         for c in cell_of[..still].iter_mut() {
             *c = SEEN;
         }
-        assert_eq!(obj.grow(&mut pts, &mut nrm, still, &cfg, [0.0, 0.0, 1.0], &ID, &mut cell_of), 0);
+        assert_eq!(obj.grow(&mut pts, &mut nrm, still, &cfg, &ID, &mut cell_of), 0);
     }
 
     #[test]
@@ -682,8 +659,7 @@ mod tests {
         let obj = &mut MovingObjects::<64>::new();
         let (mut pts, mut nrm, still, _) = scene();
         let mut cell_of = [0u32; 2048];
-        let grown =
-            obj.grow(&mut pts, &mut nrm, still, &GrowConfig::DEFAULT, [0.0, 0.0, 1.0], &ID, &mut cell_of);
+        let grown = obj.grow(&mut pts, &mut nrm, still, &GrowConfig::DEFAULT, &ID, &mut cell_of);
         // Some cells find no slot; whatever grows is still on the bus.
         for p in &pts[still - grown..still] {
             assert!(p.xyz[1] == 3.0, "{:?}", p.xyz);

@@ -1175,21 +1175,23 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             let fs = &self.cfg.free_space;
             // Each point's verdict (in pieces on the caller's threads), then the partition.
             let (pts, flags) = (&st.points[..kept], &mut st.cell_of[..kept]);
+            // A point's verdict in `cell_of`: seen through (moving), seen, or neither.
+            const MOVED: u32 = 1;
             let moved = |k: usize| {
                 let p = &pts[k].xyz;
                 let l: [f32; 3] =
                     core::array::from_fn(|i| m[i][0] * p[0] + m[i][1] * p[1] + m[i][2] * p[2] + b[i]);
-                // 1: moving; 2: the reference saw it there (static: no tracked object's).
+                // The reference saw it there: static, no tracked object's.
                 match img.verdict(l, fs) {
-                    Verdict::SeenThrough => 1,
-                    Verdict::Seen => 2,
+                    Verdict::SeenThrough => MOVED,
+                    Verdict::Seen => crate::moving_objects::SEEN,
                     Verdict::Unknown => 0,
                 }
             };
             crate::parallel::map_indexed(par.unwrap_or(&Sequential), flags, moved);
             let (mut i, mut end) = (0usize, kept);
             while i < end {
-                if st.cell_of[i] == 1 {
+                if st.cell_of[i] == MOVED {
                     end -= 1;
                     st.points.swap(i, end);
                     st.normals3.swap(i, end);
@@ -1202,7 +1204,6 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             // The rest of the objects those points belong to ([`crate::moving_objects`]).
             let grow = &self.cfg.free_space.grow;
             if grow.enabled && (moving > 0 || st.objects.tracking()) {
-                let up = [r_wl[(2, 0)] as f32, r_wl[(2, 1)] as f32, r_wl[(2, 2)] as f32];
                 let to_world: [[f32; 4]; 3] = core::array::from_fn(|i| {
                     [r_wl[(i, 0)] as f32, r_wl[(i, 1)] as f32, r_wl[(i, 2)] as f32, p_wl[i] as f32]
                 });
@@ -1211,7 +1212,6 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                     &mut st.normals3[..kept],
                     end,
                     grow,
-                    up,
                     &to_world,
                     &mut st.cell_of[..kept],
                 );
