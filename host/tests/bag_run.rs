@@ -3,7 +3,7 @@
 //! simulator's exact ground truth, the geometry fallback for clouds without ring and time, and
 //! one-line errors for bad bags; a cut bag runs on what it holds.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Output;
 
 use loglio_firmware_sim::lidar::SensorModel;
@@ -20,7 +20,7 @@ fn loglio(args: &[&str]) -> Output {
     common::loglio_command(args).output().unwrap()
 }
 
-fn scratch(name: &str) -> PathBuf {
+fn scratch(name: &str) -> common::Scratch {
     common::scratch("bagrun", name)
 }
 

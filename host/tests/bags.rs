@@ -6,6 +6,7 @@
 use std::collections::BTreeMap;
 use std::io::{Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
+mod common;
 
 use loglio_core::scan::NO_PIXEL;
 use loglio_host::config::{Config, Preset};
@@ -17,30 +18,8 @@ use loglio_host::input::bag::{
     BagError, BagEvent, BagFormat, BagItem, BagOptions, BagReader, BagStats, PacketKind, TopicKind,
 };
 
-/// A scratch directory, removed when dropped unless `LOGLIO_KEEP_TEST_FILES` is set (to look
-/// at the bags with other tools).
-struct Tmp(PathBuf);
-
-impl Drop for Tmp {
-    fn drop(&mut self) {
-        if std::env::var_os("LOGLIO_KEEP_TEST_FILES").is_none() {
-            let _ = std::fs::remove_dir_all(&self.0);
-        }
-    }
-}
-
-impl std::ops::Deref for Tmp {
-    type Target = Path;
-    fn deref(&self) -> &Path {
-        &self.0
-    }
-}
-
-fn tmp(name: &str) -> Tmp {
-    let d = std::env::temp_dir().join(format!("loglio-bags-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    Tmp(d)
+fn tmp(name: &str) -> common::Scratch {
+    common::scratch("bags", name)
 }
 
 fn data(rel: &str) -> PathBuf {

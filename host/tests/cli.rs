@@ -2,7 +2,7 @@
 //! never a panic message or a backtrace (whatever RUST_BACKTRACE says); successes print what
 //! they should.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Output;
 
 use loglio_host::config::{Config, Preset};
@@ -55,7 +55,7 @@ fn stdout(out: &Output) -> String {
     String::from_utf8(out.stdout.clone()).unwrap()
 }
 
-fn scratch(name: &str) -> PathBuf {
+fn scratch(name: &str) -> common::Scratch {
     common::scratch("cli", name)
 }
 

@@ -232,7 +232,7 @@ struct Clean {
     sc: Scenario,
     events: Vec<WireEvent>,
     cfg: PathBuf,
-    dir: PathBuf,
+    dir: common::Scratch,
     ate: f64,
     t0_s: f64,
 }

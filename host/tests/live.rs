@@ -12,7 +12,7 @@
 
 use std::io::{BufRead, BufReader, Read};
 use std::net::UdpSocket;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::Mutex;
 use std::sync::mpsc::{self, Receiver};
@@ -41,7 +41,7 @@ fn skip_under_runner(test: &str) -> bool {
     false
 }
 
-fn scratch(name: &str) -> PathBuf {
+fn scratch(name: &str) -> common::Scratch {
     common::scratch("live", name)
 }
 
@@ -223,7 +223,7 @@ fn check_outputs(out: &Path) -> (usize, usize, usize) {
 /// arguments every such `loglio live` gets.
 struct SimRun {
     _one: std::sync::MutexGuard<'static, ()>,
-    dir: PathBuf,
+    dir: common::Scratch,
     sc: Scenario,
     offset: u16,
 }

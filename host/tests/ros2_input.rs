@@ -283,7 +283,7 @@ struct Outcome {
     scans: usize,
     imus: usize,
     text: String,
-    dir: std::path::PathBuf,
+    dir: common::Scratch,
 }
 
 /// Publishes the case's 6 s drive in real time to `loglio ros2` and stops it with SIGTERM;

@@ -4,7 +4,7 @@
 //! The accuracy assertions need the real odometry (issue 7, branch `odom`, merged here): with
 //! the propagation-only skeleton no scan is ever `ok` and the map stays empty.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Output;
 
 mod common;
@@ -29,7 +29,7 @@ fn fails_with(out: &Output, prefix: &str) -> String {
     err
 }
 
-fn scratch(name: &str) -> PathBuf {
+fn scratch(name: &str) -> common::Scratch {
     common::scratch("run", name)
 }
 
@@ -363,7 +363,7 @@ fn sim_and_demo_bad_arguments_are_one_line() {
 
 /// A short simulated drive written as files (pcap, IMU CSV and serial capture, ground
 /// truth) and a configuration with the simulator's extrinsic.
-fn sim_files(name: &str, sensor: loglio_firmware_sim::lidar::SensorModel, seconds: f64) -> PathBuf {
+fn sim_files(name: &str, sensor: loglio_firmware_sim::lidar::SensorModel, seconds: f64) -> common::Scratch {
     use loglio_firmware_sim::scenario::{Scenario, ScenarioConfig, ScenarioKind};
     let dir = scratch(name);
     let mut c = ScenarioConfig::new(ScenarioKind::Vehicle, sensor, 5);

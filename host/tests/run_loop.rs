@@ -67,7 +67,7 @@ fn a_channel_receives_every_scan_the_cloud_the_map_and_the_imu_rate_pose() {
         }
     });
     let opts = RunOptions {
-        outputs: OutputOptions { dir: Some(dir.clone()), ..OutputOptions::default() },
+        outputs: OutputOptions { dir: Some(dir.to_path_buf()), ..OutputOptions::default() },
         sinks,
         ..RunOptions::default()
     };
@@ -169,7 +169,7 @@ fn the_stop_flag_ends_the_run_with_everything_written() {
         }
     });
     let opts = RunOptions {
-        outputs: OutputOptions { dir: Some(dir.clone()), map: true, ..OutputOptions::default() },
+        outputs: OutputOptions { dir: Some(dir.to_path_buf()), map: true, ..OutputOptions::default() },
         stop: Some(stop),
         ..RunOptions::default()
     };

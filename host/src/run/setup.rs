@@ -281,13 +281,25 @@ impl PacketSetup {
 mod tests {
     use super::*;
 
-    /// A configuration file in a fresh directory.
+    /// The fresh directory of [`config_file`] `name`.
+    fn config_dir(name: &str) -> PathBuf {
+        std::env::temp_dir().join(format!("loglio-setup-{}-{name}", std::process::id()))
+    }
+
+    /// A configuration file in a fresh directory (removed by [`remove_config_dirs`]).
     fn config_file(name: &str, text: &str) -> PathBuf {
-        let dir = std::env::temp_dir().join(format!("loglio-setup-{}-{name}", std::process::id()));
+        let dir = config_dir(name);
         std::fs::create_dir_all(&dir).unwrap();
         let p = dir.join("config.toml");
         std::fs::write(&p, text).unwrap();
         p
+    }
+
+    /// Removes the directories of [`config_file`] once a test is through with them.
+    fn remove_config_dirs(names: &[&str]) {
+        for n in names {
+            let _ = std::fs::remove_dir_all(config_dir(n));
+        }
     }
 
     #[test]
@@ -340,6 +352,7 @@ mod tests {
         let cfg = setup.load_config().unwrap();
         assert_eq!(setup.extrinsic_missing(&cfg), None);
         assert_eq!(cfg.extrinsics.translation(), [-0.006253, 0.011775, -0.007645]);
+        remove_config_dirs(&["bare", "given", "template", "empty"]);
     }
 
     /// The extrinsic's sources, highest first: `--extrinsic FILE`, `extrinsics.file` (beside
@@ -442,5 +455,6 @@ mod tests {
         let mut cfg = setup.load_config().unwrap();
         let e = setup.resolve_extrinsic(&mut cfg, None).unwrap_err().0;
         assert!(e.starts_with(&format!("extrinsic file {}: no extrinsic_R", bad.display())), "{e}");
+        remove_config_dirs(&["numbers", "file"]);
     }
 }

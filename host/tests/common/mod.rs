@@ -2,7 +2,7 @@
 //! compiles this module and uses a part of it).
 #![allow(dead_code)]
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use nalgebra::Isometry3;
@@ -31,12 +31,48 @@ pub fn loglio_command(args: &[&str]) -> Command {
     c
 }
 
-/// A fresh folder `loglio-{group}-{name}-{pid}` in the temporary directory.
-pub fn scratch(group: &str, name: &str) -> PathBuf {
+/// A fresh folder `loglio-{group}-{name}-{pid}` in the temporary directory, removed with its
+/// contents when the returned guard drops (a test's outputs run to hundreds of megabytes: maps,
+/// recordings). It is kept, and its path printed, when the test fails, or for every test with
+/// `LOGLIO_KEEP_TEST_FILES` set.
+pub fn scratch(group: &str, name: &str) -> Scratch {
     let d = std::env::temp_dir().join(format!("loglio-{group}-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap();
-    d
+    Scratch(d)
+}
+
+/// A test's scratch folder ([`scratch`]); derefs to its path.
+#[derive(Debug)]
+pub struct Scratch(PathBuf);
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            eprintln!("test files kept in {}", self.0.display());
+        } else if std::env::var_os("LOGLIO_KEEP_TEST_FILES").is_none() {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+}
+
+impl std::ops::Deref for Scratch {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl AsRef<Path> for Scratch {
+    fn as_ref(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl AsRef<std::ffi::OsStr> for Scratch {
+    fn as_ref(&self) -> &std::ffi::OsStr {
+        self.0.as_os_str()
+    }
 }
 
 /// The number that follows `key` in `text` (a trailing `,` or `;` removed).
