@@ -711,8 +711,9 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         self.scan.imu.stats()
     }
 
-    /// The last scan's points as the map received them: undistorted to the LiDAR frame at the
-    /// scan end and downsampled (empty when the scan did not reach the map). Live outputs
+    /// The last scan's points: undistorted to the LiDAR frame at the scan end and downsampled
+    /// (empty when the scan did not reach the map). The points judged moving are among them,
+    /// last: the map left them out, but a robot's obstacle view needs them. Live outputs
     /// publish them; world frame = the result's [`PoseEstimate::lidar_pose`] applied to them.
     pub fn scan_points(&self) -> &[ScanPoint] {
         &self.scan.points[..self.last_kept]
