@@ -69,12 +69,6 @@ impl AsRef<Path> for Scratch {
     }
 }
 
-impl AsRef<std::ffi::OsStr> for Scratch {
-    fn as_ref(&self) -> &std::ffi::OsStr {
-        self.0.as_os_str()
-    }
-}
-
 /// The number that follows `key` in `text` (a trailing `,` or `;` removed).
 pub fn number_after(text: &str, key: &str) -> f64 {
     let i = text.find(key).unwrap_or_else(|| panic!("no {key:?} in {text}"));
