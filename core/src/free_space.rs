@@ -152,6 +152,55 @@ fn diamond(x: f32, y: f32) -> f32 {
     if (0.0..4.0).contains(&d) { d } else { 0.0 }
 }
 
+/// [`diamond`] without a jump: the quadrant's base plus the share of `|y|` (first and third
+/// quadrants) or `|x|` (second and fourth) in `|x| + |y|`. The same value, bit for bit, but
+/// for the sign of a zero, which no cell tells apart; so it runs on vector lanes.
+#[inline(always)]
+fn diamond_lanes(x: f32, y: f32) -> f32 {
+    let (ax, ay) = (libm::fabsf(x), libm::fabsf(y));
+    let (up, right) = (y >= 0.0, x >= 0.0);
+    let base = match (up, right) {
+        (true, true) => 0.0,
+        (true, false) => 1.0,
+        (false, false) => 2.0,
+        (false, true) => 3.0,
+    };
+    let s = ax + ay;
+    let q = (if up == right { ay } else { ax }) / s;
+    let d = base + if s > 0.0 { q } else { 0.0 };
+    if (0.0..4.0).contains(&d) { d } else { 0.0 }
+}
+
+/// Points whose cells are found together ([`FreeSpaceImage::cells8`]): their arithmetic is
+/// one 8-lane vector of `f32` per step where the build has AVX.
+const LANES: usize = 8;
+
+/// No cell: the point is outside the beams or has no range.
+const NO_CELL: u32 = u32::MAX;
+
+/// The cells of [`LANES`] points ([`FreeSpaceImage::cells8_parts`]).
+struct CellLanes {
+    /// The row, -1 for none.
+    row: [i32; LANES],
+    col: [i32; LANES],
+    /// The range, m.
+    r: [f32; LANES],
+    /// The elevation bin ([`ELEV_BINS`] for none).
+    bin: [i32; LANES],
+}
+
+/// Up to [`LANES`] points' coordinates by axis, the lanes past the points zero (no cell).
+#[inline(always)]
+fn lanes(points: impl Iterator<Item = [f32; 3]>) -> [[f32; LANES]; 3] {
+    let mut v = [[0.0; LANES]; 3];
+    for (l, p) in points.take(LANES).enumerate() {
+        for a in 0..3 {
+            v[a][l] = p[a];
+        }
+    }
+    v
+}
+
 /// The scan's nearest return per (beam row, azimuth cell), in centimetres (0: none), in the
 /// caller's storage.
 pub struct FreeSpaceImage<const N: usize> {
@@ -172,8 +221,9 @@ pub struct FreeSpaceImage<const N: usize> {
 /// reach).
 const OPEN: u16 = u16::MAX;
 
-/// A range in the image's units (centimetres, 1 to 65,534: never 0 nor [`OPEN`]).
-#[inline]
+/// A range in the image's units (centimetres, 1 to 65,534: never 0 nor [`OPEN`]); one lane of
+/// [`FreeSpaceImage::ranges_cm8`], which the image uses.
+#[cfg(test)]
 fn range_cm(r: f32) -> u16 {
     (r * 100.0).clamp(1.0, 65534.0) as u16
 }
@@ -282,16 +332,64 @@ impl<const N: usize> FreeSpaceImage<N> {
         Some((usize::from(row), c, r, on_beam))
     }
 
+    /// [`Self::cell`] of [`LANES`] points at once (`v`: their coordinates by axis): each one's
+    /// row (-1 where `cell` gives none), column, range and elevation bin, the same bit for bit.
+    /// The arithmetic runs on all lanes together; only the table lookup is one lane at a time.
+    #[inline(always)]
+    fn cells8_parts(&self, v: &[[f32; LANES]; 3]) -> CellLanes {
+        let [x, y, z] = v;
+        let r = crate::math::sqrtf8(core::array::from_fn(|l| x[l] * x[l] + y[l] * y[l] + z[l] * z[l]));
+        let cols = self.cols as i32;
+        let (mut bin, mut col) = ([0.0f32; LANES], [0.0f32; LANES]);
+        for l in 0..LANES {
+            let b = (z[l] / r[l] - self.elev_lo) * self.elev_scale;
+            let inside = r[l] > 0.0 && b >= 0.0 && b < ELEV_BINS as f32;
+            bin[l] = if inside { b } else { ELEV_BINS as f32 };
+            col[l] = diamond_lanes(x[l], y[l]) * self.col_scale;
+        }
+        // Both within `i32` (the bin below 1025, the column at most `cols`).
+        let (bin, col) = (crate::math::trunc_i32x8(bin), crate::math::trunc_i32x8(col));
+        let col = core::array::from_fn(|l| if col[l] >= cols { 0 } else { col[l] });
+        let row = core::array::from_fn(|l| match self.elev_row.get(bin[l] as usize) {
+            Some(&row) if row != NO_ROW => i32::from(row) - 1,
+            _ => -1,
+        });
+        CellLanes { row, col, r, bin }
+    }
+
+    /// [`Self::cells8_parts`] as each point's index in the image (`row * cols + col`,
+    /// [`NO_CELL`] where `cell` gives none) and range.
+    #[inline(always)]
+    fn cells8(&self, v: &[[f32; LANES]; 3]) -> ([u32; LANES], [f32; LANES]) {
+        let c = self.cells8_parts(v);
+        let cols = self.cols as i32;
+        let idx =
+            core::array::from_fn(
+                |l| if c.row[l] < 0 { NO_CELL } else { (c.row[l] * cols + c.col[l]) as u32 },
+            );
+        (idx, c.r)
+    }
+
+    /// [`range_cm`] of eight ranges (as `i32` on the way: a vector conversion). A range that is
+    /// not a number gives 0 either way.
+    #[inline(always)]
+    fn ranges_cm8(r: &[f32; LANES]) -> [u16; LANES] {
+        let cm = crate::math::trunc_i32x8(core::array::from_fn(|l| (r[l] * 100.0).clamp(1.0, 65534.0)));
+        cm.map(|v| v as u16)
+    }
+
     /// Marks the cells that none of `points` (every return of the scan, sensor frame) fell in
     /// as open, and notes the nearest return of each other cell, for the next [`Self::fill`].
     pub fn mark_returns(&mut self, points: &[ScanPoint]) {
         let cells = usize::from(self.rows) * usize::from(self.cols);
         self.range_cm[..cells].fill(OPEN);
-        let cols = usize::from(self.cols);
-        for p in points {
-            if let Some((row, col, r, _)) = self.cell(p.xyz) {
-                let slot = &mut self.range_cm[row * cols + col];
-                *slot = (*slot).min(range_cm(r));
+        for chunk in points.chunks(LANES) {
+            let (idx, r) = self.cells8(&lanes(chunk.iter().map(|p| p.xyz)));
+            let cm = Self::ranges_cm8(&r);
+            for l in 0..LANES {
+                if let Some(slot) = self.range_cm.get_mut(idx[l] as usize) {
+                    *slot = (*slot).min(cm[l]);
+                }
             }
         }
         self.marked = cells > 0;
@@ -306,16 +404,16 @@ impl<const N: usize> FreeSpaceImage<N> {
         if cells == 0 {
             return;
         }
-        let cols = usize::from(self.cols);
-        for p in points {
-            // By the direction in this frame, as the map's points are judged: a beam's own row
-            // is off by rows wherever the platform pitched or rolled during the scan.
-            let cell = self.cell(p.xyz);
-            if let Some((row, col, r, _)) = cell {
-                let cm = range_cm(r);
-                let slot = &mut self.range_cm[row * cols + col];
-                if *slot == 0 || cm < *slot {
-                    *slot = cm;
+        // By the direction in this frame, as the map's points are judged: a beam's own row is
+        // off by rows wherever the platform pitched or rolled during the scan.
+        for chunk in points.chunks(LANES) {
+            let (idx, r) = self.cells8(&lanes(chunk.iter().map(|p| p.xyz)));
+            let cm = Self::ranges_cm8(&r);
+            for l in 0..LANES {
+                if let Some(slot) = self.range_cm.get_mut(idx[l] as usize)
+                    && (*slot == 0 || cm[l] < *slot)
+                {
+                    *slot = cm[l];
                 }
             }
         }
@@ -331,14 +429,52 @@ impl<const N: usize> FreeSpaceImage<N> {
         self.judge(p, slack, true, cfg)
     }
 
+    /// The verdicts of [`LANES`] points (`v`: their coordinates by axis, sensor frame), as
+    /// [`Self::verdict`] gives them one by one, with the cells found on vector lanes.
+    pub(crate) fn verdicts8(&self, v: &[[f32; LANES]; 3], cfg: &FreeSpaceConfig) -> [Verdict; LANES] {
+        let c = self.cells8_parts(v);
+        let [x, y, z] = v;
+        core::array::from_fn(|l| {
+            let r2 = x[l] * x[l] + y[l] * y[l] + z[l] * z[l];
+            if !self.in_reach(r2, cfg) || c.row[l] < 0 {
+                return Verdict::Unknown;
+            }
+            let b = c.bin[l] as usize;
+            let on_beam = self.on_beam[b / 8] & (1 << (b % 8)) != 0;
+            self.judge_cell(c.row[l] as usize, c.col[l] as usize, c.r[l], on_beam, 0.0, false, cfg)
+        })
+    }
+
+    /// Whether a point at squared range `r2` can be judged at all.
+    #[inline(always)]
+    fn in_reach(&self, r2: f32, cfg: &FreeSpaceConfig) -> bool {
+        !(self.rows == 0 || !(r2 <= cfg.max_range * cfg.max_range) || r2 < 0.25)
+    }
+
     #[inline]
     fn judge(&self, p: [f32; 3], slack: f32, open: bool, cfg: &FreeSpaceConfig) -> Verdict {
         // Out of reach first: the cell's arctangents cost more than the range.
         let r2 = p[0] * p[0] + p[1] * p[1] + p[2] * p[2];
-        if self.rows == 0 || !(r2 <= cfg.max_range * cfg.max_range) || r2 < 0.25 {
+        if !self.in_reach(r2, cfg) {
             return Verdict::Unknown;
         }
         let Some((row, col, r, on_beam)) = self.cell(p) else { return Verdict::Unknown };
+        self.judge_cell(row, col, r, on_beam, slack, open, cfg)
+    }
+
+    /// [`Self::judge`] once the point's cell is known.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn judge_cell(
+        &self,
+        row: usize,
+        col: usize,
+        r: f32,
+        on_beam: bool,
+        slack: f32,
+        open: bool,
+        cfg: &FreeSpaceConfig,
+    ) -> Verdict {
         // Open cells (no return at all) count as beyond only for a point on its row's beam.
         let open = open && on_beam;
         let seen = |v: u16| if v == OPEN && !open { 0 } else { v };
@@ -380,6 +516,72 @@ mod tests {
     fn layout() -> RangeImageLayout {
         let el: [f32; 16] = core::array::from_fn(|i| (15.0 - 2.0 * i as f32).to_radians());
         RangeImageLayout::from_elevations(&el, 1800, true).unwrap()
+    }
+
+    #[test]
+    fn the_lanes_find_the_cells_one_point_at_a_time_finds() {
+        // Every quadrant, the axes, signed zeros, and points off the beams or without a range.
+        extern crate std;
+        let mut pts = std::vec::Vec::new();
+        for &x in &[-7.3f32, -1.0, -0.0, 0.0, 1e-30, 0.5, 3.0, 20.0] {
+            for &y in &[-4.1f32, -1.0, -0.0, 0.0, 1e-30, 0.5, 3.0, 20.0] {
+                for &z in &[-9.0f32, -0.4, 0.0, 0.2, 1.5, 40.0] {
+                    pts.push([x, y, z]);
+                }
+            }
+        }
+        pts.push([f32::NAN, 1.0, 0.0]);
+        pts.push([f32::INFINITY, 1.0, 0.0]);
+        pts.extend(scene(20.0).iter().map(|p| p.xyz));
+        let img = image(20.0);
+        let cols = img.cols as usize;
+        for chunk in pts.chunks(LANES) {
+            let (idx, r) = img.cells8(&lanes(chunk.iter().copied()));
+            for (l, p) in chunk.iter().enumerate() {
+                // Not a number: no cell (below), whatever either diamond says.
+                if !p[0].is_nan() {
+                    let d = diamond_lanes(p[0], p[1]);
+                    assert_eq!(libm::fabsf(d).to_bits(), libm::fabsf(diamond(p[0], p[1])).to_bits(), "{p:?}");
+                }
+                match img.cell(*p) {
+                    Some((row, col, rr, _)) => {
+                        assert_eq!(idx[l] as usize, row * cols + col, "{p:?}");
+                        assert_eq!(r[l].to_bits(), rr.to_bits(), "{p:?}");
+                        assert_eq!(FreeSpaceImage::<{ 16 * 1800 }>::ranges_cm8(&r)[l], range_cm(rr), "{p:?}");
+                    }
+                    None => assert_eq!(idx[l], NO_CELL, "{p:?}"),
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn eight_verdicts_at_once_are_the_verdicts_one_by_one() {
+        extern crate std;
+        let img = image(20.0);
+        let cfg = FreeSpaceConfig::DEFAULT;
+        // The scene's returns, nearer by 5 % and by 30 % (some seen through), farther, and
+        // out of reach or without a range.
+        let mut probes: std::vec::Vec<[f32; 3]> = std::vec::Vec::new();
+        for k in [0.7f32, 0.95, 1.0, 1.2] {
+            probes.extend(scene(20.0).iter().map(|p| p.xyz.map(|v| v * k)));
+        }
+        probes.extend([
+            [0.0; 3],
+            [0.1, 0.1, 0.0],
+            [500.0, 1.0, 1.0],
+            [f32::NAN, 0.0, 0.0],
+            [3.0, -4.0, -1.0],
+        ]);
+        let mut through = 0;
+        for chunk in probes.chunks(LANES) {
+            let v = img.verdicts8(&lanes(chunk.iter().copied()), &cfg);
+            for (l, p) in chunk.iter().enumerate() {
+                assert_eq!(v[l], img.verdict(*p, &cfg), "{p:?}");
+                through += usize::from(v[l] == Verdict::SeenThrough);
+            }
+        }
+        assert!(through > 1000, "{through}");
     }
 
     fn pt(xyz: [f32; 3], row: u16) -> ScanPoint {

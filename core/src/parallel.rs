@@ -84,6 +84,40 @@ pub fn map_indexed<U: Send>(parallel: &dyn Parallel, out: &mut [U], f: impl Fn(u
     parallel.run(&mut jobs);
 }
 
+/// [`map_indexed`] by runs of `chunk` slots (for work on vector lanes): `f(first, run)` fills
+/// `out[first..first + run.len()]`, every run `chunk` long but the last. Pieces start on runs'
+/// starts, so the runs are the same as one loop's for any width.
+pub fn map_chunks<U: Send>(
+    parallel: &dyn Parallel,
+    out: &mut [U],
+    chunk: usize,
+    f: impl Fn(usize, &mut [U]) + Sync,
+) {
+    let chunk = chunk.max(1);
+    let ends = split(out.len(), parallel.width(), 64usize.next_multiple_of(chunk));
+    let f = &f;
+    let mut rest = out;
+    let mut closures = heapless::Vec::<_, MAX_WIDTH>::new();
+    let mut from = 0;
+    for &end in &ends {
+        let (piece, r) = core::mem::take(&mut rest).split_at_mut(end - from);
+        rest = r;
+        let first = from;
+        // Cannot fail: at most MAX_WIDTH pieces.
+        let _ = closures.push(move || {
+            for (k, run) in piece.chunks_mut(chunk).enumerate() {
+                f(first + k * chunk, run);
+            }
+        });
+        from = end;
+    }
+    let mut jobs = heapless::Vec::<Job<'_>, MAX_WIDTH>::new();
+    for c in closures.iter_mut() {
+        let _ = jobs.push(c);
+    }
+    parallel.run(&mut jobs);
+}
+
 #[cfg(test)]
 mod tests {
     extern crate std;
@@ -131,6 +165,26 @@ mod tests {
                 let mut got = std::vec![0u64; n];
                 map_indexed(&Threads(w), &mut got, |k| (k as u64).wrapping_mul(0x9E37_79B9) >> 3);
                 assert_eq!(got, want, "n {n} width {w}");
+            }
+        }
+    }
+
+    #[test]
+    fn map_chunks_equals_one_loop_for_any_width() {
+        for n in [0usize, 1, 8, 63, 64, 65, 1000] {
+            for chunk in [1usize, 8, 48] {
+                // Each slot: its index and its run's start, which must be a multiple of `chunk`.
+                let want: std::vec::Vec<(usize, usize)> = (0..n).map(|k| (k, k - k % chunk)).collect();
+                for w in 1..=MAX_WIDTH + 1 {
+                    let mut got = std::vec![(0usize, 0usize); n];
+                    map_chunks(&Threads(w), &mut got, chunk, |first, run| {
+                        assert!(run.len() == chunk || first + run.len() == n);
+                        for (l, v) in run.iter_mut().enumerate() {
+                            *v = (first + l, first);
+                        }
+                    });
+                    assert_eq!(got, want, "n {n} chunk {chunk} width {w}");
+                }
             }
         }
     }
