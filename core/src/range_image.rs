@@ -165,8 +165,8 @@ impl RangeImageLayout {
     pub fn column_of(&self, row: usize, azimuth: f64) -> u16 {
         let cols = self.cols as f64;
         let x = (azimuth - self.azimuth0[row] as f64) / self.column_step();
-        let c = libm::floor(x + 0.5);
-        let c = c - cols * libm::floor(c / cols);
+        let c = crate::math::floor_f64(x + 0.5);
+        let c = c - cols * crate::math::floor_f64(c / cols);
         // `c` is in [0, cols]; rounding of the last expression can give exactly `cols`.
         let c = c as u32;
         if c >= self.cols as u32 { 0 } else { c as u16 }
