@@ -221,11 +221,13 @@ fn check_outputs(out: &Path) -> (usize, usize, usize) {
 /// A run against the simulator: the one-at-a-time lock, a scratch folder holding the
 /// scenario's files ([`scenario`]), loopback ports for the simulator to send to, and the
 /// arguments every such `loglio live` gets.
+/// Fields drop in their order: the scratch folder goes before the lock is released, so that
+/// the next run never has its new folder removed by this one's guard.
 struct SimRun {
-    _one: std::sync::MutexGuard<'static, ()>,
     dir: common::Scratch,
     sc: Scenario,
     offset: u16,
+    _one: std::sync::MutexGuard<'static, ()>,
 }
 
 impl SimRun {
@@ -239,7 +241,7 @@ impl SimRun {
         let dir = scratch(name);
         let sc = scenario(&dir, seconds);
         let offset = free_offset(&[7502, 7503]);
-        Some(SimRun { _one, dir, sc, offset })
+        Some(SimRun { dir, sc, offset, _one })
     }
 
     /// A file of the scratch folder.
@@ -518,7 +520,7 @@ fn live_bad_input_is_one_clear_line() {
 
 #[test]
 fn live_without_imu_data_warns_and_fails_clearly() {
-    let Some(run) = SimRun::start("live_without_imu_data_warns_and_fails_clearly", "no-imu", 3.0) else {
+    let Some(run) = SimRun::start("live_without_imu_data_warns_and_fails_clearly", "no-imu-data", 3.0) else {
         return;
     };
     // An IMU device that stays silent: a pseudo-terminal nobody writes.
