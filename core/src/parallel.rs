@@ -60,28 +60,11 @@ pub fn split(n: usize, pieces: usize, align: usize) -> heapless::Vec<usize, MAX_
 /// Fills `out[k] = f(k)` for every `k`, in pieces on `parallel`'s threads (each piece writes
 /// only its own slots; starts aligned to 64 entries): the same as one loop for any width.
 pub fn map_indexed<U: Send>(parallel: &dyn Parallel, out: &mut [U], f: impl Fn(usize) -> U + Sync) {
-    let ends = split(out.len(), parallel.width(), 64);
-    let f = &f;
-    let mut rest = out;
-    let mut closures = heapless::Vec::<_, MAX_WIDTH>::new();
-    let mut from = 0;
-    for &end in &ends {
-        let (piece, r) = core::mem::take(&mut rest).split_at_mut(end - from);
-        rest = r;
-        let first = from;
-        // Cannot fail: at most MAX_WIDTH pieces.
-        let _ = closures.push(move || {
-            for (k, v) in piece.iter_mut().enumerate() {
-                *v = f(first + k);
-            }
-        });
-        from = end;
-    }
-    let mut jobs = heapless::Vec::<Job<'_>, MAX_WIDTH>::new();
-    for c in closures.iter_mut() {
-        let _ = jobs.push(c);
-    }
-    parallel.run(&mut jobs);
+    map_chunks(parallel, out, 64, |k, run| {
+        for (i, v) in run.iter_mut().enumerate() {
+            *v = f(k + i);
+        }
+    });
 }
 
 /// [`map_indexed`] by runs of `chunk` slots (for work on vector lanes): `f(first, run)` fills
