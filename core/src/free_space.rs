@@ -173,7 +173,7 @@ fn diamond_lanes(x: f32, y: f32) -> f32 {
 
 /// Points whose cells are found together ([`FreeSpaceImage::cells8`]): their arithmetic is
 /// one 8-lane vector of `f32` per step where the build has AVX.
-const LANES: usize = 8;
+pub(crate) const LANES: usize = 8;
 
 /// No cell: the point is outside the beams or has no range.
 const NO_CELL: u32 = u32::MAX;
@@ -183,7 +183,8 @@ struct CellLanes {
     /// The row, -1 for none.
     row: [i32; LANES],
     col: [i32; LANES],
-    /// The range, m.
+    /// The squared range, m², and the range.
+    r2: [f32; LANES],
     r: [f32; LANES],
     /// The elevation bin ([`ELEV_BINS`] for none).
     bin: [i32; LANES],
@@ -191,7 +192,7 @@ struct CellLanes {
 
 /// Up to [`LANES`] points' coordinates by axis, the lanes past the points zero (no cell).
 #[inline(always)]
-fn lanes(points: impl Iterator<Item = [f32; 3]>) -> [[f32; LANES]; 3] {
+pub(crate) fn lanes(points: impl Iterator<Item = [f32; 3]>) -> [[f32; LANES]; 3] {
     let mut v = [[0.0; LANES]; 3];
     for (l, p) in points.take(LANES).enumerate() {
         for a in 0..3 {
@@ -338,7 +339,8 @@ impl<const N: usize> FreeSpaceImage<N> {
     #[inline(always)]
     fn cells8_parts(&self, v: &[[f32; LANES]; 3]) -> CellLanes {
         let [x, y, z] = v;
-        let r = crate::math::sqrtf8(core::array::from_fn(|l| x[l] * x[l] + y[l] * y[l] + z[l] * z[l]));
+        let r2 = core::array::from_fn(|l| x[l] * x[l] + y[l] * y[l] + z[l] * z[l]);
+        let r = crate::math::sqrtf8(r2);
         let cols = self.cols as i32;
         let (mut bin, mut col) = ([0.0f32; LANES], [0.0f32; LANES]);
         for l in 0..LANES {
@@ -354,7 +356,7 @@ impl<const N: usize> FreeSpaceImage<N> {
             Some(&row) if row != NO_ROW => i32::from(row) - 1,
             _ => -1,
         });
-        CellLanes { row, col, r, bin }
+        CellLanes { row, col, r2, r, bin }
     }
 
     /// [`Self::cells8_parts`] as each point's index in the image (`row * cols + col`,
@@ -433,10 +435,8 @@ impl<const N: usize> FreeSpaceImage<N> {
     /// [`Self::verdict`] gives them one by one, with the cells found on vector lanes.
     pub(crate) fn verdicts8(&self, v: &[[f32; LANES]; 3], cfg: &FreeSpaceConfig) -> [Verdict; LANES] {
         let c = self.cells8_parts(v);
-        let [x, y, z] = v;
         core::array::from_fn(|l| {
-            let r2 = x[l] * x[l] + y[l] * y[l] + z[l] * z[l];
-            if !self.in_reach(r2, cfg) || c.row[l] < 0 {
+            if !self.in_reach(c.r2[l], cfg) || c.row[l] < 0 {
                 return Verdict::Unknown;
             }
             let b = c.bin[l] as usize;

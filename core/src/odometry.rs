@@ -1179,15 +1179,12 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             // A point's verdict in `cell_of`: seen through (moving), seen, or neither.
             const MOVED: u32 = 1;
             // Eight points at a time: the image finds their cells on vector lanes.
-            const LANES: usize = 8;
             let moved = |first: usize, out: &mut [u32]| {
-                let mut v = [[0.0f32; LANES]; 3];
-                for (l, q) in pts[first..first + out.len()].iter().enumerate() {
+                let to_ref = |q: &ScanPoint| {
                     let p = &q.xyz;
-                    for i in 0..3 {
-                        v[i][l] = m[i][0] * p[0] + m[i][1] * p[1] + m[i][2] * p[2] + b[i];
-                    }
-                }
+                    core::array::from_fn(|i| m[i][0] * p[0] + m[i][1] * p[1] + m[i][2] * p[2] + b[i])
+                };
+                let v = crate::free_space::lanes(pts[first..first + out.len()].iter().map(to_ref));
                 let verdicts = img.verdicts8(&v, fs);
                 for (slot, verdict) in out.iter_mut().zip(verdicts) {
                     // The reference saw it there: static, no tracked object's.
@@ -1198,7 +1195,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                     };
                 }
             };
-            crate::parallel::map_chunks(par.unwrap_or(&Sequential), flags, LANES, moved);
+            crate::parallel::map_chunks(par.unwrap_or(&Sequential), flags, crate::free_space::LANES, moved);
             let (mut i, mut end) = (0usize, kept);
             while i < end {
                 if st.cell_of[i] == MOVED {
