@@ -879,3 +879,90 @@ fn deterministic_and_well_formed_on_a_street() {
         assert!(st.valid_points as f64 > 0.9 * r.points.len() as f64);
     }
 }
+
+/// Every second column (`column_stride = 2`, the default of 1800-column layouts): the image has
+/// half the columns, and the returns between them take their pixel's normal where they lie on
+/// its surface. On the VLP-32C layouts (aligned and staggered) noise-free planes stay exact for
+/// every return, noisy ones within the noise floor of the 900-column window, and at a depth
+/// discontinuity (a pole and a panel before a wall) every return's normal is its own surface's
+/// or none.
+#[test]
+fn every_second_column_gives_every_return_a_normal() {
+    let cfg = RingFalsConfig { column_stride: 2, ..RingFalsConfig::DEFAULT };
+    let half = RangeImageLayout::from_elevations(
+        &(0..32).map(|r| vlp32c_layout().elevation(r)).collect::<Vec<_>>(),
+        900,
+        true,
+    )
+    .unwrap();
+    for (name, layout) in [("32x1800", vlp32c_layout()), ("staggered", staggered_vlp32c())] {
+        for sigma in [0.0, 0.01] {
+            let mut worst = 0.0f64;
+            for (k, c) in plane_cases().iter().enumerate() {
+                let (r, sel) = render_plane(&layout, c, sigma, 3000 + k as u64);
+                let run = run(&layout, &cfg, &r.points);
+                assert_well_formed(&r, &run);
+                let odd = r.points.iter().filter(|p| p.col % 2 == 1).count() as u32;
+                assert_eq!(run.stats.off_stride, odd, "{name}: the odd columns are not projected");
+                for parity in [0, 1] {
+                    let (e, n) = errors(&r, &run, |i| sel[i] && r.points[i].col as usize % 2 == parity);
+                    let what = format!(
+                        "{name} stride 2, noise {sigma}, {} columns, range {} m incidence {} deg tilt {:.2}",
+                        ["even", "odd"][parity],
+                        c.range,
+                        c.incidence_deg,
+                        c.tilt
+                    );
+                    assert!(n >= 20, "{what}: only {n} points scored");
+                    if sigma == 0.0 {
+                        assert_eq!(e.len(), n, "{what}: every return valid without noise");
+                        worst = worst.max(percentile(&e, 1.0));
+                    } else {
+                        assert!(e.len() as f64 >= 0.95 * n as f64, "{what}: {} of {n} valid", e.len());
+                        let (m, bound) = (median(&e), noise_bound_deg(&half, c.range, sigma));
+                        assert!(
+                            m < bound,
+                            "{what}: median error {m:.3} deg above the noise floor {bound:.3}"
+                        );
+                        if one_degree_applies(&half, c.range) {
+                            assert!(m < 1.0, "{what}: median error {m:.3} deg");
+                        }
+                    }
+                }
+            }
+            println!("{name} stride 2, noise {sigma}: worst noise-free error {worst:.5} deg");
+            assert!(worst < 0.02, "{name}: noise-free plane error {worst} deg at stride 2");
+        }
+    }
+    // The discontinuity: wall 10 m, pole 4 m, panel 5 m, noise-free.
+    let layout = vlp32c_layout();
+    let az = 0.6f64;
+    let (c, s) = (az.cos(), az.sin());
+    let wall = Shape::plane([c, s, 0.0], [10.0 * c, 10.0 * s, 0.0]);
+    let pole = Shape::Cylinder { axis: [4.0 * c, 4.0 * s], radius: 0.15, z: [-5.0, 5.0] };
+    let pc = [5.0 * (az + 0.25).cos(), 5.0 * (az + 0.25).sin()];
+    let panel = Shape::Plane {
+        n: [(az + 0.25).cos(), (az + 0.25).sin(), 0.0],
+        d: 5.0,
+        lo: [pc[0] - 0.6, pc[1] - 0.6, -5.0],
+        hi: [pc[0] + 0.6, pc[1] + 0.6, 5.0],
+    };
+    let r = synth::render(&layout, &[wall, pole, panel], 0.0, &mut Rng::new(17), |_, _| true);
+    let run = run(&layout, &cfg, &r.points);
+    assert_well_formed(&r, &run);
+    // On the 15 cm pole the kept neighbour's normal is 5.3 degrees away (1.4 cm of arc), more at
+    // its silhouette; the wall's normal there would be 60-90 degrees off.
+    for (shape, what, bound) in [(0, "wall", 0.02), (2, "panel", 0.02), (1, "pole", 30.0)] {
+        let (e, n) = errors(&r, &run, |i| r.shape[i] == shape && r.points[i].col % 2 == 1);
+        println!("stride 2 discontinuity: odd-column {what} {} of {n} valid, max {:.3} deg", e.len(), {
+            percentile(&e, 1.0)
+        });
+        assert!(
+            n >= 30 && e.len() as f64 >= 0.8 * n as f64,
+            "{what}: {} of {n} odd-column returns valid",
+            e.len()
+        );
+        assert!(percentile(&e, 1.0) < bound, "{what}: an odd-column return took another surface's normal");
+        assert!(median(&e) < bound.min(6.0), "{what}: median error {:.3} deg", median(&e));
+    }
+}

@@ -239,6 +239,9 @@ pub struct RingFalsStats {
     pub collisions: u32,
     /// Points without a pixel (`NO_PIXEL`, or row/column outside the layout).
     pub no_pixel: u32,
+    /// Points of the columns between the image's ([`RingFalsConfig::column_stride`] above 1):
+    /// not projected; they share their pixel's normal on the same surface.
+    pub off_stride: u32,
     /// Points dropped for their range: non-finite, below `min_range` or above `max_range`.
     pub rejected_range: u32,
     /// Pixels with a valid normal.
@@ -317,6 +320,7 @@ impl<const P: usize> RingFals<P> {
                 points: 0,
                 projected: 0,
                 collisions: 0,
+                off_stride: 0,
                 no_pixel: 0,
                 rejected_range: 0,
                 valid_pixels: 0,
@@ -407,10 +411,18 @@ impl<const P: usize> RingFals<P> {
         // chain through every iteration. Projected pixels are counted after the loop.
         let (mut no_pixel, mut rejected) = (0u32, 0u32);
         let ix = table.pixel_index(stride);
+        let (shift, off) = (u32::from(table.col_shift), (1usize << table.col_shift) - 1);
+        let layout_cols = cols << shift;
+        let mut off_stride = 0u32;
         for (i, p) in points.iter().enumerate() {
             let (row, col) = (p.row as usize, p.col as usize);
-            if row >= rows || col >= cols {
+            if row >= rows || col >= layout_cols {
                 no_pixel += 1;
+                continue;
+            }
+            // A column between the image's: its normal comes from its pixel (`write_points`).
+            if col & off != 0 {
+                off_stride += 1;
                 continue;
             }
             let [x, y, z] = p.xyz;
@@ -420,7 +432,7 @@ impl<const P: usize> RingFals<P> {
                 rejected += 1;
                 continue;
             }
-            let px = ix.px(row, col);
+            let px = ix.px(row, col >> shift);
             let old = self.range2[px];
             if old == 0.0 || r2 < old {
                 self.range2[px] = r2;
@@ -432,7 +444,8 @@ impl<const P: usize> RingFals<P> {
         self.stats.no_pixel = no_pixel;
         self.stats.rejected_range = rejected;
         self.stats.projected = projected;
-        self.stats.collisions = points.len() as u32 - no_pixel - rejected - projected;
+        self.stats.off_stride = off_stride;
+        self.stats.collisions = points.len() as u32 - no_pixel - rejected - projected - off_stride;
         Ok(())
     }
 
@@ -446,11 +459,12 @@ impl<const P: usize> RingFals<P> {
             return;
         }
         let st = self.stats;
-        self.stats.valid_points = if st.collisions == 0 && st.points as usize == points.len() {
-            self.write_by_pixel(out)
-        } else {
-            self.write_by_point(table, points, out)
-        };
+        self.stats.valid_points =
+            if st.collisions == 0 && st.off_stride == 0 && st.points as usize == points.len() {
+                self.write_by_pixel(out)
+            } else {
+                self.write_by_point(table, points, out)
+            };
     }
 
     /// [`Self::write_points`] when every point with a pixel owns it (no collisions): each
@@ -508,13 +522,15 @@ impl<const P: usize> RingFals<P> {
             }
         }
         let ix = table.pixel_index(stride);
+        let shift = u32::from(table.col_shift);
+        let layout_cols = cols << shift;
         for (i, (p, o)) in points.iter().zip(out.iter_mut()).enumerate() {
             let (row, col) = (p.row as usize, p.col as usize);
-            if row >= rows || col >= cols {
+            if row >= rows || col >= layout_cols {
                 *o = PointNormal::INVALID;
                 continue;
             }
-            let px = ix.px(row, col);
+            let px = ix.px(row, col >> shift);
             // The pixel's owner was projected this scan (a pixel with a return was written),
             // so it passed the range filter already.
             let owner = self.owner[px];
@@ -525,8 +541,9 @@ impl<const P: usize> RingFals<P> {
                 }
                 let [x, y, z] = p.xyz;
                 let r2 = x * x + y * y + z * z;
-                // A point that lost its pixel to a nearer one shares the pixel's normal only if
-                // it lies on the same surface: within the gate to a same-row neighbour.
+                // A point that lost its pixel to a nearer one, or lies between the image's
+                // columns, shares the pixel's normal only if it lies on the same surface: within
+                // the gate to a same-row neighbour (one image column, at least as far).
                 let (ri, rp) = (crate::math::sqrtf(r2), crate::math::sqrtf(self.range2[px]));
                 let g = table.row[row].gate[CENTRE + 1];
                 if !((r2 >= min2) & (r2 <= max2) & (ri - rp <= g * rp + cfg.range_jump_abs)) {
@@ -541,11 +558,9 @@ impl<const P: usize> RingFals<P> {
     }
 
     /// The normal of pixel (row, col) of the last scan, in the caller's columns; `None` when the
-    /// pixel has no valid normal or is outside the layout.
+    /// pixel has no valid normal, is outside the layout or lies between the image's columns.
     pub fn pixel_normal(&self, table: &RingTable, row: usize, col: usize) -> Option<[f32; 3]> {
-        if row >= self.rows || col >= self.cols || table.rows() != self.rows || table.cols() != self.cols {
-            return None;
-        }
+        let col = self.image_col(table, row, col)?;
         let px = (row + PAD) * self.stride + table.internal_col(row, col) + PAD;
         match self.state[px] {
             FULL | GAP => Some([self.nx[px], self.ny[px], self.nz[px]]),
@@ -555,11 +570,18 @@ impl<const P: usize> RingFals<P> {
 
     /// Whether pixel (row, col) of the last scan was solved from an incomplete window.
     pub fn pixel_is_gap_solve(&self, table: &RingTable, row: usize, col: usize) -> bool {
-        if row >= self.rows || col >= self.cols || table.rows() != self.rows || table.cols() != self.cols {
-            return false;
-        }
+        let Some(col) = self.image_col(table, row, col) else { return false };
         let px = (row + PAD) * self.stride + table.internal_col(row, col) + PAD;
         self.state[px] == GAP
+    }
+
+    /// The image column of the caller's pixel (row, col): `None` outside the layout, for a
+    /// column between the image's, or for a table this storage was not bound to.
+    fn image_col(&self, table: &RingTable, row: usize, col: usize) -> Option<usize> {
+        let shift = u32::from(table.col_shift);
+        let bound = table.rows() == self.rows && table.cols() == self.cols;
+        let on = row < self.rows && col < self.cols << shift && col & ((1 << shift) - 1) == 0;
+        (bound && on).then_some(col >> shift)
     }
 
     /// Sets up the planes for a new size: every pixel empty, every median value invalid.

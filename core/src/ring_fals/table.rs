@@ -13,8 +13,11 @@ pub enum TableError {
     Config(ConfigError),
     /// The layout has fewer than 2 rows: one row of returns cannot define a plane.
     TooFewRows,
-    /// The layout has fewer than 16 columns (the median works on 16 columns at a time).
+    /// The layout has fewer than 16 columns (the median works on 16 columns at a time), after
+    /// the column stride.
     TooFewCols,
+    /// The layout's columns are not a multiple of the configuration's `column_stride`.
+    ColumnStride,
     /// A row's neighbouring rows lie at (almost) its own elevation, so its window has no
     /// vertical extent.
     FlatRow {
@@ -29,6 +32,9 @@ impl core::fmt::Display for TableError {
             Self::Config(e) => write!(f, "{e}"),
             Self::TooFewRows => f.write_str("ring_fals: the layout needs at least 2 rows"),
             Self::TooFewCols => f.write_str("ring_fals: the layout needs at least 16 columns"),
+            Self::ColumnStride => {
+                f.write_str("ring_fals: the layout's columns must be a multiple of column_stride")
+            }
             Self::FlatRow { row } => write!(f, "ring_fals: row {row} has no vertical extent"),
         }
     }
@@ -116,7 +122,11 @@ impl RowCoeffs {
 #[derive(Clone, Debug, PartialEq)]
 pub struct RingTable {
     rows: u16,
+    /// The image's columns: the layout's divided by the column stride.
     cols: u16,
+    /// log2 of the column stride: caller column `c` is image column `c >> col_shift`, when
+    /// its low bits are zero.
+    pub(super) col_shift: u8,
     pub(super) config: RingFalsConfig,
     /// Internal column = (caller column + shift) mod cols.
     shift: [u16; MAX_ROWS],
@@ -139,6 +149,7 @@ impl RingTable {
         Self {
             rows: 0,
             cols: 0,
+            col_shift: 0,
             // All zero (not a usable configuration: the table has no rows until `build`), so
             // that a `static` holding a table lives in .bss.
             config: RingFalsConfig {
@@ -151,6 +162,7 @@ impl RingTable {
                 min_conditioning: 0.0,
                 median: false,
                 median_min_valid: 0,
+                column_stride: 0,
             },
             shift: [0; MAX_ROWS],
             row: [RowCoeffs::ZERO; MAX_ROWS],
@@ -166,14 +178,18 @@ impl RingTable {
         self.rows = 0;
         self.cols = 0;
         config.validate()?;
-        let (rows, cols) = (layout.rows(), layout.cols());
+        let (rows, stride) = (layout.rows(), usize::from(config.column_stride));
         if rows < 2 {
             return Err(TableError::TooFewRows);
         }
+        if !layout.cols().is_multiple_of(stride) {
+            return Err(TableError::ColumnStride);
+        }
+        let cols = layout.cols() / stride;
         if cols < QLANES {
             return Err(TableError::TooFewCols);
         }
-        let step = layout.column_step();
+        let step = layout.column_step() * stride as f64;
         let dh = libm::fabs(step);
         let alpha = (config.max_incidence_deg as f64).to_radians();
 
@@ -284,6 +300,7 @@ impl RingTable {
         self.config = *config;
         self.rows = rows as u16;
         self.cols = cols as u16;
+        self.col_shift = stride.trailing_zeros() as u8;
         Ok(())
     }
 
@@ -292,9 +309,15 @@ impl RingTable {
         self.rows as usize
     }
 
-    /// Columns of the layout (0 until built).
+    /// Columns of the normals' image: the layout's divided by the column stride (0 until
+    /// built).
     pub fn cols(&self) -> usize {
         self.cols as usize
+    }
+
+    /// Columns of the layout, as the points number them (0 until built).
+    pub fn layout_cols(&self) -> usize {
+        (self.cols as usize) << self.col_shift
     }
 
     /// The configuration the table was built with (all zero before the first build).

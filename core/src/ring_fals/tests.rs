@@ -74,6 +74,11 @@ fn config_validation() {
     assert_eq!(bad(|c| c.min_points = 2), Err(ConfigError::MinPoints));
     assert_eq!(bad(|c| c.min_conditioning = 0.0), Err(ConfigError::MinConditioning));
     assert_eq!(bad(|c| c.median_min_valid = 0), Err(ConfigError::MedianMinValid));
+    for stride in [0, 3, 8] {
+        let mut c = RingFalsConfig::DEFAULT;
+        c.column_stride = stride;
+        assert_eq!(c.validate(), Err(ConfigError::ColumnStride), "stride {stride}");
+    }
 }
 
 #[test]
@@ -92,6 +97,17 @@ fn table_rejects_degenerate_layouts() {
     assert_eq!(t.rows(), 0);
     assert_eq!(t.build(&ok, &RingFalsConfig::DEFAULT), Ok(()));
     assert_eq!(t.rows(), 2);
+    let strided = |s| RingFalsConfig { column_stride: s, ..RingFalsConfig::DEFAULT };
+    assert_eq!(t.build(&ok, &strided(4)), Ok(()));
+    assert_eq!((t.cols(), t.layout_cols()), (16, 64));
+    let odd = RangeImageLayout::from_elevations(&[0.1, 0.0], 66, true).unwrap();
+    assert_eq!(t.build(&odd, &strided(4)), Err(TableError::ColumnStride));
+    assert_eq!(
+        t.build(&ok, &RingFalsConfig { column_stride: 8, ..RingFalsConfig::DEFAULT }),
+        Err(TableError::Config(ConfigError::ColumnStride))
+    );
+    let narrow = RangeImageLayout::from_elevations(&[0.1, 0.0], 60, true).unwrap();
+    assert_eq!(t.build(&narrow, &strided(4)), Err(TableError::TooFewCols));
 }
 
 /// The lane-parallel trimmed solve gives the scalar reference's results, bit for bit, on

@@ -36,6 +36,7 @@ use loglio_core::odometry::{Clock, Odometry, OdometryConfig, OdometryError, Odom
 use loglio_core::output::ScanResult;
 use loglio_core::parallel::Parallel;
 use loglio_core::range_image::{MAX_COLS, MAX_ROWS, RangeImageLayout};
+use loglio_core::ring_fals::RingFalsConfig;
 use loglio_core::ring_fals::storage_pixels;
 use loglio_core::scan::ScanView;
 use loglio_core::standstill::StandstillConfig;
@@ -130,6 +131,8 @@ pub fn odometry_config(cfg: &Config, layout: RangeImageLayout) -> Result<Odometr
         ..base.eskf
     };
     let init = ImuInitConfig { gravity: cfg.imu.gravity, ..base.init };
+    // 0 keeps the preset's stride (by the layout's columns).
+    let ring_fals = RingFalsConfig { column_stride: cfg.mapping.normals_column_stride, ..base.ring_fals };
     let [w, x, y, z] = cfg.extrinsics.quaternion_wxyz();
     let t = cfg.extrinsics.translation();
     Ok(OdometryConfig {
@@ -156,6 +159,7 @@ pub fn odometry_config(cfg: &Config, layout: RangeImageLayout) -> Result<Odometr
             acc_full_scale: (cfg.imu.acc_full_scale * 9.80665) as f32,
             ..base.imu_guard
         },
+        ring_fals,
         ..base
     })
 }
