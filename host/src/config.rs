@@ -445,6 +445,14 @@ pub struct FilterConfig {
     /// Zero-velocity and zero-rate updates while the platform stands still.
     #[serde(default)]
     pub standstill: bool,
+    /// The residuals' Cauchy kernel, in standard deviations of their noise (0: plain least
+    /// squares).
+    #[serde(default = "three")]
+    pub robust_sigmas: f64,
+}
+
+fn three() -> f64 {
+    3.0
 }
 
 /// `[compute]`.
@@ -772,6 +780,12 @@ static SPECS: &[Spec] = &[
         "Zero-velocity and zero-rate updates while the platform stands still (the IMU quiet, the scans see no motion), against drift at a stand where the scene leaves a direction unobserved; off by default (see docs/estimation.md).",
     ),
     spec(
+        "filter.robust_sigmas",
+        Kind::Float { min: 0.0, max: 100.0 },
+        "sigmas",
+        "The update's Cauchy kernel: at every iteration each point's residual r is weighted by 1 / (1 + r^2 / (c^2 v)), v its noise variance and c this value, so that a point a moving object or a wrong match puts 30 cm off its plane keeps a tenth of its weight while one within the noise keeps nearly all of it; 0 = plain least squares, as the reference (see docs/estimation.md).",
+    ),
+    spec(
         "compute.threads",
         Kind::Int { min: 0, max: 8 },
         "threads",
@@ -843,7 +857,9 @@ const SECTIONS: [Section; 8] = [
     Section {
         name: "filter",
         what: "The iterated error-state Kalman filter.",
-        code: "The iterated ESKF's maximum number of passes per scan.",
+        code: "`max_iterations` is the iterated ESKF's maximum number of passes per scan, `standstill` \
+               `OdometryConfig::standstill`, `robust_sigmas` the association's \
+               `AssociationConfig::robust_sigmas` (applied as each pass linearises the residuals).",
     },
     Section {
         name: "compute",
@@ -1045,7 +1061,7 @@ impl Config {
                 clear_free_space: true,
                 normals_column_stride: 1,
             },
-            filter: FilterConfig { max_iterations: 4, standstill: false },
+            filter: FilterConfig { max_iterations: 4, standstill: false, robust_sigmas: 3.0 },
             compute: ComputeConfig::default(),
         }
     }

@@ -149,6 +149,7 @@ pub fn odometry_config(cfg: &Config, layout: RangeImageLayout) -> Result<Odometr
         association: AssociationConfig {
             max_points: u32::try_from(cfg.mapping.max_points).unwrap_or(u32::MAX),
             knn_reach: cfg.mapping.knn_search,
+            robust_sigmas: cfg.filter.robust_sigmas,
             ..base.association
         },
         standstill: StandstillConfig { enabled: cfg.filter.standstill, ..base.standstill },
