@@ -11,7 +11,8 @@
 //! 30 s), seed fixed, nothing tuned per scenario: the configuration is the sensor's preset with
 //! the rig's extrinsic and the IMU's noise figures (`config_for`).
 
-use std::sync::Mutex;
+use std::sync::{Mutex, MutexGuard, TryLockError};
+use std::time::Duration;
 
 use loglio_core::eskf::PropagationFlags;
 use loglio_core::odometry::{AssociationMode, Odometry, Vlp32cStorage};
@@ -25,10 +26,24 @@ use nalgebra::{Isometry3, Vector3};
 const MODES: [AssociationMode; 3] =
     [AssociationMode::Full, AssociationMode::PlaneOnly, AssociationMode::Plain];
 
-/// One storage per odometry, in statics (60 MB each: never on the stack). The tests of this
-/// binary share them, one scenario at a time.
-static STORES: [Mutex<Vlp32cStorage>; 3] = [const { Mutex::new(Vlp32cStorage::new()) }; 3];
-static LOCK: Mutex<()> = Mutex::new(());
+/// Two sets of one storage per odometry, in statics (60 MB each: never on the stack): two of
+/// this binary's tests run at once (cargo's two test threads on a 2-core machine; with one set
+/// they ran one after the other on one core, 400 s), a third waits for a free set.
+static SETS: [Mutex<[Vlp32cStorage; 3]>; 2] = [const { Mutex::new([const { Vlp32cStorage::new() }; 3]) }; 2];
+
+/// A free set of storages, held until the guard drops.
+fn stores() -> MutexGuard<'static, [Vlp32cStorage; 3]> {
+    loop {
+        for set in &SETS {
+            match set.try_lock() {
+                Ok(g) => return g,
+                Err(TryLockError::Poisoned(e)) => return e.into_inner(),
+                Err(TryLockError::WouldBlock) => {}
+            }
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
 
 fn scenario(kind: ScenarioKind, secs: f64) -> Scenario {
     let mut c = ScenarioConfig::new(kind, SensorModel::Vlp32c, 7);
@@ -38,11 +53,9 @@ fn scenario(kind: ScenarioKind, secs: f64) -> Scenario {
 
 /// Runs `modes` on `sc` in lockstep. The worlds of these scenarios stand still: the free-space
 /// tests (moving points, map voxels seen through) find almost nothing in them.
-fn run(sc: &Scenario, modes: &[AssociationMode]) -> Vec<Trace> {
-    let mut guards: Vec<_> =
-        STORES.iter().take(modes.len()).map(|m| m.lock().unwrap_or_else(|e| e.into_inner())).collect();
+fn run(stores: &mut [Vlp32cStorage], sc: &Scenario, modes: &[AssociationMode]) -> Vec<Trace> {
     let mut odos: Vec<Odometry<'_, _, _, _>> =
-        guards.iter_mut().zip(modes).map(|(g, &mode)| g.odometry(&config_for(sc, mode)).unwrap()).collect();
+        stores.iter_mut().zip(modes).map(|(g, &mode)| g.odometry(&config_for(sc, mode)).unwrap()).collect();
     let traces = run_lockstep(sc, &mut odos, |e| vec![e]);
     for (tr, mode) in traces.iter().zip(modes) {
         println!("{}", summary(sc.config().kind.name(), *mode, tr));
@@ -66,33 +79,38 @@ fn well_posed(kind: ScenarioKind) {
     well_posed_over(kind, &[7]);
 }
 
-/// [`well_posed`] on each of `seeds`, full against plane-only by their mean ATE.
+/// [`well_posed`] on each of `seeds`, full against plane-only by their mean ATE. The seeds run
+/// side by side, each on a free set of storages.
 fn well_posed_over(kind: ScenarioKind, seeds: &[u64]) {
-    let _one = LOCK.lock().unwrap_or_else(|e| e.into_inner());
-    let (mut full_sum, mut plane_sum) = (0.0, 0.0);
-    for &seed in seeds {
-        let mut c = ScenarioConfig::new(kind, SensorModel::Vlp32c, seed);
-        c.duration_s = kind.default_duration_s();
-        let sc = Scenario::from_config(c).unwrap();
-        let traces = run(&sc, &MODES);
-        let (full, plane, plain) = (traces[0].ate(), traces[1].ate(), traces[2].ate());
-        println!("{kind:?} seed {seed}: ATE full {full:.4} m, plane-only {plane:.4} m, plain {plain:.4} m");
-        let [ok, deg, imu, _, reinit] = traces[0].status_counts();
-        assert!(full.is_finite() && full <= 0.10, "{kind:?}: full-mode ATE {full:.4} m exceeds 0.10 m");
-        assert_eq!(reinit, 0, "{kind:?}: no re-initialisation on clean data");
-        assert!(
-            ok + deg > 9 * (ok + deg + imu) / 10,
-            "{kind:?}: most scans must update ({ok} ok, {deg} degraded, {imu} imu-only)"
-        );
-        full_sum += full;
-        plane_sum += plane;
-    }
+    let ates: Vec<(f64, f64)> = std::thread::scope(|s| {
+        let runs: Vec<_> = seeds.iter().map(|&seed| s.spawn(move || well_posed_seed(kind, seed))).collect();
+        runs.into_iter().map(|r| r.join().unwrap_or_else(|e| std::panic::resume_unwind(e))).collect()
+    });
     let n = seeds.len() as f64;
-    let (full, plane) = (full_sum / n, plane_sum / n);
+    let full = ates.iter().map(|a| a.0).sum::<f64>() / n;
+    let plane = ates.iter().map(|a| a.1).sum::<f64>() / n;
     assert!(
         full < plane,
         "{kind:?}: full {full:.4} m must beat plane-only {plane:.4} m (mean over {seeds:?})"
     );
+}
+
+/// One seed of [`well_posed_over`]: its checks, and the ATE of full and plane-only.
+fn well_posed_seed(kind: ScenarioKind, seed: u64) -> (f64, f64) {
+    let mut c = ScenarioConfig::new(kind, SensorModel::Vlp32c, seed);
+    c.duration_s = kind.default_duration_s();
+    let sc = Scenario::from_config(c).unwrap();
+    let traces = run(&mut stores()[..], &sc, &MODES);
+    let (full, plane, plain) = (traces[0].ate(), traces[1].ate(), traces[2].ate());
+    println!("{kind:?} seed {seed}: ATE full {full:.4} m, plane-only {plane:.4} m, plain {plain:.4} m");
+    let [ok, deg, imu, _, reinit] = traces[0].status_counts();
+    assert!(full.is_finite() && full <= 0.10, "{kind:?}: full-mode ATE {full:.4} m exceeds 0.10 m");
+    assert_eq!(reinit, 0, "{kind:?}: no re-initialisation on clean data");
+    assert!(
+        ok + deg > 9 * (ok + deg + imu) / 10,
+        "{kind:?}: most scans must update ({ok} ok, {deg} degraded, {imu} imu-only)"
+    );
+    (full, plane)
 }
 
 /// Zero-velocity updates only where the platform truly stands (its true speed under 1 cm/s
@@ -122,10 +140,10 @@ fn standstill_only_at_stands(sc: &Scenario, tr: &Trace) {
 /// errors stay those of the well-posed runs.
 #[test]
 fn standstill_updates_only_where_the_platform_stands() {
-    let _one = LOCK.lock().unwrap_or_else(|e| e.into_inner());
+    let mut set = stores();
     for kind in [ScenarioKind::Vehicle, ScenarioKind::FastRotation] {
         let sc = scenario(kind, kind.default_duration_s());
-        let mut guard = STORES[0].lock().unwrap_or_else(|e| e.into_inner());
+        let guard = &mut set[0];
         let mut cfg = config_for(&sc, AssociationMode::Full);
         cfg.standstill.enabled = true;
         let mut odos = [guard.odometry(&cfg).unwrap()];
@@ -186,16 +204,15 @@ fn anchored_errors(tr: &Trace) -> Vec<(u64, Vector3<f64>)> {
 /// Worst anchored errors (along the corridor, across it, vertical) of the LIO and of an IMU-only
 /// run on the same data, and the LIO's status counts.
 fn corridor_errors() -> ([f64; 3], [f64; 3], [usize; 5]) {
-    let _one = LOCK.lock().unwrap_or_else(|e| e.into_inner());
+    let mut set = stores();
     let kind = ScenarioKind::Corridor;
     let sc = scenario(kind, kind.default_duration_s());
     // The scenario is generated once: the LIO gets every event; beside it the same filter
     // gets the same IMU samples and every scan emptied (its IMU-only propagation).
     let (mut lio, mut imu_only) = (Trace::default(), Trace::default());
     {
-        let mut guards = [&STORES[0], &STORES[1]].map(|m| m.lock().unwrap_or_else(|e| e.into_inner()));
         let cfg = config_for(&sc, AssociationMode::Full);
-        let [a, b] = &mut guards;
+        let [a, b, _] = &mut *set;
         let mut odos = [a.odometry(&cfg).unwrap(), b.odometry(&cfg).unwrap()];
         let mut clock = StdClock::default();
         for ev in sc.events() {
@@ -317,17 +334,15 @@ fn map_points_in_and_out_of_the_traffic<const PIX: usize, const PTS: usize, cons
 /// trajectory is as good.
 #[test]
 fn moving_actors_leave_no_ghost_trails_in_the_map() {
-    let _one = LOCK.lock().unwrap_or_else(|e| e.into_inner());
+    let mut set = stores();
     let mut c = ScenarioConfig::new(ScenarioKind::Traffic, SensorModel::Vlp32c, 1);
     c.duration_s = 35.0;
     let sc = Scenario::from_config(c).unwrap();
-    let mut guards: Vec<_> =
-        STORES.iter().take(2).map(|m| m.lock().unwrap_or_else(|e| e.into_inner())).collect();
     let clear = config_for(&sc, AssociationMode::Full);
     let mut keep = clear.clone();
     keep.free_space.enabled = false;
     let mut odos: Vec<Odometry<'_, _, _, _>> =
-        guards.iter_mut().zip([&clear, &keep]).map(|(g, cfg)| g.odometry(cfg).unwrap()).collect();
+        set.iter_mut().zip([&clear, &keep]).map(|(g, cfg)| g.odometry(cfg).unwrap()).collect();
     let traces = run_lockstep(&sc, &mut odos, |e| vec![e]);
     let (ghosts, statics) = map_points_in_and_out_of_the_traffic(&sc, &odos[0], &traces[0]);
     let (ghosts_kept, statics_kept) = map_points_in_and_out_of_the_traffic(&sc, &odos[1], &traces[1]);
