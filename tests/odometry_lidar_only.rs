@@ -8,7 +8,8 @@
 //! few times above what was measured (the test prints both): a broken prediction, a lost
 //! undistortion or a frame mix-up gives metres, not centimetres.
 
-use std::sync::Mutex;
+use std::sync::{Mutex, MutexGuard, TryLockError};
+use std::time::Duration;
 
 use loglio_core::eskf::PropagationFlags;
 use loglio_core::motion_model::MotionModel;
@@ -20,20 +21,35 @@ use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKin
 use loglio_tests::odom::{StdClock, Trace, align, config_for, summary};
 use nalgebra::Vector3;
 
-/// One storage per odometry (LiDAR-inertial, LiDAR-only), in statics (never on the stack).
-static STORES: [Mutex<Vlp32cStorage>; 2] = [const { Mutex::new(Vlp32cStorage::new()) }; 2];
+/// One storage per odometry (LiDAR-inertial, LiDAR-only), in statics (never on the stack); one
+/// set per test, so that the two tests run side by side on cargo's two test threads.
+static SETS: [Mutex<[Vlp32cStorage; 2]>; 2] = [const { Mutex::new([const { Vlp32cStorage::new() }; 2]) }; 2];
+
+/// A free set of storages, held until the guard drops.
+fn stores() -> MutexGuard<'static, [Vlp32cStorage; 2]> {
+    loop {
+        for set in &SETS {
+            match set.try_lock() {
+                Ok(g) => return g,
+                Err(TryLockError::Poisoned(e)) => return e.into_inner(),
+                Err(TryLockError::WouldBlock) => {}
+            }
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
 
 /// The scenario run with and without IMU: (LiDAR-inertial, LiDAR-only) traces.
 fn run(kind: ScenarioKind) -> (Trace, Trace) {
     let mut c = ScenarioConfig::new(kind, SensorModel::Vlp32c, 7);
     c.duration_s = kind.default_duration_s();
     let sc = Scenario::from_config(c).unwrap();
-    let mut guards: Vec<_> = STORES.iter().map(|m| m.lock().unwrap_or_else(|e| e.into_inner())).collect();
+    let mut set = stores();
     let lio_cfg = config_for(&sc, AssociationMode::Full);
     let lo_cfg = config_for(&sc, AssociationMode::Full).with_motion(MotionModel::LIDAR_ONLY);
-    let (a, b) = guards.split_at_mut(1);
-    let mut lio = a[0].odometry(&lio_cfg).unwrap();
-    let mut lo = b[0].odometry(&lo_cfg).unwrap();
+    let [a, b] = &mut *set;
+    let mut lio = a.odometry(&lio_cfg).unwrap();
+    let mut lo = b.odometry(&lo_cfg).unwrap();
     let (mut t_lio, mut t_lo) = (Trace::default(), Trace::default());
     let mut clock = StdClock::default();
     for ev in sc.events() {
