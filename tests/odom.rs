@@ -3,7 +3,8 @@
 //! event stream to several odometries (so a scenario is generated once for every mode), and the
 //! absolute trajectory error after SE(3) alignment.
 
-use std::time::Instant;
+use std::sync::{Mutex, MutexGuard, TryLockError};
+use std::time::{Duration, Instant};
 
 use loglio_core::odometry::{AssociationMode, Clock, Odometry, OdometryConfig};
 use loglio_core::output::{ScanResult, Status};
@@ -168,4 +169,20 @@ pub fn summary(name: &str, mode: AssociationMode, tr: &Trace) -> String {
         large as f64 / n,
         small as f64 / n,
     )
+}
+
+/// The first free one of `sets` (storages in statics, one set per test running at once), held
+/// until the guard drops; waits while every set is taken. A poisoned set (a test that failed
+/// with it) is handed out as it is: each odometry discards its storage's contents.
+pub fn free_set<T>(sets: &'static [Mutex<T>]) -> MutexGuard<'static, T> {
+    loop {
+        for set in sets {
+            match set.try_lock() {
+                Ok(g) => return g,
+                Err(TryLockError::Poisoned(e)) => return e.into_inner(),
+                Err(TryLockError::WouldBlock) => {}
+            }
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
 }

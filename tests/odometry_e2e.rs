@@ -11,8 +11,7 @@
 //! 30 s), seed fixed, nothing tuned per scenario: the configuration is the sensor's preset with
 //! the rig's extrinsic and the IMU's noise figures (`config_for`).
 
-use std::sync::{Mutex, MutexGuard, TryLockError};
-use std::time::Duration;
+use std::sync::{Mutex, MutexGuard};
 
 use loglio_core::eskf::PropagationFlags;
 use loglio_core::odometry::{AssociationMode, Odometry, Vlp32cStorage};
@@ -20,7 +19,7 @@ use loglio_core::output::Status;
 use loglio_core::scan::{ScanPoint, ScanView};
 use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKind};
-use loglio_tests::odom::{StdClock, Trace, config_for, run_lockstep, summary};
+use loglio_tests::odom::{StdClock, Trace, config_for, free_set, run_lockstep, summary};
 use nalgebra::{Isometry3, Vector3};
 
 const MODES: [AssociationMode; 3] =
@@ -33,16 +32,7 @@ static SETS: [Mutex<[Vlp32cStorage; 3]>; 2] = [const { Mutex::new([const { Vlp32
 
 /// A free set of storages, held until the guard drops.
 fn stores() -> MutexGuard<'static, [Vlp32cStorage; 3]> {
-    loop {
-        for set in &SETS {
-            match set.try_lock() {
-                Ok(g) => return g,
-                Err(TryLockError::Poisoned(e)) => return e.into_inner(),
-                Err(TryLockError::WouldBlock) => {}
-            }
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    free_set(&SETS)
 }
 
 fn scenario(kind: ScenarioKind, secs: f64) -> Scenario {

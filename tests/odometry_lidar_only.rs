@@ -8,8 +8,7 @@
 //! few times above what was measured (the test prints both): a broken prediction, a lost
 //! undistortion or a frame mix-up gives metres, not centimetres.
 
-use std::sync::{Mutex, MutexGuard, TryLockError};
-use std::time::Duration;
+use std::sync::{Mutex, MutexGuard};
 
 use loglio_core::eskf::PropagationFlags;
 use loglio_core::motion_model::MotionModel;
@@ -18,7 +17,7 @@ use loglio_core::output::Status;
 use loglio_core::scan::ScanView;
 use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKind};
-use loglio_tests::odom::{StdClock, Trace, align, config_for, summary};
+use loglio_tests::odom::{StdClock, Trace, align, config_for, free_set, summary};
 use nalgebra::Vector3;
 
 /// One storage per odometry (LiDAR-inertial, LiDAR-only), in statics (never on the stack); one
@@ -27,16 +26,7 @@ static SETS: [Mutex<[Vlp32cStorage; 2]>; 2] = [const { Mutex::new([const { Vlp32
 
 /// A free set of storages, held until the guard drops.
 fn stores() -> MutexGuard<'static, [Vlp32cStorage; 2]> {
-    loop {
-        for set in &SETS {
-            match set.try_lock() {
-                Ok(g) => return g,
-                Err(TryLockError::Poisoned(e)) => return e.into_inner(),
-                Err(TryLockError::WouldBlock) => {}
-            }
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    free_set(&SETS)
 }
 
 /// The scenario run with and without IMU: (LiDAR-inertial, LiDAR-only) traces.
