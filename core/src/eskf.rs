@@ -545,12 +545,6 @@ impl PointToPlane {
     /// Residual `r = n·p_W + d` of a LiDAR-frame point `p_l` against the world plane
     /// `{q : n·q + d = 0}` (`n` unit; `d = -n·q0` for a point `q0` on it), and its Jacobian row
     /// `[nᵀ, (p_I × Rᵀn)ᵀ, (p_L × R_ILᵀRᵀn)ᵀ, (Rᵀn)ᵀ]` with `p_I = R_IL p_L + t_IL`.
-    /// The residual of [`Self::row`] alone.
-    #[inline]
-    pub fn residual(&self, p_l: &V3, n: &V3, d: f64) -> f64 {
-        n.dot(&(self.r * (self.r_il * p_l + self.t_il) + self.p)) + d
-    }
-
     #[inline]
     pub fn row(&self, p_l: &V3, n: &V3, d: f64) -> (f64, HRow) {
         let p_i = self.r_il * p_l + self.t_il;
@@ -559,6 +553,12 @@ impl PointToPlane {
         let a = p_i.cross(&c);
         let e = p_l.cross(&(self.r_il.transpose() * c));
         (n.dot(&p_w) + d, [n.x, n.y, n.z, a.x, a.y, a.z, e.x, e.y, e.z, c.x, c.y, c.z])
+    }
+
+    /// The residual of [`Self::row`] alone.
+    #[inline]
+    pub fn residual(&self, p_l: &V3, n: &V3, d: f64) -> f64 {
+        n.dot(&(self.r * (self.r_il * p_l + self.t_il) + self.p)) + d
     }
 }
 
