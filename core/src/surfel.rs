@@ -548,6 +548,9 @@ pub struct Plane {
     pub centroid: [f32; 3],
     /// The largest |distance| of a fitted point from the plane, metres.
     pub max_residual: f32,
+    /// The points' middle eigenvalue over their largest: near 0 when they lie along a line
+    /// (one scan ring on the ground, a pole), about which the fitted normal is free to turn.
+    pub spread: f32,
 }
 
 impl Plane {
@@ -619,6 +622,7 @@ fn plane_verdict(
         normal: [n[0] as f32, n[1] as f32, n[2] as f32],
         centroid: [(o[0] + c[0]) as f32, (o[1] + c[1]) as f32, (o[2] + c[2]) as f32],
         max_residual: max_res as f32,
+        spread: (l2 / l3) as f32,
     })
 }
 

@@ -150,6 +150,7 @@ pub fn odometry_config(cfg: &Config, layout: RangeImageLayout) -> Result<Odometr
             max_points: u32::try_from(cfg.mapping.max_points).unwrap_or(u32::MAX),
             knn_reach: cfg.mapping.knn_search,
             robust_sigmas: cfg.filter.robust_sigmas,
+            plane_line_spread: cfg.mapping.plane_line_spread as f32,
             ..base.association
         },
         standstill: StandstillConfig { enabled: cfg.filter.standstill, ..base.standstill },
@@ -412,6 +413,19 @@ pub fn with_engine<R>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The line-fit key reaches the association: off by default, on where set.
+    #[test]
+    fn plane_line_spread_reaches_the_association() {
+        let text = "preset = \"vlp32c\"\n";
+        let layout = |c: &Config| c.nominal_layout().unwrap();
+        let off = Config::from_toml_str(text).unwrap();
+        assert_eq!(odometry_config(&off, layout(&off)).unwrap().association.plane_line_spread, 0.0);
+        let on = Config::from_toml_str(&format!("{text}[mapping]\nplane_line_spread = 0.03\n")).unwrap();
+        assert_eq!(odometry_config(&on, layout(&on)).unwrap().association.plane_line_spread, 0.03);
+        let bad = Config::from_toml_str(&format!("{text}[mapping]\nplane_line_spread = 2.0\n"));
+        assert!(bad.is_err_and(|e| e.0.contains("mapping.plane_line_spread")));
+    }
 
     /// Classes by pixels: every layout the core accepts and a class can hold gets one (the
     /// HDL-32E at 10 Hz, 32 x 2170, was refused as wider than 2048), the rest a one-line error.
