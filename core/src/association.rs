@@ -143,9 +143,9 @@ pub struct AssociationConfig {
     pub plane_max_normal_angle_deg: f32,
     /// Point-to-plane: neighbours that lie along a line (their middle eigenvalue under this
     /// share of the largest, [`surfel::Plane::spread`]) fix no normal about it, only the line;
-    /// where their fit's normal leaves the point's own by more than
-    /// `plane_line_angle_deg`, the point's normal is taken instead (the plane through the
-    /// line that the surface around the point has). 0 disables it. Default 0 (off: 0.03
+    /// where their fit's normal leaves the one `plane_max_normal_angle_deg` compares it with
+    /// by more than `plane_line_angle_deg`, that normal is taken instead (the plane through
+    /// the line that the surface around the point has). 0 disables it. Default 0 (off: 0.03
     /// gives 0.86x the ATE on the simulated vehicle, but sets a VLP-16 walk back after a 5 s
     /// LiDAR gap by 1.6x).
     pub plane_line_spread: f32,

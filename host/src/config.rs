@@ -774,7 +774,7 @@ static SPECS: &[Spec] = &[
         "mapping.plane_line_spread",
         Kind::Float { min: 0.0, max: 1.0 },
         "",
-        "Point-to-plane fits whose neighbours lie along a line (one scan ring: their middle eigenvalue under this share of the largest) fix no normal about it; where such a fit's normal is 5 to 30 degrees from the point's own, the point's is taken. 0 = off (the default): 0.03 gives 0.86x the ATE on the simulated vehicle and 0.82x among traffic, 1.06x on the drone, but a VLP-16 walk after a 5 s LiDAR gap 1.6x (see docs/estimation.md).",
+        "Point-to-plane fits whose neighbours lie along a line (one scan ring: their middle eigenvalue under this share of the largest) fix no normal about it; where such a fit's normal is 5 to 30 degrees from the point's own (without one, its neighbours' mean), that one is taken. 0 = off (the default): 0.03 gives 0.86x the ATE on the simulated vehicle and 0.82x among traffic, 1.06x on the drone, but a VLP-16 walk after a 5 s LiDAR gap 1.6x (see docs/estimation.md).",
     ),
     spec(
         "filter.max_iterations",
