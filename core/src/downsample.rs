@@ -2,7 +2,7 @@
 //!
 //! Points are binned into cubic voxels of side `voxel` (keys `floor(p / voxel)`) in a
 //! fixed-capacity open-addressing hash grid ([`VoxelDownsampler`], caller-owned,
-//! `const`-constructible; it is emptied after each scan by clearing only the slots it used).
+//! `const`-constructible; once a scan is binned it is emptied by clearing only the slots used).
 //! Each voxel outputs one point: **the input point nearest to the voxel's centroid**, not the
 //! centroid itself. A real point keeps a coherent time (which undistortion needs), pixel and
 //! intensity, and it lies on the measured surface, where a centroid of points on a corner or a
@@ -30,6 +30,7 @@
 // Parallel xyz arrays read clearest as indexed loops.
 #![allow(clippy::needless_range_loop)]
 
+use crate::parallel::Parallel;
 use crate::scan::ScanPoint;
 
 /// The normal written where there is none.
@@ -310,6 +311,27 @@ impl<const N: usize> VoxelDownsampler<N> {
         }
     }
 
+    /// [`Self::add_normals`] on `parallel`'s threads: each takes a range of the voxels and
+    /// reads every point, adding only its voxels' normals, so each voxel's sum is still taken
+    /// in the points' order (the same bits as one thread).
+    pub fn add_normals_with(&mut self, normals: &[[f32; 3]], scratch: &[u32], parallel: &dyn Parallel) {
+        let used = self.used;
+        let width = parallel.width();
+        if width <= 1 || used < 2 * 64 {
+            return self.add_normals(normals, scratch);
+        }
+        // One run per piece: the runs are as long as the pieces' alignment.
+        let run = used.div_ceil(width).next_multiple_of(64);
+        crate::parallel::map_chunks(parallel, &mut self.cells[..used], run, |first, cells| {
+            for (n, &cell) in normals.iter().zip(scratch.iter()) {
+                // Points of no voxel (`NO_CELL`) and of other pieces' voxels fall outside.
+                if let Some(c) = cells.get_mut((cell as usize).wrapping_sub(first)) {
+                    c.add_normal(n);
+                }
+            }
+        });
+    }
+
     fn run(
         &mut self,
         cfg: &DownsampleConfig,
@@ -421,14 +443,23 @@ impl<const N: usize> VoxelDownsampler<N> {
             }
         }
 
+        // The grid is emptied for the next scan and the output order found here, not in
+        // [`Self::finish`]: neither needs the normals, so with the stages on two threads this
+        // runs beside the normals' estimation.
+        for k in 0..used {
+            let c = &self.cells[k];
+            self.index[c.pos as usize] = 0;
+            self.codes[k] = morton30(c.key);
+        }
+        self.morton_sort(used);
         self.used = used;
         self.staged = stats;
         Ok(())
     }
 
     /// The last stage ([`Self::bin_with_scratch`]): writes the first `kept` points (and
-    /// normals, with the sums [`Self::add_normals`] made) in the voxels' Morton order and
-    /// empties the grid for the next scan. `points` are those binned.
+    /// normals, with the sums [`Self::add_normals`] made) in the voxels' Morton order, which
+    /// the binning found as it emptied the grid for the next scan. `points` are those binned.
     pub fn finish(
         &mut self,
         cfg: &DownsampleConfig,
@@ -437,18 +468,13 @@ impl<const N: usize> VoxelDownsampler<N> {
     ) -> DownsampleStats {
         let (used, mut stats) = (core::mem::take(&mut self.used), self.staged);
         if normals.as_ref().is_some_and(|n| n.len() < used) || points.len() < used {
-            // Not the points binned: nothing is written; the grid is emptied all the same.
-            for k in 0..used {
-                self.index[self.cells[k].pos as usize] = 0;
-            }
+            // Not the points binned: nothing is written (the grid is empty already).
             return DownsampleStats { kept: 0, ..stats };
         }
-        // Output, compacted in first-seen order; the index is emptied for the next scan, and
-        // the cells' Morton codes noted for the reordering below.
+        // Output, compacted in first-seen order, then permuted into the Morton order the
+        // binning found.
         for k in 0..used {
             let c = self.cells[k];
-            self.index[c.pos as usize] = 0;
-            self.codes[k] = morton30(c.key);
             points[k] = points[c.best as usize];
             if let Some(ns) = normals.as_deref_mut() {
                 ns[k] = if c.ncount == 0 {
@@ -469,16 +495,15 @@ impl<const N: usize> VoxelDownsampler<N> {
             }
         }
         stats.kept = used as u32;
-        self.morton_order(used, points, normals);
+        self.morton_permute(used, points, normals);
         stats
     }
 
-    /// Permutes the first `used` points (and normals), compacted in the cells' order, into the
-    /// Morton order of the cells' keys (`codes[..used]`, noted by the compaction): an LSD radix
-    /// sort of the 30-bit codes (three 10-bit digits, stable) between `perm` and the index
-    /// (empty again afterwards), then the permutation applied in place cycle by cycle.
+    /// The output order (`perm`) of the first `used` cells: the Morton order of their keys
+    /// (`codes[..used]`, noted by the binning), by an LSD radix sort of the 30-bit codes (three
+    /// 10-bit digits, stable) between `perm` and the index (empty before and afterwards).
     #[inline(never)]
-    fn morton_order(&mut self, used: usize, points: &mut [ScanPoint], mut normals: Option<&mut [[f32; 3]]>) {
+    fn morton_sort(&mut self, used: usize) {
         if used < 2 {
             return;
         }
@@ -514,6 +539,19 @@ impl<const N: usize> VoxelDownsampler<N> {
             }
         }
         self.index[..used].fill(0);
+    }
+
+    /// Permutes the first `used` points (and normals), compacted in the cells' order, into the
+    /// order [`Self::morton_sort`] left in `perm`, in place cycle by cycle.
+    fn morton_permute(
+        &mut self,
+        used: usize,
+        points: &mut [ScanPoint],
+        mut normals: Option<&mut [[f32; 3]]>,
+    ) {
+        if used < 2 {
+            return;
+        }
         // Output position j takes the point at perm[j]; the top bit marks positions done.
         const DONE: u32 = 1 << 31;
         for s in 0..used {
@@ -670,6 +708,54 @@ mod tests {
         let (mut p2, mut n2) = (orig.clone(), orig_n.clone());
         ds.downsample(&cfg(1.0), &mut p2, Some(&mut n2)).unwrap();
         assert_eq!(&p2[..2000], out);
+    }
+
+    /// The staged calls (bin, normals summed on threads by ranges of voxels, finish) write the
+    /// bytes of one call, for any number of pieces, invalid points and normals included.
+    #[test]
+    fn staged_with_threads_equals_one_call() {
+        struct Threads(usize);
+        impl Parallel for Threads {
+            fn width(&self) -> usize {
+                self.0
+            }
+            fn run(&self, jobs: &mut [crate::parallel::Job<'_>]) {
+                std::thread::scope(|s| {
+                    for j in jobs.iter_mut() {
+                        s.spawn(j);
+                    }
+                });
+            }
+        }
+        let mut rng = Rng::new(21);
+        let (mut pts, mut ns) = (Vec::new(), Vec::new());
+        for i in 0..6000 {
+            let p = [0, 1, 2].map(|_| (rng.uniform() * 12.0 - 6.0) as f32);
+            let mut q = pt(p[0], p[1], p[2], i as f32 * 1e-5);
+            q.row = (i % 32) as u16;
+            if i % 97 == 0 {
+                q.xyz[1] = f32::NAN;
+            }
+            pts.push(q);
+            let a = rng.uniform() as f32 * 0.6;
+            ns.push(if i % 13 == 0 { [0.0; 3] } else { [libm::sinf(a), 0.0, libm::cosf(a)] });
+        }
+        let mut ds = std::boxed::Box::new(VoxelDownsampler::<16384>::new());
+        let (mut p1, mut n1) = (pts.clone(), ns.clone());
+        let one = ds.downsample(&cfg(0.5), &mut p1, Some(&mut n1)).unwrap();
+        assert!(one.kept > 1000 && one.dropped_invalid > 0 && one.normals_invalid > 0, "{one:?}");
+        for width in [1, 2, 3, 8] {
+            let (p2, mut n2, mut cells) = (pts.clone(), ns.clone(), std::vec![0u32; pts.len()]);
+            ds.bin_with_scratch(&cfg(0.5), &p2, &mut cells).unwrap();
+            ds.add_normals_with(&n2, &cells, &Threads(width));
+            let mut p2 = p2;
+            let st = ds.finish(&cfg(0.5), &mut p2, Some(&mut n2));
+            assert_eq!(st, one, "width {width}");
+            let k = one.kept as usize;
+            assert_eq!(&p2[..k], &p1[..k], "width {width}");
+            let bits = |n: &[[f32; 3]]| n.iter().flat_map(|v| v.map(f32::to_bits)).collect::<Vec<_>>();
+            assert_eq!(bits(&n2[..k]), bits(&n1[..k]), "width {width}");
+        }
     }
 
     #[test]

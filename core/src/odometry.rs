@@ -1127,7 +1127,11 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         // 4. The downsampling's output: one point per voxel with the mean normal.
         let kept = if binned {
             if use_normals {
-                st.downsampler.add_normals(&st.normals3[..m], &st.cell_of[..m]);
+                st.downsampler.add_normals_with(
+                    &st.normals3[..m],
+                    &st.cell_of[..m],
+                    par.unwrap_or(&Sequential),
+                );
             }
             st.downsampler.finish(&ds_cfg, &mut st.points[..m], Some(&mut st.normals3[..m])).kept as usize
         } else {
