@@ -600,7 +600,7 @@ mod tests {
     use std::vec::Vec;
 
     use super::*;
-    use crate::testutil::Rng;
+    use crate::testutil::{Rng, Threads};
 
     fn pt(x: f32, y: f32, z: f32, t: f32) -> ScanPoint {
         ScanPoint { xyz: [x, y, z], t, ..Default::default() }
@@ -714,19 +714,6 @@ mod tests {
     /// bytes of one call, for any number of pieces, invalid points and normals included.
     #[test]
     fn staged_with_threads_equals_one_call() {
-        struct Threads(usize);
-        impl Parallel for Threads {
-            fn width(&self) -> usize {
-                self.0
-            }
-            fn run(&self, jobs: &mut [crate::parallel::Job<'_>]) {
-                std::thread::scope(|s| {
-                    for j in jobs.iter_mut() {
-                        s.spawn(j);
-                    }
-                });
-            }
-        }
         let mut rng = Rng::new(21);
         let (mut pts, mut ns) = (Vec::new(), Vec::new());
         for i in 0..6000 {

@@ -105,6 +105,7 @@ pub fn map_chunks<U: Send>(
 mod tests {
     extern crate std;
     use super::*;
+    use crate::testutil::Threads;
 
     #[test]
     fn splits_cover_everything_on_aligned_starts() {
@@ -120,22 +121,6 @@ mod tests {
                     start = e;
                 }
             }
-        }
-    }
-
-    /// Runs the jobs on scoped threads (the host's way), to check the pieces.
-    struct Threads(usize);
-
-    impl Parallel for Threads {
-        fn width(&self) -> usize {
-            self.0
-        }
-        fn run(&self, jobs: &mut [Job<'_>]) {
-            std::thread::scope(|s| {
-                for j in jobs.iter_mut() {
-                    s.spawn(j);
-                }
-            });
         }
     }
 

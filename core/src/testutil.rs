@@ -1,5 +1,6 @@
 //! Test helpers (compiled for tests only): a seeded PRNG, an analytic trajectory with exact
-//! derivatives, and IMU samples synthesised from it.
+//! derivatives, IMU samples synthesised from it, and a [`Parallel`](crate::parallel::Parallel)
+//! on scoped threads.
 #![allow(dead_code)] // helpers shared by several test modules; not every build uses each one
 
 use nalgebra::{Matrix3, UnitQuaternion, Vector3};
@@ -232,6 +233,24 @@ pub fn chi2_interval(k: f64, z: f64) -> (f64, f64) {
     let a = 2.0 / (9.0 * k);
     let f = |z: f64| k * libm::pow(1.0 - a + z * libm::sqrt(a), 3.0);
     (f(-z), f(z))
+}
+
+/// Runs the jobs on scoped threads (the host's way), to check that work split into pieces
+/// gives the one-thread result.
+pub struct Threads(pub usize);
+
+impl crate::parallel::Parallel for Threads {
+    fn width(&self) -> usize {
+        self.0
+    }
+    fn run(&self, jobs: &mut [crate::parallel::Job<'_>]) {
+        extern crate std;
+        std::thread::scope(|s| {
+            for j in jobs.iter_mut() {
+                s.spawn(j);
+            }
+        });
+    }
 }
 
 #[cfg(test)]
