@@ -711,7 +711,8 @@ mod tests {
     }
 
     /// The staged calls (bin, normals summed on threads by ranges of voxels, finish) write the
-    /// bytes of one call, for any number of pieces, invalid points and normals included.
+    /// bytes of one call, for any number of pieces, invalid points and normals and voxels whose
+    /// normals disagree included.
     #[test]
     fn staged_with_threads_equals_one_call() {
         let mut rng = Rng::new(21);
@@ -725,12 +726,15 @@ mod tests {
             }
             pts.push(q);
             let a = rng.uniform() as f32 * 0.6;
-            ns.push(if i % 13 == 0 { [0.0; 3] } else { [libm::sinf(a), 0.0, libm::cosf(a)] });
+            // Some invalid, some turned over (voxels whose normals disagree).
+            let z = if i % 5 == 0 { -libm::cosf(a) } else { libm::cosf(a) };
+            ns.push(if i % 13 == 0 { [0.0; 3] } else { [libm::sinf(a), 0.0, z] });
         }
         let mut ds = std::boxed::Box::new(VoxelDownsampler::<16384>::new());
         let (mut p1, mut n1) = (pts.clone(), ns.clone());
         let one = ds.downsample(&cfg(0.5), &mut p1, Some(&mut n1)).unwrap();
-        assert!(one.kept > 1000 && one.dropped_invalid > 0 && one.normals_invalid > 0, "{one:?}");
+        assert!(one.kept > 1000 && one.dropped_invalid > 0, "{one:?}");
+        assert!(one.normals_disagree > 0 && one.normals_invalid > one.normals_disagree, "{one:?}");
         for width in [1, 2, 3, 8] {
             let (p2, mut n2, mut cells) = (pts.clone(), ns.clone(), std::vec![0u32; pts.len()]);
             ds.bin_with_scratch(&cfg(0.5), &p2, &mut cells).unwrap();
