@@ -125,7 +125,7 @@ fn standstill_only_at_stands(sc: &Scenario, tr: &Trace) {
     assert!(still > 0, "the stand at the start gives zero-velocity updates");
 }
 
-/// With the standstill updates on (`filter.standstill`, off by default): they run at the stand
+/// With the standstill updates on (`filter.standstill`, the default): they run at the stand
 /// before the drive and never while the vehicle drives or the sensor spins in place, and the
 /// errors stay those of the well-posed runs.
 #[test]
@@ -267,9 +267,11 @@ fn corridor_errors() -> ([f64; 3], [f64; 3], [usize; 5]) {
 /// axis, the filter must neither diverge nor restart, the walls, floor and ceiling must hold the
 /// vehicle across the corridor and vertically (centimetres, where IMU-only drifts by metres),
 /// and along the axis the error must stay within what IMU integration alone gives on the same
-/// data (an IMU-only run, whose attitude the scans do not hold, is the bound). Before the
-/// plane-normal check of the association (`plane_max_normal_angle_deg`) the scans pinned the
-/// vehicle to the ring pattern of the map built at rest: 146 m behind after the 151 m drive.
+/// data (an IMU-only run, whose attitude the scans do not hold, is the bound), and within half
+/// of it since the standstill updates hold the stand at the start (2026-12-07, seed 7: 2.65 m
+/// against 8.57 m IMU-only; 5.30 m with the stand left to the scans and the exact k-NN). Before
+/// the plane-normal check of the association (`plane_max_normal_angle_deg`) the scans pinned
+/// the vehicle to the ring pattern of the map built at rest: 146 m behind after the 151 m drive.
 #[test]
 fn corridor_degenerate_axis_left_to_the_imu() {
     let (worst, worst_imu, [ok, deg, imu, _, reinit]) = corridor_errors();
@@ -283,8 +285,9 @@ fn corridor_degenerate_axis_left_to_the_imu() {
     assert!(worst[1] < 0.10 && worst[2] < 0.10, "across {:.3} m, vertical {:.3} m", worst[1], worst[2]);
     assert!(worst_imu[1] > worst[1], "the scans must beat the IMU across the corridor");
     assert!(
-        worst[0] <= worst_imu[0],
-        "along the axis: {:.3} m, IMU-only {:.3} m: the scans must not drag the vehicle",
+        worst[0] <= 0.5 * worst_imu[0],
+        "along the axis: {:.3} m, IMU-only {:.3} m: the scans must not drag the vehicle, and the stand \
+         must hold the accelerometer bias",
         worst[0],
         worst_imu[0]
     );

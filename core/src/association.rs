@@ -6,9 +6,9 @@
 //!
 //! 1. **Initial correspondence.** `p` goes to the world (`p_W`, `n_W`); the `k` nearest map
 //!    points within `max_dist` come from [`VoxelMap::knn_many`] (batched: the queries of a chunk
-//!    of points go to the map together so their cache misses overlap); `knn_reach` picks exact
-//!    within the 27 voxels around the point (default) or the faster octant block first
-//!    ([`KnnReach::Block`]). Fewer than `min_neighbours`: no correspondence (`no_neighbours`).
+//!    of points go to the map together so their cache misses overlap); `knn_reach` picks the
+//!    point's octant block first ([`KnnReach::Block`], default) or exact within the 27 voxels
+//!    around the point. Fewer than `min_neighbours`: no correspondence (`no_neighbours`).
 //! 2. **Visibility check** (modes `Full`, `PlaneOnly`). A map point whose normal `m` (oriented
 //!    towards the sensor that saw it) makes more than 90 degrees with the ray from `p_W` to the
 //!    LiDAR origin, `m · (o_W - p_W) <= 0`, is on the back of a surface the LiDAR cannot see
@@ -170,12 +170,14 @@ pub struct AssociationConfig {
     pub research_pos: f64,
     /// ... or its rotation by more than this, rad.
     pub research_rot: f64,
-    /// Which map voxels the k-NN searches. Default [`KnnReach::Exact`] (exact within
-    /// the 27 around the point). [`KnnReach::Block`] takes 0.9x the association's time on the
-    /// simulated VLP-32C drive with the same errors on well-posed scenes, but its more local
-    /// neighbours let the scans drag the vehicle along a featureless corridor's axis (26.9 m
-    /// over 151 m against 5.9 m exact; IMU alone 8.6 m), and on the drone scenario full mode
-    /// then no longer beats plane-only: an opt-in for well-structured scenes only.
+    /// Which map voxels the k-NN searches. Default [`KnnReach::Block`] (the point's octant
+    /// block first): 0.9x the association's time of [`KnnReach::Exact`] on the simulated
+    /// VLP-32C drive with the same errors on well-posed scenes. Its more local neighbours once
+    /// let the scans drag the vehicle along a featureless corridor's axis (26.9 m over 151 m
+    /// against 5.9 m exact; IMU alone 8.6 m): the scans set the accelerometer bias along the
+    /// axis during the stand at the start. With the standstill updates on (the default since
+    /// 2026-12-07, [`crate::standstill`]) the stand holds it, and the worst error along the
+    /// axis is 2.6 m with the block search against 5.3 m exact (docs/estimation.md).
     pub knn_reach: KnnReach,
     /// The Cauchy kernel's scale, in standard deviations of the residual's noise: at every
     /// iteration each residual `r` (of variance `v`) is weighted by `1 / (1 + r² / (c² v))`,
@@ -205,7 +207,7 @@ impl AssociationConfig {
         max_points: DEFAULT_MAX_POINTS,
         research_pos: 0.05,
         research_rot: 0.005,
-        knn_reach: KnnReach::Exact,
+        knn_reach: KnnReach::Block,
         robust_sigmas: 3.0,
     };
 

@@ -35,8 +35,9 @@ use crate::imu::ImuSample;
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct StandstillConfig {
-    /// Run the zero-velocity and zero-rate updates at all (off by default: see
-    /// `docs/estimation.md` for what they gave on the simulated scenarios).
+    /// Run the zero-velocity and zero-rate updates at all (on by default since 2026-12-07:
+    /// with the block k-NN they halve the corridor's drift along its axis; see
+    /// `docs/estimation.md` for what they give on the simulated scenarios).
     pub enabled: bool,
     /// Largest per-axis standard deviation of the rate over a scan's samples, rad/s.
     pub max_gyro_std: f64,
@@ -62,7 +63,7 @@ pub struct StandstillConfig {
 impl StandstillConfig {
     /// The defaults documented on each field.
     pub const DEFAULT: Self = Self {
-        enabled: false,
+        enabled: true,
         max_gyro_std: 0.02,
         max_acc_std: 0.3,
         max_rate: 0.02,

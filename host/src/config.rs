@@ -446,7 +446,7 @@ pub struct FilterConfig {
     /// Most iterated-update passes per scan.
     pub max_iterations: u32,
     /// Zero-velocity and zero-rate updates while the platform stands still.
-    #[serde(default)]
+    #[serde(default = "yes")]
     pub standstill: bool,
     /// The residuals' Cauchy kernel, in standard deviations of their noise (0: plain least
     /// squares).
@@ -756,7 +756,7 @@ static SPECS: &[Spec] = &[
         "mapping.knn_search",
         Kind::Enum(&["exact", "block"]),
         "",
-        "exact = the k nearest map points within the 27 voxels around each point; block = the point's 2x2x2 octant block first (0.9x the association's time, same errors on well-structured scenes, but worse along a featureless corridor: see docs/estimation.md).",
+        "block = the point's 2x2x2 octant block first (the default: 0.9x the association's time, the same errors on well-structured scenes, and with the standstill updates half the drift along a featureless corridor's axis); exact = the k nearest map points within the 27 voxels around each point (see docs/estimation.md).",
     ),
     spec(
         "mapping.clear_free_space",
@@ -786,7 +786,7 @@ static SPECS: &[Spec] = &[
         "filter.standstill",
         Kind::Bool,
         "",
-        "Zero-velocity and zero-rate updates while the platform stands still (the IMU quiet, the scans see no motion), against drift at a stand where the scene leaves a direction unobserved; off by default (see docs/estimation.md).",
+        "Zero-velocity and zero-rate updates while the platform stands still (the IMU quiet, the scans see no motion), against drift at a stand where the scene leaves a direction unobserved: the stand at the start then sets the accelerometer bias instead of the scans; on by default (see docs/estimation.md).",
     ),
     spec(
         "filter.robust_sigmas",
@@ -1066,12 +1066,12 @@ impl Config {
                 map_capacity: 1_000_000,
                 max_points: u64::from(loglio_core::association::DEFAULT_MAX_POINTS),
                 association: AssociationMode::Full,
-                knn_search: KnnReach::Exact,
+                knn_search: KnnReach::Block,
                 clear_free_space: true,
                 normals_column_stride: 1,
                 plane_line_spread: 0.0,
             },
-            filter: FilterConfig { max_iterations: 4, standstill: false, robust_sigmas: 3.0 },
+            filter: FilterConfig { max_iterations: 4, standstill: true, robust_sigmas: 3.0 },
             compute: ComputeConfig::default(),
         }
     }

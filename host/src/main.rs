@@ -92,7 +92,7 @@ struct SimArgs {
     #[arg(long, value_name = "N")]
     max_points: Option<u64>,
     /// The association's k-NN (`mapping.knn_search`).
-    #[arg(long, value_enum, default_value = "exact")]
+    #[arg(long, value_enum, default_value = "block")]
     knn_search: KnnReach,
     /// Output directory (trajectory, ground truth, map, per-scan CSV, plots); nothing is written
     /// without it.
@@ -102,8 +102,12 @@ struct SimArgs {
     /// world is the first scan's frame).
     #[arg(long)]
     no_imu: bool,
-    /// Zero-velocity and zero-rate updates while the platform stands (`filter.standstill`).
+    /// No zero-velocity and zero-rate updates while the platform stands (`filter.standstill =
+    /// false`; they are on by default).
     #[arg(long)]
+    no_standstill: bool,
+    /// The standstill updates, as by default (kept so that older command lines still run).
+    #[arg(long, hide = true, conflicts_with = "no_standstill")]
     standstill: bool,
     /// Keep in the map what the scans see through (`mapping.clear_free_space = false`): the
     /// moving actors' ghost trails stay.
@@ -310,7 +314,7 @@ struct BenchArgs {
     #[arg(long, value_name = "N")]
     max_points: Option<u64>,
     /// The association's k-NN (`mapping.knn_search`), in both modes.
-    #[arg(long, value_enum, default_value = "exact")]
+    #[arg(long, value_enum, default_value = "block")]
     knn_search: KnnReach,
     /// Threads for the association (`compute.threads`), in both modes; 0 = the available
     /// cores (at most 8).
@@ -731,7 +735,7 @@ fn sim_cmd(a: SimArgs) -> anyhow::Result<()> {
         realtime: a.realtime.then_some(a.rate),
         sinks: a.outputs,
         no_imu: a.no_imu,
-        standstill: a.standstill,
+        standstill: a.standstill || !a.no_standstill,
         keep_free_space: a.keep_free_space,
         fixed_offset: a.fixed_offset,
         imu_clock_offset_ns: (a.imu_clock_offset_ms * 1e6).round() as i64,
@@ -763,14 +767,14 @@ fn demo_cmd(a: DemoArgs) -> anyhow::Result<()> {
         duration_s: Some(a.seconds),
         mode: None,
         max_points: None,
-        knn_search: KnnReach::Exact,
+        knn_search: KnnReach::Block,
         out: Some(a.out),
         no_actors: false,
         progress: !a.realtime,
         realtime: a.realtime.then_some(a.rate),
         sinks: a.outputs,
         no_imu: false,
-        standstill: false,
+        standstill: true,
         keep_free_space: false,
         fixed_offset: false,
         imu_clock_offset_ns: 0,

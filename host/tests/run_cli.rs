@@ -662,7 +662,7 @@ fn bench_json_parses_and_is_consistent() {
     assert_eq!(v["preset"], "os1-16");
     assert_eq!(v["scenario"], "handheld"); // the Ouster presets' default
     assert_eq!(v["scan_period_ms"], 100.0);
-    assert_eq!(v["knn_search"], "exact");
+    assert_eq!(v["knn_search"], "block");
     assert!(v["points_per_scan"].as_f64().unwrap() > 5_000.0, "{text}");
     for (key, mode) in [("main", "full"), ("baseline", "plain")] {
         let m = &v[key];
@@ -685,7 +685,7 @@ fn bench_json_parses_and_is_consistent() {
     let means = [&v["main"], &v["baseline"]].map(|m| m["scan_ms"]["mean"].as_f64().unwrap());
     assert!((ratio - means[0] / means[1]).abs() < 1e-9 * ratio);
     assert_eq!(v["keeps_up"], v["main"]["realtime_margin"].as_f64().unwrap() >= 1.0);
-    // The human form names the scenario, an opt-in k-NN and the verdict.
+    // The human form names the scenario, the k-NN when not the default and the verdict.
     let text = stdout(&loglio(&[
         "bench",
         "--preset",
@@ -695,10 +695,10 @@ fn bench_json_parses_and_is_consistent() {
         "--scenario",
         "rotation",
         "--knn-search",
-        "block",
+        "exact",
     ]));
     assert!(text.contains("simulated rotation scenario"), "{text}");
-    assert!(text.contains("k-NN: the octant block first"), "{text}");
+    assert!(text.contains("k-NN: exact within the 27 voxels"), "{text}");
     assert!(text.contains("this computer keeps up") || text.contains("does NOT keep up"), "{text}");
     assert!(text.contains("margin"), "{text}");
 }

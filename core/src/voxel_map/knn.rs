@@ -15,7 +15,6 @@ use crate::surfel::{self, SurfelReject};
 pub enum KnnReach {
     /// The query's voxel and its 26 neighbours: the exact k-NN within them (see
     /// [`VoxelMap::knn`]).
-    #[default]
     #[cfg_attr(feature = "clap", value(help = "The exact k nearest within the 27 voxels around each point"))]
     Exact,
     /// The query's octant block first: its voxel and the 7 on its side of each face (the 2x2x2
@@ -25,8 +24,9 @@ pub enum KnnReach {
     /// `Exact`. An approximation in the spirit of Faster-LIO's iVox: a neighbour it
     /// misses is at least half a voxel away, outside the block, and the plane then fitted is
     /// more local. On the simulated VLP-32C vehicle drive it skips 5.2 of the 12.8 boxes a
-    /// query visits, and the association takes 0.9x the time (but see
-    /// `AssociationConfig::knn_reach` for where it is worse).
+    /// query visits, and the association takes 0.9x the time. The odometry's default since the
+    /// standstill updates hold the stand at the start (`AssociationConfig::knn_reach`).
+    #[default]
     #[cfg_attr(feature = "clap", value(help = "The point's 2x2x2 octant block first: faster, approximate"))]
     Block,
 }

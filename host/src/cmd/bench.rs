@@ -191,7 +191,7 @@ pub fn run(
         realtime: None,
         sinks: crate::sink::SinkArgs::default(),
         no_imu: false,
-        standstill: false,
+        standstill: true,
         keep_free_space: false,
         fixed_offset: false,
         imu_clock_offset_ns: 0,
@@ -300,8 +300,8 @@ impl BenchReport {
                 self.max_points
             ));
         }
-        if self.knn_search == KnnReach::Block {
-            s.push_str("k-NN: the octant block first (--knn-search block)\n");
+        if self.knn_search == KnnReach::Exact {
+            s.push_str("k-NN: exact within the 27 voxels (--knn-search exact)\n");
         }
         s.push_str(&format!("{:<12} {:>10} {:>10}\n", "stage [ms]", self.main.mode, self.baseline.mode));
         for (i, name) in STAGES.iter().enumerate() {

@@ -457,12 +457,18 @@ mod tests {
         assert_eq!(core.association.max_points, 5000);
         let err = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nmax_points = -1\n").unwrap_err();
         assert!(err.0.contains("mapping.max_points"), "{}", err.0);
-        // The exact k-NN unless asked for; `mapping.knn_search` reaches the association.
-        assert_eq!(core.association.knn_reach, KnnReach::Exact);
-        let file = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nknn_search = \"block\"\n").unwrap();
-        assert_eq!(file.mapping.knn_search, KnnReach::Block);
-        let core = crate::run::engine::odometry_config(&file, sc.layout().clone()).unwrap();
+        // The block k-NN and the standstill updates unless asked otherwise; the keys reach the
+        // core.
         assert_eq!(core.association.knn_reach, KnnReach::Block);
+        assert!(core.standstill.enabled);
+        let file = Config::from_toml_str(
+            "preset = \"vlp32c\"\n[mapping]\nknn_search = \"exact\"\n[filter]\nmax_iterations = 4\nstandstill = false\n",
+        )
+        .unwrap();
+        assert_eq!(file.mapping.knn_search, KnnReach::Exact);
+        let core = crate::run::engine::odometry_config(&file, sc.layout().clone()).unwrap();
+        assert_eq!(core.association.knn_reach, KnnReach::Exact);
+        assert!(!core.standstill.enabled);
         let err = Config::from_toml_str("preset = \"vlp32c\"\n[mapping]\nknn_search = \"kd\"\n").unwrap_err();
         assert_eq!(err.0, "config: mapping.knn_search = \"kd\" is not one of: exact, block");
     }
