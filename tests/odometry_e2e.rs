@@ -320,6 +320,39 @@ fn map_points_in_and_out_of_the_traffic<const PIX: usize, const PTS: usize, cons
     (inside, outside)
 }
 
+/// Moving traffic costs at most a fifth of the error of the same drive in an empty street
+/// (issue 31): the full 60 s of `traffic`, seeds 1-3, with the actors and without. What is left
+/// of the ratio is the static world the actors hide, not their points: a perfect removal (the
+/// simulator's rays return nothing where they meet an actor) gave the same ratio over ten seeds
+/// (1.16 against loglio's 1.17, three seeds over 1.2 each way; docs/voxel-map.md), so the ratio
+/// is asserted on the seeds' mean, and per seed only against a gross failure.
+#[test]
+fn traffic_costs_at_most_a_fifth_of_the_empty_streets_error() {
+    let mut set = stores();
+    let mut ratios = Vec::new();
+    for seed in [1, 2, 3] {
+        let mut ates = [0.0f64; 2];
+        for (i, actors) in [true, false].into_iter().enumerate() {
+            let mut c = ScenarioConfig::new(ScenarioKind::Traffic, SensorModel::Vlp32c, seed);
+            c.actors = actors;
+            let sc = Scenario::from_config(c).unwrap();
+            let mut odos = [set[i].odometry(&config_for(&sc, AssociationMode::Full)).unwrap()];
+            let traces = run_lockstep(&sc, &mut odos, |e| vec![e]);
+            ates[i] = traces[0].ate();
+        }
+        let ratio = ates[0] / ates[1];
+        println!(
+            "traffic seed {seed}: ATE {:.4} m with actors, {:.4} m without: {ratio:.3}x",
+            ates[0], ates[1]
+        );
+        assert!(ates[0] < 0.01 && ratio < 1.5, "seed {seed}: {:.4} m against {:.4} m", ates[0], ates[1]);
+        ratios.push(ratio);
+    }
+    let mean = ratios.iter().sum::<f64>() / ratios.len() as f64;
+    println!("traffic against the empty street: mean ratio {mean:.3}");
+    assert!(mean <= 1.2, "mean ratio {mean:.3} over seeds 1-3 ({ratios:?})");
+}
+
 /// Moving actors leave no ghost trails: the first 35 s of `traffic` (the truck ahead pulling
 /// away, oncoming cars, the wait at the junction with cross traffic and pedestrians) run with the
 /// free-space tests (the map clears what the scans see through, moving points are left out) and
