@@ -446,12 +446,17 @@ pub struct FilterConfig {
     /// Most iterated-update passes per scan.
     pub max_iterations: u32,
     /// Zero-velocity and zero-rate updates while the platform stands still.
-    #[serde(default = "yes")]
+    #[serde(default = "standstill_default")]
     pub standstill: bool,
     /// The residuals' Cauchy kernel, in standard deviations of their noise (0: plain least
     /// squares).
     #[serde(default = "three")]
     pub robust_sigmas: f64,
+}
+
+/// The core's default (`StandstillConfig::DEFAULT`): the one place it is decided.
+fn standstill_default() -> bool {
+    loglio_core::standstill::StandstillConfig::DEFAULT.enabled
 }
 
 fn three() -> f64 {
@@ -1066,12 +1071,12 @@ impl Config {
                 map_capacity: 1_000_000,
                 max_points: u64::from(loglio_core::association::DEFAULT_MAX_POINTS),
                 association: AssociationMode::Full,
-                knn_search: KnnReach::Block,
+                knn_search: loglio_core::association::AssociationConfig::DEFAULT.knn_reach,
                 clear_free_space: true,
                 normals_column_stride: 1,
                 plane_line_spread: 0.0,
             },
-            filter: FilterConfig { max_iterations: 4, standstill: true, robust_sigmas: 3.0 },
+            filter: FilterConfig { max_iterations: 4, standstill: standstill_default(), robust_sigmas: 3.0 },
             compute: ComputeConfig::default(),
         }
     }

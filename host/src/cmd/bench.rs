@@ -191,7 +191,7 @@ pub fn run(
         realtime: None,
         sinks: crate::sink::SinkArgs::default(),
         no_imu: false,
-        standstill: true,
+        standstill: loglio_core::standstill::StandstillConfig::DEFAULT.enabled,
         keep_free_space: false,
         fixed_offset: false,
         imu_clock_offset_ns: 0,
