@@ -1016,8 +1016,10 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         // 3. Every point to the LiDAR frame at the scan end (backward propagation), with its
         // Ring FALS normal (on the raw scan, the caller's points); then the downsampling's voxels.
         // With a second thread the normals are estimated beside the voxels' search (neither
-        // needs the other): the points are moved first and the normals rotated after, each by
-        // its point's own rotation, so the result is the same, bit for bit.
+        // needs the other): the points are moved first and the normals rotated after. The normals
+        // turn by the table of [`crate::undistort::NormalRotations`] (its rotation at each
+        // point's time, to 1e-5 rad of the exact one), on one thread in the points' own pass:
+        // the same bits either way.
         let t_p = clock.now_ns();
         let ds_cfg = self.cfg.downsample;
         let par = match &self.parallel {
@@ -1032,12 +1034,19 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         if !overlap {
             fill_normals(use_normals, input, &st.normals[..n], &mut st.normals3[..m], valid);
         }
+        // The normals turn with the table's rotations (on any number of threads the same).
+        let rotations = if use_normals && m > 0 {
+            st.trajectory.normal_rotations(f.state(), 0.0, t_max).ok()
+        } else {
+            None
+        };
         if m > 0 {
-            // Cannot fail: the trajectory holds the end knot and the slices have equal lengths.
-            let (pts, nrm) = (&mut st.points[..m], (!overlap).then_some(&mut st.normals3[..m]));
-            let _ = match par {
-                Some(p) => st.trajectory.undistort_with(f.state(), pts, nrm, p),
-                None => st.trajectory.undistort(f.state(), pts, nrm),
+            // Cannot fail: the trajectory holds the end knot.
+            let (pts, nrm) = (&mut st.points[..m], &mut st.normals3[..m]);
+            let _ = match (par, &rotations) {
+                (Some(p), _) => st.trajectory.undistort_with(f.state(), pts, None, p),
+                (None, Some(rot)) => st.trajectory.undistort_rotating(f.state(), pts, nrm, rot),
+                (None, None) => st.trajectory.undistort(f.state(), pts, None),
             };
         }
         let t_u = clock.now_ns();
@@ -1046,13 +1055,14 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             // One job estimates, compacts and rotates the normals; the other bins the points
             // (both only read them).
             let (ring, table, normals) = (&mut st.ring, &st.table, &mut st.normals[..n]);
-            let (traj, nrm3, x) = (&st.trajectory, &mut st.normals3[..m], f.state());
+            let (nrm3, rot) = (&mut st.normals3[..m], &rotations);
             let pts = &st.points[..m];
             let mut job_normals = || {
                 ring_fals(ring, table, input, normals);
                 fill_normals(true, input, normals, nrm3, valid);
-                // Cannot fail: as above.
-                let _ = traj.undistort_normals(x, pts, nrm3);
+                if let Some(r) = rot {
+                    r.rotate(pts, nrm3);
+                }
             };
             let (ds, cells, free) =
                 (&mut st.downsampler, &mut st.cell_of[..m], &mut st.frees[free_slot(st.free_turn, 0)]);
