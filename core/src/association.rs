@@ -57,7 +57,9 @@
 //! ([`surfel::eigen_normals_lanes`]), those without one go on to the small surfel, and the
 //! plane fits run [`PLANE_LANES`] at a time ([`surfel::fit_plane_lanes`]); both give the same
 //! results as one at a time, with the chains of square roots and divisions overlapping. Then
-//! step 5.
+//! step 5. Each linearisation sums the rows in eight fixed pieces of the points, each from zero,
+//! merged in order: on the caller's threads the pieces run side by side, and the information is
+//! the same, bit for bit, on any number of threads (an ordered reduction).
 //!
 //! Everything here is allocation-free: the caller lends the correspondence buffer and the k-NN
 //! chunk buffers.
@@ -786,6 +788,76 @@ impl<'a, 'm, C: Clock> ScanAssociation<'a, 'm, C> {
     }
 }
 
+/// One linearisation's rows and weights, shared by its pieces.
+struct Weights {
+    h: PointToPlane,
+    surfel_var: f64,
+    plane_var: f64,
+    surfel_k: f64,
+    plane_k: f64,
+}
+
+impl Weights {
+    /// Adds the rows of `points` with their correspondences to `acc`.
+    #[inline]
+    fn add(&self, acc: &mut InfoAccumulator, points: &[ScanPoint], corr: &[Correspondence]) {
+        for (p, c) in points.iter().zip(corr.iter()) {
+            let (var, k) = match c.kind {
+                Kind::None => continue,
+                Kind::LargeSurfel | Kind::SmallSurfel => (self.surfel_var, self.surfel_k),
+                Kind::Plane => (self.plane_var, self.plane_k),
+            };
+            let [px, py, pz] = p.xyz;
+            let p_l = V3::new(f64::from(px), f64::from(py), f64::from(pz));
+            let n = V3::new(f64::from(c.normal[0]), f64::from(c.normal[1]), f64::from(c.normal[2]));
+            let (r, row) = self.h.row(&p_l, &n, c.d);
+            // The weight divides the information: the variance grows by `1 + r² / (c² v)`.
+            acc.add(&row, r, var * (1.0 + k * r * r));
+        }
+    }
+}
+
+/// The pieces `ends` of a linearisation on `par`'s threads (consecutive pieces per thread),
+/// each into its own accumulator, merged into `acc` in piece order. Out of line: its
+/// accumulators stay off the stack of the one-thread path (the firmware's).
+#[inline(never)]
+fn linearize_pieces(
+    par: &dyn Parallel,
+    w: &Weights,
+    points: &[ScanPoint],
+    corr: &[Correspondence],
+    ends: &[usize],
+    acc: &mut InfoAccumulator,
+) {
+    let mut parts: [InfoAccumulator; parallel::MAX_WIDTH] = core::array::from_fn(|_| acc.empty_like());
+    let groups = parallel::split(ends.len(), par.width(), 1);
+    {
+        let mut rest = &mut parts[..ends.len()];
+        let mut closures = heapless::Vec::<_, { parallel::MAX_WIDTH }>::new();
+        let mut first = 0;
+        for &last in &groups {
+            let (mine, r) = core::mem::take(&mut rest).split_at_mut(last - first);
+            rest = r;
+            let pieces = first..last;
+            let _ = closures.push(move || {
+                for (part, k) in mine.iter_mut().zip(pieces.clone()) {
+                    let start = if k == 0 { 0 } else { ends[k - 1] };
+                    w.add(part, &points[start..ends[k]], &corr[start..ends[k]]);
+                }
+            });
+            first = last;
+        }
+        let mut jobs = heapless::Vec::<parallel::Job<'_>, { parallel::MAX_WIDTH }>::new();
+        for c in closures.iter_mut() {
+            let _ = jobs.push(c);
+        }
+        par.run(&mut jobs);
+    }
+    for part in &parts[..ends.len()] {
+        acc.merge(part);
+    }
+}
+
 /// What a search needs at one state, shared by the pieces.
 struct SearchCtx<'a, 'm> {
     h: PointToPlane,
@@ -953,18 +1025,25 @@ impl<C: Clock> Measurements for ScanAssociation<'_, '_, C> {
         } else {
             (0.0, 0.0)
         };
-        for (p, c) in self.points.iter().zip(self.corr.iter()) {
-            let (var, k) = match c.kind {
-                Kind::None => continue,
-                Kind::LargeSurfel | Kind::SmallSurfel => (surfel_var, surfel_k),
-                Kind::Plane => (plane_var, plane_k),
-            };
-            let [px, py, pz] = p.xyz;
-            let p_l = V3::new(f64::from(px), f64::from(py), f64::from(pz));
-            let n = V3::new(f64::from(c.normal[0]), f64::from(c.normal[1]), f64::from(c.normal[2]));
-            let (r, row) = h.row(&p_l, &n, c.d);
-            // The weight divides the information: the variance grows by `1 + r² / (c² v)`.
-            acc.add(&row, r, var * (1.0 + k * r * r));
+        let w = Weights { h, surfel_var, plane_var, surfel_k, plane_k };
+        let n = self.points.len().min(self.corr.len());
+        let (points, corr) = (&self.points[..n], &self.corr[..n]);
+        // Fixed pieces, each summed from zero and merged in order: the same bits for any
+        // number of threads (an ordered reduction).
+        let ends = parallel::split(n, parallel::MAX_WIDTH, KNN_CHUNK);
+        match &self.parallel {
+            Some((par, _)) if par.width() > 1 && ends.len() > 1 => {
+                linearize_pieces(*par, &w, points, corr, &ends, acc);
+            }
+            _ => {
+                let mut start = 0;
+                for &end in &ends {
+                    let mut part = acc.empty_like();
+                    w.add(&mut part, &points[start..end], &corr[start..end]);
+                    acc.merge(&part);
+                    start = end;
+                }
+            }
         }
         self.elapsed_ns = self.elapsed_ns.saturating_add(self.clock.now_ns().saturating_sub(t0));
     }

@@ -470,6 +470,27 @@ impl InfoAccumulator {
         true
     }
 
+    /// An empty accumulator over the same columns.
+    pub fn empty_like(&self) -> Self {
+        Self::new(self.n == 12)
+    }
+
+    /// Adds `other`'s sums (over the same columns; the first `n` of each). Pieces of the
+    /// measurements summed apart and merged in a fixed order give the same bits on any number
+    /// of threads.
+    pub fn merge(&mut self, other: &Self) {
+        let n = self.n.min(other.n);
+        for i in 0..n {
+            self.htz[i] += other.htz[i];
+            for j in i..n {
+                self.hth[i][j] += other.hth[i][j];
+            }
+        }
+        self.chi2 += other.chi2;
+        self.count += other.count;
+        self.rejected += other.rejected;
+    }
+
     /// Accepted measurements.
     pub fn len(&self) -> usize {
         self.count

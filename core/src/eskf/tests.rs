@@ -1092,3 +1092,47 @@ fn lidar_only_constant_velocity_prediction() {
     assert_eq!(f.state().pos, before.state().pos);
     assert_eq!(f.covariance(), before.covariance());
 }
+
+/// Pieces summed apart and merged in order (the association's ordered reduction): the same
+/// information as one running sum to rounding, merged into an empty one the same bits, and
+/// rejections and counts carried over.
+#[test]
+fn merged_pieces_equal_one_sum() {
+    let mut rng = Rng::new(5);
+    for ext in [false, true] {
+        let rows: Vec<(HRow, f64, f64)> = (0..300)
+            .map(|_| {
+                let h: HRow = core::array::from_fn(|_| rng.gauss());
+                (h, rng.gauss(), 0.01 + rng.uniform() * 0.1)
+            })
+            .collect();
+        let mut whole = InfoAccumulator::new(ext);
+        for (h, r, v) in &rows {
+            whole.add(h, *r, *v);
+        }
+        let mut merged = InfoAccumulator::new(ext);
+        for piece in rows.chunks(64) {
+            let mut part = merged.empty_like();
+            for (h, r, v) in piece {
+                part.add(h, *r, *v);
+            }
+            let mut alone = part.empty_like();
+            alone.merge(&part);
+            assert_eq!(alone.information(), part.information(), "merged into an empty one: the same bits");
+            merged.merge(&part);
+        }
+        let mut bad = merged.empty_like();
+        assert!(!bad.add(&[f64::NAN; H_DIM], 0.0, 1.0));
+        merged.merge(&bad);
+        assert_eq!(merged.len(), 300);
+        assert_eq!(merged.rejected(), 1);
+        let (a, b) = (whole.information(), merged.information());
+        assert!((a - b).norm() <= 1e-12 * a.norm(), "{}", (a - b).norm());
+        let (a, b) = (whole.information_vector(), merged.information_vector());
+        assert!((a - b).norm() <= 1e-12 * a.norm());
+        assert!((whole.weighted_sq_residual() - merged.weighted_sq_residual()).abs() < 1e-9);
+        if !ext {
+            assert_eq!(merged.information().column(6).norm(), 0.0, "the pose block only");
+        }
+    }
+}
