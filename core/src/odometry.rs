@@ -103,7 +103,7 @@ use crate::scan::{ScanPoint, ScanView};
 use crate::so3;
 use crate::standstill::{ImuWindow, StandstillConfig};
 use crate::time_offset::{self, TimeOffset, TimeOffsetConfig, TimeOffsetEstimate};
-use crate::undistort::ImuTrajectory;
+use crate::undistort::{ImuTrajectory, NormalRotations};
 use crate::voxel_map::{
     MapConfig, MapError, MapPoint, MapStorage, Neighbours, PRESET_INDEX_SLOTS, PRESET_POOL_VOXELS, Suspects,
     VoxelMap,
@@ -321,6 +321,8 @@ pub struct ScanStorage<const PIX: usize, const PTS: usize, const DS: usize> {
     cell_of: [u32; PTS],
     imu: ImuQueue<IMU_QUEUE>,
     trajectory: ImuTrajectory<TRAJECTORY_KNOTS>,
+    /// The normals' rotations of this scan ([`crate::undistort::NormalRotations`]).
+    rotations: NormalRotations,
     corr: [Correspondence; DS],
     /// Three free-space images ([`crate::free_space`]), named by `free_turn`: this scan's nearest
     /// returns per coarse cell; the previous reference's ([`PrevScan`]: where its beams went
@@ -441,6 +443,7 @@ impl<const PIX: usize, const PTS: usize, const DS: usize> ScanStorage<PIX, PTS, 
             cell_of: [0; PTS],
             imu: ImuQueue::new(),
             trajectory: ImuTrajectory::new(),
+            rotations: NormalRotations::new(),
             corr: [Correspondence::NONE; DS],
             frees: [FreeSpaceImage::new(), FreeSpaceImage::new(), FreeSpaceImage::new()],
             free_turn: 0,
@@ -1017,8 +1020,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         // Ring FALS normal (on the raw scan, the caller's points); then the downsampling's voxels.
         // With a second thread the normals are estimated beside the voxels' search (neither
         // needs the other): the points are moved first and the normals rotated after. The normals
-        // turn by the table of [`crate::undistort::NormalRotations`] (its rotation at each
-        // point's time, to 1e-5 rad of the exact one), on one thread in the points' own pass:
+        // turn by the table of [`crate::undistort::NormalRotations`] (its rotation nearest each
+        // point's time, to 0.4 mrad of the exact one), on one thread in the points' own pass:
         // the same bits either way.
         let t_p = clock.now_ns();
         let ds_cfg = self.cfg.downsample;
@@ -1035,11 +1038,10 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             fill_normals(use_normals, input, &st.normals[..n], &mut st.normals3[..m], valid);
         }
         // The normals turn with the table's rotations (on any number of threads the same).
-        let rotations = if use_normals && m > 0 {
-            st.trajectory.normal_rotations(f.state(), 0.0, t_max).ok()
-        } else {
-            None
-        };
+        let rotations = use_normals
+            && m > 0
+            && st.trajectory.normal_rotations(f.state(), 0.0, t_max, &mut st.rotations).is_ok();
+        let rotations = rotations.then_some(&st.rotations);
         if m > 0 {
             // Cannot fail: the trajectory holds the end knot.
             let (pts, nrm) = (&mut st.points[..m], &mut st.normals3[..m]);
