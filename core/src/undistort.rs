@@ -533,10 +533,10 @@ impl Default for NormalRotations {
 }
 
 impl NormalRotations {
-    /// A table of identities at time 0 (all zero bytes but the diagonal).
+    /// An empty table, all zero bytes (so that the odometry's storage in a `static` stays in
+    /// .bss): [`ImuTrajectory::normal_rotations`] fills it before a scan's normals turn.
     pub const fn new() -> Self {
-        const I: [f32; 9] = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
-        Self { t0: 0.0, inv_step: 0.0, rot: [I; NORMAL_ROTATION_STEPS + 1] }
+        Self { t0: 0.0, inv_step: 0.0, rot: [[0.0; 9]; NORMAL_ROTATION_STEPS + 1] }
     }
 
     /// Rotates each valid normal (finite, not zero: [`crate::downsample::normal_is_valid`])
