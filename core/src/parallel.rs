@@ -101,6 +101,74 @@ pub fn map_chunks<U: Send>(
     parallel.run(&mut jobs);
 }
 
+/// Scans between two tries of the arrangement not in use ([`Arrangement`]).
+pub const ARRANGEMENT_EXPLORE: u16 = 16;
+
+/// Which of two arrangements of a stage's jobs runs: the same jobs, each writing only its own
+/// data, put together differently on the threads (so the results are the same bits either
+/// way; only the time differs). Which one is shorter depends on the scene and the machine: on
+/// a street the map insertion makes the voxel search's job the longer one, indoors Ring FALS's.
+///
+/// The choice follows the stage's time as the caller's clock gives it. One arrangement is in
+/// use, with a running mean of its last scans' times (half the weight to each new one: it
+/// follows the scene). Every [`ARRANGEMENT_EXPLORE`] scans the other runs once, and it takes
+/// over if it was shorter than that mean by more than [`ARRANGEMENT_MARGIN`]: a comparison
+/// with the scans just before, of about the same scene (a mean kept for the arrangement not
+/// in use would be of scans long past). Without a clock (every time 0) the first arrangement
+/// always runs.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Arrangement {
+    current: u8,
+    mean_ns: u64,
+    since: u16,
+    trying: bool,
+}
+
+/// How much shorter (a fraction) the other arrangement's try must be to take over.
+pub const ARRANGEMENT_MARGIN: f32 = 0.03;
+
+impl Arrangement {
+    /// No times yet: the first arrangement.
+    pub const fn new() -> Self {
+        Self { current: 0, mean_ns: 0, since: 0, trying: false }
+    }
+
+    /// The arrangement for the next stage: 0 or 1.
+    pub fn pick(&mut self) -> usize {
+        let current = usize::from(self.current);
+        if self.mean_ns == 0 {
+            return current;
+        }
+        self.since = self.since.saturating_add(1);
+        self.trying = self.since >= ARRANGEMENT_EXPLORE;
+        if self.trying {
+            self.since = 0;
+            return 1 - current;
+        }
+        current
+    }
+
+    /// The stage's time with arrangement `arm`, the one [`Self::pick`] gave (0 = no clock:
+    /// ignored).
+    pub fn record(&mut self, arm: usize, ns: u64) {
+        if ns == 0 || arm > 1 {
+            return;
+        }
+        if arm == usize::from(self.current) {
+            self.mean_ns = if self.mean_ns == 0 { ns } else { (self.mean_ns + ns) / 2 };
+        } else if self.trying && (ns as f32) < self.mean_ns as f32 * (1.0 - ARRANGEMENT_MARGIN) {
+            self.current = arm as u8;
+            self.mean_ns = ns;
+        }
+        self.trying = false;
+    }
+
+    /// The arrangement in use.
+    pub fn current(&self) -> usize {
+        usize::from(self.current)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     extern crate std;
@@ -155,6 +223,44 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The arrangement in use runs, the other once every `ARRANGEMENT_EXPLORE` scans, taking
+    /// over when it is shorter by more than the margin; without a clock always the first.
+    #[test]
+    fn the_shorter_arrangement_runs_and_the_other_is_tried_now_and_then() {
+        let mut none = Arrangement::new();
+        for _ in 0..100 {
+            let a = none.pick();
+            assert_eq!(a, 0);
+            none.record(a, 0);
+        }
+        let explore = usize::from(ARRANGEMENT_EXPLORE);
+        let run = |arr: &mut Arrangement, cost: [u64; 2], scans: usize| {
+            let mut runs = [0u32; 2];
+            for _ in 0..scans {
+                let a = arr.pick();
+                runs[a] += 1;
+                arr.record(a, cost[a]);
+            }
+            runs
+        };
+        // Arrangement 1 takes 3 ms, 0 takes 5 ms: 1 takes over at the first try and keeps it,
+        // 0 tried once in every ARRANGEMENT_EXPLORE scans.
+        let mut arr = Arrangement::new();
+        let runs = run(&mut arr, [5_000_000, 3_000_000], 10 * explore);
+        assert_eq!(arr.current(), 1);
+        // The first ARRANGEMENT_EXPLORE scans before the first try, then one try in each
+        // ARRANGEMENT_EXPLORE of the other 9 * ARRANGEMENT_EXPLORE scans (but the first).
+        assert_eq!(runs, [explore as u32 + 8, 9 * explore as u32 - 8], "{runs:?}");
+        // The scene changes: 1 now takes 7 ms; 0 takes over at a try once the mean has
+        // followed (within two tries).
+        let runs = run(&mut arr, [5_000_000, 7_000_000], 2 * explore);
+        assert_eq!(arr.current(), 0, "{runs:?}");
+        // Within the margin (2 % shorter) nothing changes hands.
+        let runs = run(&mut arr, [5_000_000, 4_900_000], 10 * explore);
+        assert_eq!(arr.current(), 0);
+        assert_eq!(runs[1], 10, "{runs:?}");
     }
 
     #[test]
