@@ -6,8 +6,8 @@
 //! With more than one thread each scan's map insertion waits for the next scan's normals stage
 //! (`Odometry::set_deferred_map`); the map at the end is the same too. On two threads that
 //! stage's jobs are put together in two ways (`parallel::Arrangement`: the free-space marks
-//! with Ring FALS or with the voxel search); the other one is tried every 16 scans whatever the
-//! clock says, so each two-thread run below goes through both.
+//! with Ring FALS or with the voxel search); with the real clock used here the other one is
+//! tried every 16 scans, so each two-thread run below goes through both.
 
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};

@@ -1090,9 +1090,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             let (map, pending, buf) = (&mut self.map, &mut self.pending, self.deferred.as_deref());
             let mut job_map = || insert_pending(map, pending, buf);
             // With three threads or more each job runs on its own. On two, the free-space
-            // marks go with the normals or with the voxel search,
-            // whichever made the stage shorter lately ([`Arrangement`]; the same results either
-            // way). On the simulated street drive the insertion makes the voxels' job the
+            // marks go with the normals or with the voxel search, whichever made the stage
+            // shorter lately ([`Arrangement`]; the same results either way). On the simulated street drive the insertion makes the voxels' job the
             // longer (Intel Xeon, 2026-12-07: 2.39 against 2.34 ms with the marks), in the
             // rotation and corridor scenes Ring FALS's (1.62 against 2.24, 0.89 against 1.83).
             let balance = &mut self.balance[usize::from(deferred)];

@@ -121,7 +121,6 @@ pub struct Arrangement {
     current: u8,
     mean_ns: u64,
     since: u16,
-    trying: bool,
 }
 
 /// How much shorter (a fraction) the other arrangement's try must be to take over.
@@ -130,7 +129,7 @@ pub const ARRANGEMENT_MARGIN: f32 = 0.03;
 impl Arrangement {
     /// No times yet: the first arrangement.
     pub const fn new() -> Self {
-        Self { current: 0, mean_ns: 0, since: 0, trying: false }
+        Self { current: 0, mean_ns: 0, since: 0 }
     }
 
     /// The arrangement for the next stage: 0 or 1.
@@ -140,8 +139,7 @@ impl Arrangement {
             return current;
         }
         self.since = self.since.saturating_add(1);
-        self.trying = self.since >= ARRANGEMENT_EXPLORE;
-        if self.trying {
+        if self.since >= ARRANGEMENT_EXPLORE {
             self.since = 0;
             return 1 - current;
         }
@@ -149,18 +147,17 @@ impl Arrangement {
     }
 
     /// The stage's time with arrangement `arm`, the one [`Self::pick`] gave (0 = no clock:
-    /// ignored).
+    /// ignored). The other arrangement than the one in use is only ever a try.
     pub fn record(&mut self, arm: usize, ns: u64) {
         if ns == 0 || arm > 1 {
             return;
         }
         if arm == usize::from(self.current) {
             self.mean_ns = if self.mean_ns == 0 { ns } else { (self.mean_ns + ns) / 2 };
-        } else if self.trying && (ns as f32) < self.mean_ns as f32 * (1.0 - ARRANGEMENT_MARGIN) {
+        } else if (ns as f32) < self.mean_ns as f32 * (1.0 - ARRANGEMENT_MARGIN) {
             self.current = arm as u8;
             self.mean_ns = ns;
         }
-        self.trying = false;
     }
 
     /// The arrangement in use.
