@@ -1445,6 +1445,28 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             }
         }
 
+        // How the scan is bent tells the IMU–LiDAR time offset (well-posed scans only). Only a
+        // scan the IMU covers to within a sample period: one predicted further past the last
+        // sample (a live source whose IMU lags) is bent by the extrapolation, not by the
+        // offset. With a second thread the warp's sums run beside the free-space image's fill
+        // (step 6); nothing there changes what they read.
+        let covered = st.imu.last_time_ns().is_some_and(|t| t.saturating_add(OFFSET_MAX_HOLD_NS) >= end_ns);
+        let judged = covered
+            && reinit.is_none()
+            && !bridged
+            && !low
+            && !recovering
+            && !building
+            && kept > 0
+            && update.outcome == UpdateOutcome::Updated
+            && update.degeneracy.count == 0;
+        let want_warp = judged && self.cfg.time_offset.enabled && !self.cfg.motion.is_lidar_only();
+        let (end_t, x_end) = (f64::from(t_max), *f.state());
+        let warp_of = move |pts: &[ScanPoint], corr: &[Correspondence], traj: &ImuTrajectory<_>| {
+            time_offset::scan_warp(&pts[..measured], &corr[..measured], &x_end, traj, end_t)
+        };
+        let mut warp: Option<time_offset::Warp> = None;
+
         // 6. Map insertion at the updated pose (not while the scans disagree with the map: it
         // stays clean for the re-localisation).
         if kept > 0 && update.outcome != UpdateOutcome::NumericalFailure && !low {
@@ -1473,7 +1495,15 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 self.old_scan = None;
             }
             if fs.enabled && !building && well_posed {
-                st.frees[free_slot(st.free_turn, 0)].fill(&st.points[..kept]);
+                let (frees, slot, pts_k) = (&mut st.frees, free_slot(st.free_turn, 0), &st.points[..kept]);
+                match par {
+                    Some(p) if want_warp => {
+                        let (w, corr, traj) = (&mut warp, &st.corr, &st.trajectory);
+                        let (pts, wo) = (&st.points, &warp_of);
+                        p.run(&mut [&mut || frees[slot].fill(pts_k), &mut || *w = Some(wo(pts, corr, traj))]);
+                    }
+                    _ => frees[slot].fill(pts_k),
+                }
                 // World to sensor in f32: the map's points are f32, the margins decimetres.
                 let rt: [[f32; 3]; 3] =
                     core::array::from_fn(|i| core::array::from_fn(|j| r_wl[(j, i)] as f32));
@@ -1550,30 +1580,15 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             _ => {}
         }
         let pose = PoseEstimate::from_filter(f);
-        // How the scan is bent tells the IMU–LiDAR time offset (well-posed scans only).
         let x = f.state();
-        // Only a scan the IMU covers to within a sample period: one predicted further past the
-        // last sample (a live source whose IMU lags) is bent by the extrapolation, not by the
-        // offset.
-        let covered = st.imu.last_time_ns().is_some_and(|t| t.saturating_add(OFFSET_MAX_HOLD_NS) >= end_ns);
-        let judged = covered
-            && reinit.is_none()
-            && !bridged
-            && !low
-            && !recovering
-            && !building
-            && kept > 0
-            && update.outcome == UpdateOutcome::Updated
-            && update.degeneracy.count == 0;
-        if judged && self.cfg.time_offset.enabled && !self.cfg.motion.is_lidar_only() {
-            let (pts, corr) = (&st.points[..measured], &st.corr[..measured]);
-            let end_t = f64::from(t_max);
-            let warp = time_offset::scan_warp(pts, corr, x, &st.trajectory, end_t);
-            if self.offset.scan(&warp).is_some() {
-                // Samples that the new offset puts before the ones queued are dropped until it
-                // catches up (only when it moved back).
-                self.realign_until_ns = st.imu.last_time_ns();
-            }
+        // The time offset's warp (step 6 took it where it ran beside the fill).
+        let warp = warp.or_else(|| want_warp.then(|| warp_of(&st.points, &st.corr, &st.trajectory)));
+        if let Some(warp) = warp
+            && self.offset.scan(&warp).is_some()
+        {
+            // Samples that the new offset puts before the ones queued are dropped until it
+            // catches up (only when it moved back).
+            self.realign_until_ns = st.imu.last_time_ns();
         }
         // The motion from the last scan end to this one: what an IMU gap is bridged with.
         if let Some((t, rot, pos)) = self.last_end.replace((end_ns, x.rot, x.pos))
