@@ -379,6 +379,12 @@ const fn free_slot(turn: usize, role: usize) -> usize {
     (turn + 3 - role) % 3
 }
 
+/// The two-thread stage's arrangements and the first in use, without and with a waiting
+/// insertion: without one the normals' compaction and rotation start in pieces of their own
+/// (Ring FALS's job is the longer there: a replay's scans 1-6 % shorter on the Intel Xeon,
+/// 2026-12-07), with one in Ring FALS's job.
+const STAGE_ARRANGEMENTS: [Arrangement; 2] = [Arrangement::with_arms(4, 2), Arrangement::with_arms(4, 0)];
+
 /// A scan's map insertion waiting in the caller's buffer ([`Odometry::set_deferred_map`]).
 #[derive(Clone, Copy, Debug)]
 struct PendingInsert {
@@ -598,7 +604,7 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     offset: TimeOffset,
     /// After the applied offset moved back: IMU samples up to this stamp are dropped.
     realign_until_ns: Option<u64>,
-    /// Where the free-space marks run beside Ring FALS on two threads, without and with a
+    /// How the jobs of Ring FALS's stage go together on two threads, without and with a
     /// waiting map insertion.
     balance: [Arrangement; 2],
 }
@@ -683,7 +689,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             still_s: 0.0,
             offset: TimeOffset::new(cfg.time_offset),
             realign_until_ns: None,
-            balance: [Arrangement::new(); 2],
+            balance: STAGE_ARRANGEMENTS,
         })
     }
 
@@ -911,7 +917,14 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         };
         let mut m = 0usize;
         let mut t_max = 0.0f32;
-        for &p in input.iter() {
+        // The valid points before the input's middle: where the second half's normals go
+        // when their compaction runs in two pieces (step 3).
+        let n_half = n / 2;
+        let mut m_half = 0usize;
+        for (i, &p) in input.iter().enumerate() {
+            if i == n_half {
+                m_half = m;
+            }
             if !valid(&p) {
                 continue;
             }
@@ -1063,11 +1076,19 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             let (ring, table, normals) = (&mut st.ring, &st.table, &mut st.normals[..n]);
             let (nrm3, rot) = (&mut st.normals3[..m], &rotations);
             let pts = &st.points[..m];
+            // On two threads, how the stage's jobs go together ([`Arrangement`], four ways: bit 0
+            // where the free-space marks go, bit 1 whether the normals' compaction and rotation
+            // follow in two pieces of their own).
+            let deferred = self.pending.is_some();
+            let arm = par.filter(|p| p.width() == 2).map(|_| self.balance[usize::from(deferred)].pick());
+            let tail_after = arm.is_some_and(|a| a & 2 != 0);
             let mut job_normals = || {
                 ring_fals(ring, table, input, normals);
-                fill_normals(true, input, normals, nrm3, valid);
-                if let Some(r) = rot {
-                    r.rotate(pts, nrm3);
+                if !tail_after {
+                    fill_normals(true, input, normals, nrm3, valid);
+                    if let Some(r) = rot {
+                        r.rotate(pts, nrm3);
+                    }
                 }
             };
             let (ds, cells, free) =
@@ -1086,25 +1107,24 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             };
             // The last scan's map insertion, where it waits: it writes the map only, which
             // nothing of this scan reads before the association.
-            let deferred = self.pending.is_some();
             let (map, pending, buf) = (&mut self.map, &mut self.pending, self.deferred.as_deref());
             let mut job_map = || insert_pending(map, pending, buf);
             // With three threads or more each job runs on its own. On two, the free-space
-            // marks go with the normals or with the voxel search, whichever made the stage
-            // shorter lately ([`Arrangement`]; the same results either way). On the simulated street drive the insertion makes the voxels' job the
-            // longer (Intel Xeon, 2026-12-07: 2.39 against 2.34 ms with the marks), in the
-            // rotation and corridor scenes Ring FALS's (1.62 against 2.24, 0.89 against 1.83).
-            let balance = &mut self.balance[usize::from(deferred)];
-            let mut arm = None;
+            // marks go with the normals or with the voxel search, and the normals' compaction
+            // and rotation stay in Ring FALS's job or follow it in two pieces, whichever made
+            // the stage shorter lately ([`Arrangement`]; the same results every way). On the
+            // simulated street drive the insertion makes the voxels' job the longer (Intel Xeon,
+            // 2026-12-07: 2.39 against 2.34 ms with the marks), in the rotation and corridor
+            // scenes Ring FALS's (1.62 against 2.24, 0.89 against 1.83); without an insertion
+            // waiting (a replay, a live run) Ring FALS's everywhere.
             if let Some(p) = par {
                 if deferred && p.width() >= 3 {
                     p.run(&mut [&mut job_normals, &mut job_voxels, &mut job_map, &mut job_mark]);
                 } else if p.width() >= 3 {
                     p.run(&mut [&mut job_normals, &mut job_voxels, &mut job_mark]);
                 } else {
-                    let a = balance.pick();
-                    arm = Some(a);
-                    let marks_with_normals = (a == 0) == deferred;
+                    let a = arm.unwrap_or(0);
+                    let marks_with_normals = (a & 1 == 0) == deferred;
                     let (mut mark_a, mut mark_b) = if marks_with_normals {
                         (None, Some(&mut job_mark))
                     } else {
@@ -1131,9 +1151,31 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                     }
                 }
             }
+            // The normals' compaction and rotation in two pieces: each half of the caller's
+            // points into its own part of the compacted normals (step 1 counted the valid points
+            // of the first half).
+            if let (true, Some(p)) = (tail_after, par) {
+                let (in_a, in_b) = input.split_at(n_half);
+                let (nr_a, nr_b) = normals.split_at(n_half);
+                let (out_a, out_b) = nrm3.split_at_mut(m_half);
+                let (pt_a, pt_b) = pts.split_at(m_half);
+                let mut tail_a = || {
+                    fill_normals(true, in_a, nr_a, out_a, valid);
+                    if let Some(r) = rot {
+                        r.rotate(pt_a, out_a);
+                    }
+                };
+                let mut tail_b = || {
+                    fill_normals(true, in_b, nr_b, out_b, valid);
+                    if let Some(r) = rot {
+                        r.rotate(pt_b, out_b);
+                    }
+                };
+                p.run(&mut [&mut tail_a, &mut tail_b]);
+            }
             let t_n = clock.now_ns();
             if let Some(a) = arm {
-                balance.record(a, t_n.saturating_sub(t_u));
+                self.balance[usize::from(deferred)].record(a, t_n.saturating_sub(t_u));
             }
             times.normals_ns = t_n.saturating_sub(t_u);
             times.undistort_ns = (t_p.saturating_sub(t0)).saturating_add(t_u.saturating_sub(t_n0));

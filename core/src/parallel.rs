@@ -101,38 +101,63 @@ pub fn map_chunks<U: Send>(
     parallel.run(&mut jobs);
 }
 
-/// Scans between two tries of the arrangement not in use ([`Arrangement`]).
+/// Scans between two tries of an arrangement not in use ([`Arrangement`]).
 pub const ARRANGEMENT_EXPLORE: u16 = 16;
 
-/// Which of two arrangements of a stage's jobs runs: the same jobs, each writing only its own
-/// data, put together differently on the threads (so the results are the same bits either
-/// way; only the time differs). Which one is shorter depends on the scene and the machine: on
+/// The most arrangements an [`Arrangement`] chooses among.
+pub const ARRANGEMENT_MAX: usize = 4;
+
+/// Which of a few arrangements of a stage's jobs runs: the same jobs, each writing only its
+/// own data, put together differently on the threads (so the results are the same bits every
+/// way; only the time differs). Which one is shortest depends on the scene and the machine: on
 /// a street the map insertion makes the voxel search's job the longer one, indoors Ring FALS's.
 ///
 /// The choice follows the stage's time as the caller's clock gives it. One arrangement is in
 /// use, with a running mean of its last scans' times (half the weight to each new one: it
-/// follows the scene). Every [`ARRANGEMENT_EXPLORE`] scans the other runs once, and it takes
-/// over if it was shorter than that mean by more than [`ARRANGEMENT_MARGIN`]: a comparison
-/// with the scans just before, of about the same scene (a mean kept for the arrangement not
-/// in use would be of scans long past). Without a clock (every time 0) the first arrangement
-/// always runs.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+/// follows the scene). Every [`ARRANGEMENT_EXPLORE`] scans one of the others runs once (each in
+/// turn), and it takes over if it was shorter than that mean by more than
+/// [`ARRANGEMENT_MARGIN`]: a comparison with the scans just before, of about the same scene (a
+/// mean kept for an arrangement not in use would be of scans long past). Without a clock
+/// (every time 0) the first arrangement in use stays.
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Arrangement {
+    arms: u8,
     current: u8,
+    /// The arrangement tried last (the next try is the one after it, skipping `current`).
+    tried: u8,
     mean_ns: u64,
     since: u16,
 }
 
-/// How much shorter (a fraction) the other arrangement's try must be to take over.
+impl Default for Arrangement {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// How much shorter (a fraction) another arrangement's try must be to take over.
 pub const ARRANGEMENT_MARGIN: f32 = 0.03;
 
 impl Arrangement {
-    /// No times yet: the first arrangement.
+    /// Two arrangements, no times yet: the first in use.
     pub const fn new() -> Self {
-        Self { current: 0, mean_ns: 0, since: 0 }
+        Self::with_arms(2, 0)
     }
 
-    /// The arrangement for the next stage: 0 or 1.
+    /// `arms` arrangements (2 to [`ARRANGEMENT_MAX`]), `first` in use until a try beats it.
+    pub const fn with_arms(arms: usize, first: usize) -> Self {
+        let arms = if arms < 2 {
+            2
+        } else if arms > ARRANGEMENT_MAX {
+            ARRANGEMENT_MAX
+        } else {
+            arms
+        };
+        let first = if first < arms { first } else { 0 };
+        Self { arms: arms as u8, current: first as u8, tried: first as u8, mean_ns: 0, since: 0 }
+    }
+
+    /// The arrangement for the next stage: `0..arms`.
     pub fn pick(&mut self) -> usize {
         let current = usize::from(self.current);
         if self.mean_ns == 0 {
@@ -141,15 +166,21 @@ impl Arrangement {
         self.since = self.since.saturating_add(1);
         if self.since >= ARRANGEMENT_EXPLORE {
             self.since = 0;
-            return 1 - current;
+            let arms = usize::from(self.arms);
+            let mut next = (usize::from(self.tried) + 1) % arms;
+            if next == current {
+                next = (next + 1) % arms;
+            }
+            self.tried = next as u8;
+            return next;
         }
         current
     }
 
     /// The stage's time with arrangement `arm`, the one [`Self::pick`] gave (0 = no clock:
-    /// ignored). The other arrangement than the one in use is only ever a try.
+    /// ignored). An arrangement other than the one in use is only ever a try.
     pub fn record(&mut self, arm: usize, ns: u64) {
-        if ns == 0 || arm > 1 {
+        if ns == 0 || arm >= usize::from(self.arms) {
             return;
         }
         if arm == usize::from(self.current) {
@@ -258,6 +289,33 @@ mod tests {
         let runs = run(&mut arr, [5_000_000, 4_900_000], 10 * explore);
         assert_eq!(arr.current(), 0);
         assert_eq!(runs[1], 10, "{runs:?}");
+    }
+
+    #[test]
+    fn with_four_arrangements_each_other_is_tried_in_turn_and_the_shortest_stays() {
+        let explore = usize::from(ARRANGEMENT_EXPLORE);
+        let mut arr = Arrangement::with_arms(4, 2);
+        assert_eq!(arr.pick(), 2, "no times yet: the first in use");
+        let cost = [6_000_000u64, 5_000_000, 4_000_000, 3_000_000];
+        let mut runs = [0u32; 4];
+        arr.record(2, cost[2]);
+        for _ in 0..12 * explore {
+            let a = arr.pick();
+            runs[a] += 1;
+            arr.record(a, cost[a]);
+        }
+        // 3 is tried first after 2 (the next in turn) and takes over; then 0, 1 and 2 are
+        // tried in turn, one scan in ARRANGEMENT_EXPLORE, and lose.
+        assert_eq!(arr.current(), 3, "{runs:?}");
+        assert_eq!(runs[0] + runs[1] + runs[2] + runs[3], 12 * explore as u32);
+        assert_eq!(runs[0], 4, "{runs:?}");
+        assert_eq!(runs[1], 4, "{runs:?}");
+        assert!(runs[2] >= explore as u32 - 1 && runs[2] <= explore as u32 + 4, "{runs:?}");
+        // Out-of-range arms and counts are clamped, never a panic.
+        let mut odd = Arrangement::with_arms(9, 7);
+        assert_eq!(odd.pick(), 0);
+        odd.record(5, 1);
+        assert_eq!(Arrangement::with_arms(1, 1).pick(), 1, "two arms at least");
     }
 
     #[test]
