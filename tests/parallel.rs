@@ -4,7 +4,8 @@
 //! summed in piece order; the update accumulates in point order afterwards; the normals and the
 //! voxels write disjoint storage, and the voxels' normals are summed in point order after both).
 //! With more than one thread each scan's map insertion waits for the next scan's normals stage
-//! (`Odometry::set_deferred_map`); the map at the end is the same too. On two threads that
+//! (`Odometry::set_deferred_map`), and the downsampling's kept points are gathered in pieces into
+//! a lent buffer (`Odometry::set_gather_buffer`); the map at the end is the same too. On two threads that
 //! stage's jobs are put together in four ways (`parallel::Arrangement`: the free-space marks
 //! with Ring FALS or with the voxel search, the normals' compaction and rotation in Ring FALS's
 //! job or in two pieces after it); with the real clock used here another one is tried every 16
@@ -16,7 +17,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use loglio_core::association::KnnScratch;
 use loglio_core::odometry::{AssociationMode, Vlp32cStorage};
 use loglio_core::parallel::{Job, MAX_WIDTH, Parallel};
-use loglio_core::scan::ScanView;
+use loglio_core::scan::{ScanPoint, ScanView};
 use loglio_core::voxel_map::{MapPoint, VoxelMap};
 use loglio_firmware_sim::lidar::SensorModel;
 use loglio_firmware_sim::scenario::{Event, Scenario, ScenarioConfig, ScenarioKind};
@@ -72,10 +73,12 @@ fn run_flushing(
     let threads = pool.width();
     let mut scratch = vec![KnnScratch::new(); MAX_WIDTH];
     let mut deferred = vec![MapPoint::default(); 32768];
+    let mut gather = vec![ScanPoint::default(); 32768];
     let mut odo = store.odometry(&config_for(sc, mode)).unwrap();
     if threads > 1 {
         odo.set_parallel(pool, &mut scratch[..threads - 1]);
         odo.set_deferred_map(&mut deferred);
+        odo.set_gather_buffer(&mut gather);
     }
     let mut clock = StdClock::default();
     let mut out = Vec::new();

@@ -141,6 +141,26 @@ impl Cell {
     };
 }
 
+/// A voxel's unit mean normal as the output takes it (`agreement`:
+/// [`DownsampleConfig::min_normal_agreement`]), or [`INVALID_NORMAL`] counted in `stats`.
+#[inline(always)]
+fn mean_normal(c: &Cell, agreement: f32, stats: &mut DownsampleStats) -> [f32; 3] {
+    if c.ncount == 0 {
+        stats.normals_invalid += 1;
+        return INVALID_NORMAL;
+    }
+    let m = c.nsum.map(|v| v / c.ncount as f32);
+    let len = crate::math::sqrtf(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
+    let agree = len >= agreement && len > 0.0; // false for NaN
+    if !agree {
+        stats.normals_invalid += 1;
+        stats.normals_disagree += 1;
+        INVALID_NORMAL
+    } else {
+        m.map(|v| v / len)
+    }
+}
+
 /// A point in no voxel (dropped), in the scratch of [`VoxelDownsampler::downsample_with_scratch`].
 const NO_CELL: u32 = u32::MAX;
 
@@ -477,25 +497,75 @@ impl<const N: usize> VoxelDownsampler<N> {
             let c = self.cells[k];
             points[k] = points[c.best as usize];
             if let Some(ns) = normals.as_deref_mut() {
-                ns[k] = if c.ncount == 0 {
-                    stats.normals_invalid += 1;
-                    INVALID_NORMAL
-                } else {
-                    let m = c.nsum.map(|v| v / c.ncount as f32);
-                    let len = crate::math::sqrtf(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
-                    let agree = len >= cfg.min_normal_agreement && len > 0.0; // false for NaN
-                    if !agree {
-                        stats.normals_invalid += 1;
-                        stats.normals_disagree += 1;
-                        INVALID_NORMAL
-                    } else {
-                        m.map(|v| v / len)
-                    }
-                };
+                ns[k] = mean_normal(&c, cfg.min_normal_agreement, &mut stats);
             }
         }
         stats.kept = used as u32;
         self.morton_permute(used, points, normals);
+        stats
+    }
+
+    /// [`Self::finish`] out of place and in pieces on `parallel`'s threads: `out` gets the
+    /// first `kept` points in the same Morton order (each piece gathers its own range of it
+    /// from `points`, the points binned, which stay as they are), `normals` the same normals
+    /// as [`Self::finish`] writes. The same bits; a one-thread gather and permutation in place
+    /// become a gather the threads share. `out` shorter than the voxels: nothing is written
+    /// (as [`Self::finish`] with the wrong points).
+    pub fn finish_into(
+        &mut self,
+        cfg: &DownsampleConfig,
+        points: &[ScanPoint],
+        out: &mut [ScanPoint],
+        normals: Option<&mut [[f32; 3]]>,
+        parallel: &dyn Parallel,
+    ) -> DownsampleStats {
+        let (used, mut stats) = (core::mem::take(&mut self.used), self.staged);
+        if normals.as_ref().is_some_and(|n| n.len() < used) || out.len() < used || points.len() < used {
+            return DownsampleStats { kept: 0, ..stats };
+        }
+        let agreement = cfg.min_normal_agreement;
+        let (cells, perm) = (&self.cells, &self.perm);
+        let ends = crate::parallel::split(used, parallel.width(), 64);
+        let mut counts = [DownsampleStats::default(); crate::parallel::MAX_WIDTH];
+        {
+            let (mut rest, mut rest_n) = (&mut out[..used], normals.map(|n| &mut n[..used]));
+            let mut closures = heapless::Vec::<_, { crate::parallel::MAX_WIDTH }>::new();
+            let mut start = 0;
+            for (&end, count) in ends.iter().zip(counts.iter_mut()) {
+                let (piece, r) = core::mem::take(&mut rest).split_at_mut(end - start);
+                rest = r;
+                let piece_n = match rest_n.take() {
+                    Some(all) => {
+                        let (a, b) = all.split_at_mut(end - start);
+                        rest_n = Some(b);
+                        Some(a)
+                    }
+                    None => None,
+                };
+                let first = start;
+                let mut piece_n = piece_n;
+                let _ = closures.push(move || {
+                    for (j, o) in piece.iter_mut().enumerate() {
+                        let c = &cells[perm[first + j] as usize];
+                        *o = points[c.best as usize];
+                        if let Some(ns) = piece_n.as_deref_mut() {
+                            ns[j] = mean_normal(c, agreement, count);
+                        }
+                    }
+                });
+                start = end;
+            }
+            let mut jobs = heapless::Vec::<crate::parallel::Job<'_>, { crate::parallel::MAX_WIDTH }>::new();
+            for c in closures.iter_mut() {
+                let _ = jobs.push(c);
+            }
+            parallel.run(&mut jobs);
+        }
+        for c in &counts {
+            stats.normals_invalid += c.normals_invalid;
+            stats.normals_disagree += c.normals_disagree;
+        }
+        stats.kept = used as u32;
         stats
     }
 
@@ -746,7 +816,20 @@ mod tests {
             assert_eq!(&p2[..k], &p1[..k], "width {width}");
             let bits = |n: &[[f32; 3]]| n.iter().flat_map(|v| v.map(f32::to_bits)).collect::<Vec<_>>();
             assert_eq!(bits(&n2[..k]), bits(&n1[..k]), "width {width}");
+            // Gathered out of place in pieces: the same points, normals and counts.
+            let (p3, mut n3) = (pts.clone(), ns.clone());
+            ds.bin_with_scratch(&cfg(0.5), &p3, &mut cells).unwrap();
+            ds.add_normals_with(&n3, &cells, &Threads(width));
+            let mut out = std::vec![ScanPoint::default(); k];
+            let st = ds.finish_into(&cfg(0.5), &p3, &mut out, Some(&mut n3), &Threads(width));
+            assert_eq!(st, one, "width {width}, out of place");
+            assert_eq!(&out[..], &p1[..k], "width {width}, out of place");
+            assert_eq!(bits(&n3[..k]), bits(&n1[..k]), "width {width}, out of place");
         }
+        // Too short a buffer: nothing written, nothing kept (never a panic).
+        ds.bin_with_scratch(&cfg(0.5), &pts, &mut std::vec![0u32; pts.len()]).unwrap();
+        let mut short = std::vec![ScanPoint::default(); 10];
+        assert_eq!(ds.finish_into(&cfg(0.5), &pts, &mut short, None, &Threads(2)).kept, 0);
     }
 
     #[test]

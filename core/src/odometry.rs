@@ -587,6 +587,9 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     /// The caller's buffer for a scan's map points whose insertion waits for the next scan
     /// ([`Odometry::set_deferred_map`]).
     deferred: Option<&'a mut [MapPoint]>,
+    /// The caller's buffer the downsampling's kept points are gathered into on the threads
+    /// ([`Odometry::set_gather_buffer`]).
+    gather: Option<&'a mut [ScanPoint]>,
     /// The insertion waiting in `deferred`, if any.
     pending: Option<PendingInsert>,
     /// Running means of the agreeing scans' shares of matching points and innovations.
@@ -680,6 +683,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             old_scan: None,
             parallel: None,
             deferred: None,
+            gather: None,
             pending: None,
             share_mean: None,
             nis_mean: None,
@@ -814,6 +818,14 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
     pub fn set_deferred_map(&mut self, buffer: &'a mut [MapPoint]) {
         self.flush_map();
         self.deferred = Some(buffer);
+    }
+
+    /// With [`Self::set_parallel`]'s threads, lets the downsampling gather its kept points into
+    /// `buffer` (at least [`VoxelDownsampler::max_voxels`] of the storage's `DS`, else unused)
+    /// in pieces on the threads, then copy them back, instead of moving them into place on one
+    /// thread. The same bits.
+    pub fn set_gather_buffer(&mut self, buffer: &'a mut [ScanPoint]) {
+        self.gather = Some(buffer);
     }
 
     /// Inserts the last scan's points if their insertion is waiting ([`Self::set_deferred_map`]),
@@ -1213,7 +1225,23 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                     par.unwrap_or(&Sequential),
                 );
             }
-            st.downsampler.finish(&ds_cfg, &mut st.points[..m], Some(&mut st.normals3[..m])).kept as usize
+            let room = VoxelDownsampler::<DS>::max_voxels();
+            match (par, self.gather.as_deref_mut()) {
+                // Gathered in pieces, then back into the points (the same bits as in place).
+                (Some(p), Some(buf)) if buf.len() >= room => {
+                    let (pts, nrm) = (&st.points[..m], Some(&mut st.normals3[..m]));
+                    let kept = st.downsampler.finish_into(&ds_cfg, pts, buf, nrm, p).kept as usize;
+                    let buf = &*buf;
+                    crate::parallel::map_chunks(p, &mut st.points[..kept], 64, |first, run| {
+                        run.copy_from_slice(&buf[first..first + run.len()]);
+                    });
+                    kept
+                }
+                _ => {
+                    st.downsampler.finish(&ds_cfg, &mut st.points[..m], Some(&mut st.normals3[..m])).kept
+                        as usize
+                }
+            }
         } else {
             0
         };

@@ -375,11 +375,14 @@ fn run_class<const PIX: usize, const PTS: usize, const DS: usize, const V: usize
     // A scan's map insertion waits here for the next scan's Ring FALS, beside it.
     let mut deferred =
         vec![loglio_core::voxel_map::MapPoint::default(); if pool.width() > 1 { DS } else { 0 }];
-    let bytes = bytes + std::mem::size_of_val(deferred.as_slice());
+    // The downsampling's kept points are gathered here in pieces on the threads.
+    let mut gather = vec![loglio_core::scan::ScanPoint::default(); if pool.width() > 1 { DS } else { 0 }];
+    let bytes = bytes + std::mem::size_of_val(deferred.as_slice()) + std::mem::size_of_val(gather.as_slice());
     let mut odo = storage.odometry(cfg).map_err(odometry_error)?;
     if pool.width() > 1 {
         odo.set_parallel(&pool, &mut scratch);
         odo.set_deferred_map(&mut deferred);
+        odo.set_gather_buffer(&mut gather);
     }
     let mut engine = CoreEngine { odo, bytes };
     Ok(f(&mut engine))
