@@ -525,42 +525,25 @@ impl<const N: usize> VoxelDownsampler<N> {
         }
         let agreement = cfg.min_normal_agreement;
         let (cells, perm) = (&self.cells, &self.perm);
-        let ends = crate::parallel::split(used, parallel.width(), 64);
         let mut counts = [DownsampleStats::default(); crate::parallel::MAX_WIDTH];
-        {
-            let (mut rest, mut rest_n) = (&mut out[..used], normals.map(|n| &mut n[..used]));
-            let mut closures = heapless::Vec::<_, { crate::parallel::MAX_WIDTH }>::new();
-            let mut start = 0;
-            for (&end, count) in ends.iter().zip(counts.iter_mut()) {
-                let (piece, r) = core::mem::take(&mut rest).split_at_mut(end - start);
-                rest = r;
-                let piece_n = match rest_n.take() {
-                    Some(all) => {
-                        let (a, b) = all.split_at_mut(end - start);
-                        rest_n = Some(b);
-                        Some(a)
+        let normals = normals.map(|n| &mut n[..used]);
+        crate::parallel::map_pieces2(
+            parallel,
+            &mut out[..used],
+            normals,
+            64,
+            &mut counts,
+            |first, piece, ns, count| {
+                let mut ns = ns;
+                for (j, o) in piece.iter_mut().enumerate() {
+                    let c = &cells[perm[first + j] as usize];
+                    *o = points[c.best as usize];
+                    if let Some(ns) = ns.as_deref_mut() {
+                        ns[j] = mean_normal(c, agreement, count);
                     }
-                    None => None,
-                };
-                let first = start;
-                let mut piece_n = piece_n;
-                let _ = closures.push(move || {
-                    for (j, o) in piece.iter_mut().enumerate() {
-                        let c = &cells[perm[first + j] as usize];
-                        *o = points[c.best as usize];
-                        if let Some(ns) = piece_n.as_deref_mut() {
-                            ns[j] = mean_normal(c, agreement, count);
-                        }
-                    }
-                });
-                start = end;
-            }
-            let mut jobs = heapless::Vec::<crate::parallel::Job<'_>, { crate::parallel::MAX_WIDTH }>::new();
-            for c in closures.iter_mut() {
-                let _ = jobs.push(c);
-            }
-            parallel.run(&mut jobs);
-        }
+                }
+            },
+        );
         for c in &counts {
             stats.normals_invalid += c.normals_invalid;
             stats.normals_disagree += c.normals_disagree;

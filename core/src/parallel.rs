@@ -101,6 +101,44 @@ pub fn map_chunks<U: Send>(
     parallel.run(&mut jobs);
 }
 
+/// Splits `a` (and `b`, the same length, where given) into the pieces of
+/// [`split`]`(a.len(), width, align)` and runs `f(first, piece_of_a, piece_of_b, slot)` for each
+/// on `parallel`'s threads, each with its own slot of `slots` (the pieces in order). Returns the
+/// number of pieces. `b` shorter than `a`: its pieces are cut to what it holds.
+pub fn map_pieces2<A: Send, B: Send, R: Send>(
+    parallel: &dyn Parallel,
+    a: &mut [A],
+    b: Option<&mut [B]>,
+    align: usize,
+    slots: &mut [R; MAX_WIDTH],
+    f: impl Fn(usize, &mut [A], Option<&mut [B]>, &mut R) + Sync,
+) -> usize {
+    let ends = split(a.len(), parallel.width(), align);
+    let f = &f;
+    let (mut rest_a, mut rest_b) = (a, b);
+    let mut closures = heapless::Vec::<_, MAX_WIDTH>::new();
+    let mut start = 0;
+    for (&end, slot) in ends.iter().zip(slots.iter_mut()) {
+        let (piece_a, r) = core::mem::take(&mut rest_a).split_at_mut(end - start);
+        rest_a = r;
+        let mut piece_b = rest_b.take().map(|all| {
+            let (x, y) = all.split_at_mut((end - start).min(all.len()));
+            rest_b = Some(y);
+            x
+        });
+        let first = start;
+        // Cannot fail: at most MAX_WIDTH pieces.
+        let _ = closures.push(move || f(first, &mut *piece_a, piece_b.as_deref_mut(), &mut *slot));
+        start = end;
+    }
+    let mut jobs = heapless::Vec::<Job<'_>, MAX_WIDTH>::new();
+    for c in closures.iter_mut() {
+        let _ = jobs.push(c);
+    }
+    parallel.run(&mut jobs);
+    ends.len()
+}
+
 /// Scans between two tries of an arrangement not in use ([`Arrangement`]).
 pub const ARRANGEMENT_EXPLORE: u16 = 16;
 

@@ -303,36 +303,17 @@ impl<const N: usize> ImuTrajectory<N> {
         if normals.as_ref().is_some_and(|nr| nr.len() != n) {
             return Err(UndistortError::LengthMismatch);
         }
-        let ends = crate::parallel::split(n, parallel.width(), UNDISTORT_PIECE);
         let mut results = [Ok(UndistortStats::default()); crate::parallel::MAX_WIDTH];
-        {
-            let mut pts = points;
-            let mut nrm = normals;
-            let mut closures = heapless::Vec::<_, { crate::parallel::MAX_WIDTH }>::new();
-            let mut start = 0;
-            for (&e, out) in ends.iter().zip(results.iter_mut()) {
-                let (p, rest) = core::mem::take(&mut pts).split_at_mut(e - start);
-                pts = rest;
-                let piece_normals = match nrm.take() {
-                    Some(all) => {
-                        let (a, b) = all.split_at_mut(e - start);
-                        nrm = Some(b);
-                        Some(a)
-                    }
-                    None => None,
-                };
-                let mut piece_normals = piece_normals;
-                let _ = closures.push(move || *out = self.undistort(end, p, piece_normals.as_deref_mut()));
-                start = e;
-            }
-            let mut jobs = heapless::Vec::<crate::parallel::Job<'_>, { crate::parallel::MAX_WIDTH }>::new();
-            for c in closures.iter_mut() {
-                let _ = jobs.push(c);
-            }
-            parallel.run(&mut jobs);
-        }
+        let pieces = crate::parallel::map_pieces2(
+            parallel,
+            points,
+            normals,
+            UNDISTORT_PIECE,
+            &mut results,
+            |_, p, nrm, out| *out = self.undistort(end, p, nrm),
+        );
         let mut stats = UndistortStats::default();
-        for r in &results[..ends.len()] {
+        for r in &results[..pieces] {
             let s = (*r)?;
             stats.moved += s.moved;
             stats.extrapolated += s.extrapolated;
