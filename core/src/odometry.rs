@@ -394,6 +394,41 @@ struct PendingInsert {
     points: usize,
 }
 
+/// A scan's clearing of the map, waiting with its insertion ([`Odometry::set_deferred_map`]):
+/// what the free-space image `image` (of that scan, kept until then) sees through leaves the
+/// map before the scan's points go in, as it did at once.
+#[derive(Clone, Copy, Debug)]
+struct PendingClear {
+    /// The sensor's origin (world) and the world-to-sensor rotation.
+    origin: [f32; 3],
+    rt: [[f32; 3]; 3],
+    /// Voxels judged ([`VoxelMap::clear_seen_through`]).
+    budget: usize,
+    /// The index in `frees` of the scan's image.
+    image: usize,
+}
+
+/// The clearing `c` of the map, its judgements in pieces on `par`'s threads (the voxels'
+/// scratch, `cell_of`, is free whenever it runs).
+fn run_clear<const PIX: usize>(
+    c: PendingClear,
+    map: &mut VoxelMap<'_>,
+    (frees, sus, cell_of): (&[FreeSpaceImage<PIX>], &mut Suspects<SUSPECTS>, &mut [u32]),
+    fsc: &FreeSpaceConfig,
+    par: &dyn Parallel,
+    stats: &mut OdometryStats,
+) {
+    let Some(free) = frees.get(c.image) else { return };
+    let (rt, origin) = (c.rt, c.origin);
+    let judge = |q: [f32; 3], slack| {
+        let d = [q[0] - origin[0], q[1] - origin[1], q[2] - origin[2]];
+        let l: [f32; 3] = core::array::from_fn(|i| rt[i][0] * d[0] + rt[i][1] * d[1] + rt[i][2] * d[2]);
+        free.verdict_with_slack(l, slack, fsc)
+    };
+    let cleared = map.clear_seen_through_with(origin, fsc.max_range, c.budget, sus, judge, par, cell_of);
+    stats.cleared = stats.cleared.saturating_add(u64::from(cleared));
+}
+
 /// Inserts the waiting points, if any (the same call as an insertion without waiting).
 fn insert_pending(map: &mut VoxelMap<'_>, pending: &mut Option<PendingInsert>, buf: Option<&[MapPoint]>) {
     if let (Some(p), Some(buf)) = (pending.take(), buf) {
@@ -592,6 +627,8 @@ pub struct Odometry<'a, const PIX: usize, const PTS: usize, const DS: usize> {
     gather: Option<&'a mut [ScanPoint]>,
     /// The insertion waiting in `deferred`, if any.
     pending: Option<PendingInsert>,
+    /// The clearing that goes before it, if any.
+    pending_clear: Option<PendingClear>,
     /// Running means of the agreeing scans' shares of matching points and innovations.
     share_mean: Option<f32>,
     nis_mean: Option<f32>,
@@ -685,6 +722,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             deferred: None,
             gather: None,
             pending: None,
+            pending_clear: None,
             share_mean: None,
             nis_mean: None,
             low_run: 0,
@@ -813,8 +851,10 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
     /// With [`Self::set_parallel`]'s threads, lets a scan's map insertion wait in `buffer` (at
     /// least `DS` points; a smaller one defers only scans that fit) until the next scan, whose
     /// Ring FALS and voxel search it then runs beside: the pose is returned before the insertion,
-    /// and the insertion takes no time of its own. The map and every result are the same, bit
-    /// for bit; only [`Self::map`] may lag one scan until [`Self::flush_map`].
+    /// and the insertion takes no time of its own. The free-space clearing that goes before it
+    /// waits too (for the caller's [`Self::flush_map`] between scans, else the next scan's
+    /// start, before that scan's marks write over its image). The map and every result are the
+    /// same, bit for bit; only [`Self::map`] may lag one scan until [`Self::flush_map`].
     pub fn set_deferred_map(&mut self, buffer: &'a mut [MapPoint]) {
         self.flush_map();
         self.deferred = Some(buffer);
@@ -828,9 +868,23 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         self.gather = Some(buffer);
     }
 
+    /// The last scan's clearing of the map, if it waits: before anything else reads the map or
+    /// the next scan's marks write over its free-space image.
+    fn clear_pending(&mut self) {
+        let Some(c) = self.pending_clear.take() else { return };
+        let par = match &self.parallel {
+            Some((p, _)) => *p,
+            None => &Sequential,
+        };
+        let st = &mut *self.scan;
+        let scratch = (&st.frees[..], &mut st.suspects, &mut st.cell_of[..]);
+        run_clear(c, &mut self.map, scratch, &self.cfg.free_space, par, &mut self.stats);
+    }
+
     /// Inserts the last scan's points if their insertion is waiting ([`Self::set_deferred_map`]),
     /// so that [`Self::map`] holds every scan processed.
     pub fn flush_map(&mut self) {
+        self.clear_pending();
         insert_pending(&mut self.map, &mut self.pending, self.deferred.as_deref());
     }
 
@@ -913,6 +967,9 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         let par_width = self.parallel.as_ref().map_or(1, |(p, _)| p.width());
         if !(par_width > 1 && self.filter.is_some()) {
             self.flush_map();
+        } else {
+            // Its clearing goes first, on the threads.
+            self.clear_pending();
         }
 
         // 1. Copy the valid points into the storage (their normals come in step 3).
@@ -1541,6 +1598,9 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
         // stays clean for the re-localisation).
         if kept > 0 && update.outcome != UpdateOutcome::NumericalFailure && !low {
             self.last_kept = kept;
+            // The insertion (and the clearing before it) waits for the next scan or the caller's
+            // flush where there is a second thread and room.
+            let defer = par.is_some() && self.deferred.as_ref().is_some_and(|b| b.len() >= still);
             let x = f.state();
             let r = x.rot.to_rotation_matrix().into_inner();
             let r_wl: Matrix3<f64> = r * x.ext_rot.to_rotation_matrix().into_inner();
@@ -1577,21 +1637,19 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 // World to sensor in f32: the map's points are f32, the margins decimetres.
                 let rt: [[f32; 3]; 3] =
                     core::array::from_fn(|i| core::array::from_fn(|j| r_wl[(j, i)] as f32));
-                let (free, fsc) = (&st.frees[free_slot(st.free_turn, 0)], &fs);
                 // Every voxel at least every 4 scans on a small map; a fixed cost on a large one.
                 let budget = (fs.voxels_per_scan as usize).min(self.map.len().div_ceil(4));
-                let judge = |q: [f32; 3], slack| {
-                    let d = [q[0] - origin[0], q[1] - origin[1], q[2] - origin[2]];
-                    let l: [f32; 3] =
-                        core::array::from_fn(|i| rt[i][0] * d[0] + rt[i][1] * d[1] + rt[i][2] * d[2]);
-                    free.verdict_with_slack(l, slack, fsc)
-                };
-                // The judgements in pieces on the caller's threads (the voxels' scratch is free
-                // by now).
-                let (sus, reach, p) = (&mut st.suspects, fs.max_range, par.unwrap_or(&Sequential));
-                let cleared =
-                    self.map.clear_seen_through_with(origin, reach, budget, sus, judge, p, &mut st.cell_of);
-                self.stats.cleared = self.stats.cleared.saturating_add(u64::from(cleared));
+                // The clearing waits with the insertion where that waits (the pose goes out
+                // first), else runs now: its judgements in pieces on the caller's threads (the
+                // voxels' scratch is free by now).
+                let clear = PendingClear { origin, rt, budget, image: free_slot(st.free_turn, 0) };
+                if defer {
+                    self.pending_clear = Some(clear);
+                } else {
+                    let (p, fsc) = (par.unwrap_or(&Sequential), &self.cfg.free_space);
+                    let scratch = (&st.frees[..], &mut st.suspects, &mut st.cell_of[..]);
+                    run_clear(clear, &mut self.map, scratch, fsc, p, &mut self.stats);
+                }
                 // The reference image and pose for the next scans' moving points, renewed every
                 // `reference_every_s`.
                 let renew_ns = (f64::from(fs.reference_every_s) * 1e9) as u64;

@@ -183,7 +183,8 @@ pub struct StageTimes {
     /// time together).
     pub normals_ns: u64,
     /// Copying the points in, the IMU propagation and the undistortion of every point (of its
-    /// normal too on one thread).
+    /// normal too on one thread); where the last scan's map clearing waited for this scan (a
+    /// deferred insertion not flushed between scans), that clearing too.
     pub undistort_ns: u64,
     /// The rest of the voxel downsampling (on one thread with the voxel binning): the voxels'
     /// mean normals and the output.
@@ -193,7 +194,8 @@ pub struct StageTimes {
     /// Filter update (all iterations, without association), with the moving points' verdicts
     /// and the measured points' selection.
     pub update_ns: u64,
-    /// The map: its free-space clearing and the insertion.
+    /// The map: its free-space clearing and the insertion (each only where it does not wait:
+    /// `Odometry::set_deferred_map`).
     pub map_ns: u64,
     /// The whole scan.
     pub total_ns: u64,
