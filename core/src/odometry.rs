@@ -1154,10 +1154,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             let mut job_normals = || {
                 ring_fals(ring, table, input, normals);
                 if !tail_after {
-                    fill_normals(true, input, normals, nrm3, valid);
-                    if let Some(r) = rot {
-                        r.rotate(pts, nrm3);
-                    }
+                    fill_turned(input, normals, pts, nrm3, *rot, valid);
                 }
             };
             let (ds, cells, free) =
@@ -1228,18 +1225,8 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
                 let (nr_a, nr_b) = normals.split_at(n_half);
                 let (out_a, out_b) = nrm3.split_at_mut(m_half);
                 let (pt_a, pt_b) = pts.split_at(m_half);
-                let mut tail_a = || {
-                    fill_normals(true, in_a, nr_a, out_a, valid);
-                    if let Some(r) = rot {
-                        r.rotate(pt_a, out_a);
-                    }
-                };
-                let mut tail_b = || {
-                    fill_normals(true, in_b, nr_b, out_b, valid);
-                    if let Some(r) = rot {
-                        r.rotate(pt_b, out_b);
-                    }
-                };
+                let mut tail_a = || fill_turned(in_a, nr_a, pt_a, out_a, *rot, valid);
+                let mut tail_b = || fill_turned(in_b, nr_b, pt_b, out_b, *rot, valid);
                 p.run(&mut [&mut tail_a, &mut tail_b]);
             }
             let t_n = clock.now_ns();
@@ -1664,7 +1651,7 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             self.stamp = self.stamp.saturating_add(1);
             match self.deferred.as_deref_mut() {
                 // With a second thread, the insertion waits for the next scan's normals stage.
-                Some(buf) if par.is_some() && buf.len() >= still => {
+                Some(buf) if defer => {
                     for (slot, p) in buf.iter_mut().zip(pts) {
                         *slot = p;
                     }
@@ -1748,6 +1735,22 @@ impl<'a, const PIX: usize, const PTS: usize, const DS: usize> Odometry<'a, PIX, 
             points: npoints,
             integrity,
         }
+    }
+}
+
+/// [`fill_normals`] of the caller's `input`, then each turned by `rot` as its (moved) point in
+/// `pts` gives it: the normals' part of Ring FALS's job, whole or in pieces.
+fn fill_turned(
+    input: &[ScanPoint],
+    normals: &[PointNormal],
+    pts: &[ScanPoint],
+    out: &mut [[f32; 3]],
+    rot: Option<&NormalRotations>,
+    valid: impl Fn(&ScanPoint) -> bool,
+) {
+    fill_normals(true, input, normals, out, valid);
+    if let Some(r) = rot {
+        r.rotate(pts, out);
     }
 }
 
