@@ -196,6 +196,37 @@ impl<const N: usize> Default for VoxelDownsampler<N> {
     }
 }
 
+/// Points whose keys [`keys8`] finds at once.
+const KEY_LANES: usize = 8;
+
+/// The voxel keys of up to eight points (`VoxelDownsampler::key`'s, bit for bit) and which of
+/// them have one: the products, bounds and truncations on vector lanes where one point at a
+/// time took three conversions and three branches.
+#[inline(always)]
+fn keys8(points: &[ScanPoint], inv: f32) -> ([[i32; KEY_LANES]; 3], [bool; KEY_LANES]) {
+    let mut v = [[0.0f32; KEY_LANES]; 3];
+    for (l, p) in points.iter().take(KEY_LANES).enumerate() {
+        for a in 0..3 {
+            v[a][l] = p.xyz[a] * inv;
+        }
+    }
+    let mut ok = [true; KEY_LANES];
+    let mut k = [[0i32; KEY_LANES]; 3];
+    for a in 0..3 {
+        // `key`'s test: finite and within i32 (false for NaN and the infinities).
+        for l in 0..KEY_LANES {
+            ok[l] &= v[a][l].abs() < 2.0e9;
+        }
+        // `floor_i32`: the truncation (the same as `as` within the bound; lanes outside it are
+        // not used), minus one for negative non-integers.
+        let t = crate::math::trunc_i32x8(v[a]);
+        for l in 0..KEY_LANES {
+            k[a][l] = if (t[l] as f32) > v[a][l] { t[l] - 1 } else { t[l] };
+        }
+    }
+    (k, ok)
+}
+
 /// The index slot of a voxel key: the hash of its 2x2x2 block times 8 plus its place in the
 /// block, so that neighbouring voxels (the next beam of a column, the next column of a beam)
 /// have their index entries in one cache line.
@@ -394,38 +425,45 @@ impl<const N: usize> VoxelDownsampler<N> {
 
         // Pass 1: accumulate.
         self.recent = [([0; 3], 0); RECENT];
-        for (i, p) in points.iter().enumerate() {
-            if let Some(co) = cell_of.as_deref_mut() {
-                co[i] = NO_CELL;
-            }
-            let Some(key) = Self::key(&p.xyz, inv) else {
-                stats.dropped_invalid += 1;
-                continue;
-            };
-            let cell = match self.find(&key, p.row) {
-                Ok(c) => c,
-                Err(pos) => {
-                    if used >= max {
-                        stats.dropped_overflow += 1;
-                        continue;
-                    }
-                    self.cells[used] = Cell { key, best_d2: f32::INFINITY, pos: pos as u32, ..Cell::EMPTY };
-                    self.index[pos] = used as u32 + 1;
-                    self.recent[usize::from(p.row) % RECENT] = (key, used as u32 + 1);
-                    used += 1;
-                    used - 1
+        // The keys of eight points at a time, on vector lanes ([`keys8`]).
+        for (i0, block) in (0..).step_by(KEY_LANES).zip(points.chunks(KEY_LANES)) {
+            let (keys, ok) = keys8(block, inv);
+            for (l, p) in block.iter().enumerate() {
+                let i = i0 + l;
+                if let Some(co) = cell_of.as_deref_mut() {
+                    co[i] = NO_CELL;
                 }
-            };
-            if let Some(co) = cell_of.as_deref_mut() {
-                co[i] = cell as u32;
-            }
-            let c = &mut self.cells[cell];
-            c.count += 1;
-            for a in 0..3 {
-                c.sum[a] += p.xyz[a] - key[a] as f32 * cfg.voxel;
-            }
-            if let Some(ns) = normals {
-                c.add_normal(&ns[i]);
+                if !ok[l] {
+                    stats.dropped_invalid += 1;
+                    continue;
+                }
+                let key = [keys[0][l], keys[1][l], keys[2][l]];
+                let cell = match self.find(&key, p.row) {
+                    Ok(c) => c,
+                    Err(pos) => {
+                        if used >= max {
+                            stats.dropped_overflow += 1;
+                            continue;
+                        }
+                        self.cells[used] =
+                            Cell { key, best_d2: f32::INFINITY, pos: pos as u32, ..Cell::EMPTY };
+                        self.index[pos] = used as u32 + 1;
+                        self.recent[usize::from(p.row) % RECENT] = (key, used as u32 + 1);
+                        used += 1;
+                        used - 1
+                    }
+                };
+                if let Some(co) = cell_of.as_deref_mut() {
+                    co[i] = cell as u32;
+                }
+                let c = &mut self.cells[cell];
+                c.count += 1;
+                for a in 0..3 {
+                    c.sum[a] += p.xyz[a] - key[a] as f32 * cfg.voxel;
+                }
+                if let Some(ns) = normals {
+                    c.add_normal(&ns[i]);
+                }
             }
         }
 
@@ -661,6 +699,64 @@ mod tests {
 
     fn cfg(voxel: f32) -> DownsampleConfig {
         DownsampleConfig { voxel, ..Default::default() }
+    }
+
+    #[test]
+    fn eight_keys_at_once_are_the_keys_of_one_point_at_a_time() {
+        let edge = [
+            0.0,
+            -0.0,
+            0.25,
+            -0.25,
+            1.0,
+            -1.0,
+            2.5,
+            -2.5,
+            0.099_999,
+            -0.100_001,
+            1.0e-30,
+            -1.0e-30,
+            1.999_999_9e9,
+            -1.999_999_9e9,
+            2.0e9,
+            -2.0e9,
+            3.0e9,
+            f32::MAX,
+            f32::MIN,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+            16_777_217.0,
+            -16_777_217.0,
+            8_388_607.5,
+            -8_388_607.5,
+        ];
+        let mut rng = crate::testutil::SplitMix(3);
+        let mut points: Vec<ScanPoint> = Vec::new();
+        for (i, &e) in edge.iter().enumerate() {
+            let o = edge[(i * 7 + 3) % edge.len()];
+            points.push(pt(e, o, rng.uniform(-50.0, 50.0) as f32, 0.0));
+            points.push(pt(rng.uniform(-50.0, 50.0) as f32, e, o, 0.0));
+        }
+        for _ in 0..200 {
+            let v = |r: &mut crate::testutil::SplitMix| r.uniform(-300.0, 300.0) as f32;
+            points.push(pt(v(&mut rng), v(&mut rng), v(&mut rng), 0.0));
+        }
+        for inv in [1.0 / 0.5, 1.0 / 0.1, 1.0, 3.0e-9] {
+            // Blocks of every length, as a scan's last block is.
+            for len in 1..=KEY_LANES {
+                for block in points.chunks(len) {
+                    let (keys, ok) = keys8(block, inv);
+                    for (l, p) in block.iter().enumerate() {
+                        let one = VoxelDownsampler::<64>::key(&p.xyz, inv);
+                        assert_eq!(ok[l], one.is_some(), "{:?} at {inv}", p.xyz);
+                        if let Some(k) = one {
+                            assert_eq!([keys[0][l], keys[1][l], keys[2][l]], k, "{:?} at {inv}", p.xyz);
+                        }
+                    }
+                }
+            }
+        }
     }
 
     #[test]
