@@ -1755,7 +1755,7 @@ fn fill_turned(
 }
 
 /// The valid points' normals (`valid`, as step 1 kept the points) compacted into `out`, or
-/// none at all without normals.
+/// none at all without normals. `out` holds as many as `valid` keeps of `input`.
 fn fill_normals(
     use_normals: bool,
     input: &[ScanPoint],
@@ -1765,6 +1765,13 @@ fn fill_normals(
 ) {
     if !use_normals {
         out.fill(INVALID_NORMAL);
+        return;
+    }
+    if out.len() == input.len() && normals.len() == input.len() {
+        // Every point was kept (as `out` holds as many as `valid` kept): nothing to test.
+        for (o, nr) in out.iter_mut().zip(normals) {
+            *o = nr.get().unwrap_or(INVALID_NORMAL);
+        }
         return;
     }
     let mut k = 0usize;
