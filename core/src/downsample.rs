@@ -218,10 +218,11 @@ fn keys8(points: &[ScanPoint], inv: f32) -> ([[i32; KEY_LANES]; 3], [bool; KEY_L
             ok[l] &= v[a][l].abs() < 2.0e9;
         }
         // `floor_i32`: the truncation (the same as `as` within the bound; lanes outside it are
-        // not used), minus one for negative non-integers.
+        // not used), minus one for negative non-integers. Wrapping: a lane outside the bound
+        // may hold `i32::MIN`, and its key is thrown away, never a panic (it is exact within).
         let t = crate::math::trunc_i32x8(v[a]);
         for l in 0..KEY_LANES {
-            k[a][l] = if (t[l] as f32) > v[a][l] { t[l] - 1 } else { t[l] };
+            k[a][l] = if (t[l] as f32) > v[a][l] { t[l].wrapping_sub(1) } else { t[l] };
         }
     }
     (k, ok)
