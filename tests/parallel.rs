@@ -64,8 +64,8 @@ fn run_on(sc: &Scenario, pool: &dyn Parallel, mode: AssociationMode) -> Vec<([u6
 /// [`run_on`]; with `flush`, each scan's insertion goes in right after it (as the runner does
 /// it between scans in a replay or a live run), so no insertion waits in the next scan's stage.
 /// With `spoil`, every third scan holds returns the odometry refuses (no time, beyond range,
-/// not finite), spread over both halves of the scan: the points are counted and copied in
-/// pieces on the threads, and each piece's count must be its own.
+/// not finite), spread over both halves of the scan: the normals' compaction in two pieces
+/// must start the second half where the valid points before the middle end.
 fn run_flushing(
     sc: &Scenario,
     pool: &dyn Parallel,

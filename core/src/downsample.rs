@@ -199,6 +199,10 @@ impl<const N: usize> Default for VoxelDownsampler<N> {
 /// Points whose keys [`keys8`] finds at once.
 const KEY_LANES: usize = 8;
 
+/// Largest `|coordinate / voxel|` with a key: within i32 (2^31 voxels of 0.1 m is 2e8 m,
+/// beyond any scan).
+const KEY_BOUND: f32 = 2.0e9;
+
 /// The voxel keys of up to eight points (`VoxelDownsampler::key`'s, bit for bit) and which of
 /// them have one: the products, bounds and truncations on vector lanes where one point at a
 /// time took three conversions and three branches.
@@ -213,17 +217,11 @@ fn keys8(points: &[ScanPoint], inv: f32) -> ([[i32; KEY_LANES]; 3], [bool; KEY_L
     let mut ok = [true; KEY_LANES];
     let mut k = [[0i32; KEY_LANES]; 3];
     for a in 0..3 {
-        // `key`'s test: finite and within i32 (false for NaN and the infinities).
+        // `key`'s test (false for NaN and the infinities); lanes that fail it are not used.
         for l in 0..KEY_LANES {
-            ok[l] &= v[a][l].abs() < 2.0e9;
+            ok[l] &= v[a][l].abs() < KEY_BOUND;
         }
-        // `floor_i32`: the truncation (the same as `as` within the bound; lanes outside it are
-        // not used), minus one for negative non-integers. Wrapping: a lane outside the bound
-        // may hold `i32::MIN`, and its key is thrown away, never a panic (it is exact within).
-        let t = crate::math::trunc_i32x8(v[a]);
-        for l in 0..KEY_LANES {
-            k[a][l] = if (t[l] as f32) > v[a][l] { t[l].wrapping_sub(1) } else { t[l] };
-        }
+        k[a] = crate::math::floor_i32x8(v[a]);
     }
     (k, ok)
 }
@@ -272,8 +270,8 @@ impl<const N: usize> VoxelDownsampler<N> {
         let mut k = [0i32; 3];
         for a in 0..3 {
             let v = p[a] * inv;
-            // Finite and within i32 (2^31 voxels of 0.1 m is 2e8 m: beyond any scan).
-            if !v.is_finite() || v.abs() >= 2.0e9 {
+            // Finite and within [`KEY_BOUND`].
+            if !v.is_finite() || v.abs() >= KEY_BOUND {
                 return None;
             }
             k[a] = crate::math::floor_i32(v);

@@ -105,6 +105,19 @@ pub(crate) fn trunc_i32x8(x: [f32; 8]) -> [i32; 8] {
     }
 }
 
+/// [`floor_i32`] of eight `f32` at once: [`trunc_i32x8`], minus one for negative
+/// non-integers. Equal to `floor_i32` for finite `|v| < 2^31`; a lane beyond it (or NaN) gives
+/// some `i32` (wrapping, never a panic) that the caller must not use.
+#[inline(always)]
+pub(crate) fn floor_i32x8(x: [f32; 8]) -> [i32; 8] {
+    let t = trunc_i32x8(x);
+    let mut k = [0i32; 8];
+    for l in 0..8 {
+        k[l] = if (t[l] as f32) > x[l] { t[l].wrapping_sub(1) } else { t[l] };
+    }
+    k
+}
+
 /// Reads one element per 64-byte cache line of `s`, in order, and nothing else. For a buffer
 /// about to be used in random order after other work evicted it: a sequential read arrives as a
 /// stream the hardware prefetchers follow, where the random accesses would each wait for
