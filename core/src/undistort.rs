@@ -786,7 +786,16 @@ fn lanes(
     if !ok {
         return None;
     }
-    let tau = f64x4::from(core::array::from_fn::<f64, LANES, _>(|l| block[l].t as f64)) - f64x4::splat(sg.t0);
+    // Plain loops, not `array::from_fn`: its closures stay calls on arm64 where the crate's
+    // codegen units fall unluckily (a change elsewhere in the crate is enough).
+    let (mut t, mut q) = ([0.0f64; LANES], [[0.0f64; LANES]; 3]);
+    for (l, p) in block.iter().enumerate() {
+        t[l] = p.t as f64;
+        for (qa, x) in q.iter_mut().zip(p.xyz) {
+            qa[l] = x as f64;
+        }
+    }
+    let tau = f64x4::from(t) - f64x4::splat(sg.t0);
     let u = tau * f64x4::splat(PIECES_PER_S);
     let k = u.floor();
     let ka = k.to_array();
@@ -798,25 +807,26 @@ fn lanes(
     let s0 = ends.slot(sg, k0, stats);
     let s1 = ends.slot(sg, k0 + 1.0, stats);
     let s2 = if two { ends.slot(sg, k0 + 2.0, stats) } else { s1 };
-    let (e0, e1, e2) = (&ends.e[s0], &ends.e[s1], &ends.e[s2]);
+    let (e0, e1, e2) = (ends.e[s0], ends.e[s1], ends.e[s2]);
     let w = u - k;
-    let q: [f64x4; 3] = core::array::from_fn(|a| {
-        f64x4::from(core::array::from_fn::<f64, LANES, _>(|l| block[l].xyz[a] as f64))
-    });
+    let q = [f64x4::from(q[0]), f64x4::from(q[1]), f64x4::from(q[2])];
     // `e q + w (d q)` on the lanes of one piece.
     let moved = |e: &[f64; 12], e1: &[f64; 12]| -> [f64x4; 3] {
-        let d: [f64; 12] = core::array::from_fn(|j| e1[j] - e[j]);
+        let mut d = [0.0f64; 12];
+        for ((d, a), b) in d.iter_mut().zip(e).zip(e1) {
+            *d = b - a;
+        }
         let row = |c: &[f64; 12], r: usize| {
             let s = |j: usize| f64x4::splat(c[j]);
             s(3 * r) * q[0] + s(3 * r + 1) * q[1] + s(3 * r + 2) * q[2] + s(9 + r)
         };
-        core::array::from_fn(|r| row(e, r) + w * row(&d, r))
+        [row(e, 0) + w * row(&d, 0), row(e, 1) + w * row(&d, 1), row(e, 2) + w * row(&d, 2)]
     };
-    let mut p = moved(e0, e1);
+    let mut p = moved(&e0, &e1);
     if two {
         let hi = k.cmp_ne(f64x4::splat(k0));
-        let p1 = moved(e1, e2);
-        p = core::array::from_fn(|r| hi.blend(p1[r], p[r]));
+        let p1 = moved(&e1, &e2);
+        p = [hi.blend(p1[0], p[0]), hi.blend(p1[1], p[1]), hi.blend(p1[2], p[2])];
     }
     let mut out = [[0.0f32; 3]; LANES];
     for (r, v) in p.iter().enumerate() {
