@@ -505,10 +505,10 @@ pub const NORMAL_ROTATION_STEPS: usize = 256;
 /// [`NORMAL_ROTATION_STEPS`]` + 1` even times over a scan; a normal takes the nearest. A normal
 /// needs its firing's rotation only to well below its own noise (Ring FALS normals scatter by
 /// about 1e-2 rad) and the map's quantisation (half a degree): half a step of a 0.1 s scan
-/// turning at 2 rad/s is 0.4 mrad. The table spares the normals' thread the exact transform of
-/// each of the ~28,700 distinct firing times of a VLP-32C scan, which the points' undistortion
-/// has already computed on the other thread, and a normal costs a look-up and a product. The
-/// same table on one thread and on many: the normals are the same, bit for bit.
+/// turning at 2 rad/s is 0.4 mrad. The table spares the normals' thread a transform for each
+/// of the ~28,700 distinct firing times of a VLP-32C scan, and a normal costs a look-up and a
+/// product (four at a time where they share a rotation). The same table on one thread and on
+/// many: the normals are the same, bit for bit.
 /// Caller-owned (9 KiB): it lives in the odometry's storage.
 #[derive(Clone, Debug)]
 pub struct NormalRotations {
