@@ -124,6 +124,19 @@ pub struct Render {
     pub range: Vec<f64>,
 }
 
+/// The benches' VLP-32C street scan: 1 cm of range noise, 2 % of the returns missing, in
+/// firing order (column by column), as a spinning sensor sends it.
+pub fn vlp32c_street_in_firing_order() -> Vec<ScanPoint> {
+    let layout = vlp32c_layout();
+    let mut drop = Rng::new(7 ^ 0xd0);
+    let keep: Vec<bool> = (0..layout.pixels()).map(|_| drop.uniform() > 0.02).collect();
+    let cols = layout.cols();
+    let mut points =
+        render(&layout, &street_scene(), 0.01, &mut Rng::new(7), |r, c| keep[r * cols + c]).points;
+    points.sort_by_key(|p| (p.col, p.row));
+    points
+}
+
 /// Ray-casts every pixel of `layout`; `sigma` is the range noise (metres); pixels for which
 /// `keep(row, col)` is false get no point (missing returns).
 pub fn render(

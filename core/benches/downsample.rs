@@ -20,17 +20,7 @@ mod synth;
 static GRID: Mutex<VoxelDownsampler<32768>> = Mutex::new(VoxelDownsampler::new());
 
 fn bench(c: &mut Criterion) {
-    let layout = synth::vlp32c_layout();
-    let mut drop = synth::Rng::new(7 ^ 0xd0);
-    let keep: Vec<bool> = (0..layout.pixels()).map(|_| drop.uniform() > 0.02).collect();
-    let cols = layout.cols();
-    let mut points: Vec<ScanPoint> =
-        synth::render(&layout, &synth::street_scene(), 0.01, &mut synth::Rng::new(7), |r, c| {
-            keep[r * cols + c]
-        })
-        .points;
-    // In firing order, as a spinning sensor sends them: column by column.
-    points.sort_by_key(|p| (p.col, p.row));
+    let points: Vec<ScanPoint> = synth::vlp32c_street_in_firing_order();
     let normals: Vec<[f32; 3]> = points.iter().map(|p| [p.xyz[1], -p.xyz[0], 0.3]).collect();
     let cfg = DownsampleConfig { voxel: 0.4, ..DownsampleConfig::default() };
     let mut grid = GRID.lock().unwrap();

@@ -38,16 +38,7 @@ fn state_at(t: f64) -> State {
 }
 
 fn bench(c: &mut Criterion) {
-    let layout = synth::vlp32c_layout();
-    let mut drop = synth::Rng::new(7 ^ 0xd0);
-    let keep: Vec<bool> = (0..layout.pixels()).map(|_| drop.uniform() > 0.02).collect();
-    let cols = layout.cols();
-    let mut points: Vec<ScanPoint> =
-        synth::render(&layout, &synth::street_scene(), 0.01, &mut synth::Rng::new(7), |r, c| {
-            keep[r * cols + c]
-        })
-        .points;
-    points.sort_by_key(|p| (p.col, p.row));
+    let mut points: Vec<ScanPoint> = synth::vlp32c_street_in_firing_order();
     for p in &mut points {
         p.t = p.col as f32 * COLUMN_S + (p.row / 2) as f32 * FIRING_S;
     }
@@ -73,9 +64,12 @@ fn bench(c: &mut Criterion) {
     traj.normal_rotations(&end, 0.0, t_max, &mut table).unwrap();
     let (mut out, mut nout) = (points.clone(), normals.clone());
     let st = traj.undistort(&end, &mut out, None).unwrap();
+    let mut times: Vec<u32> = points.iter().map(|p| p.t.to_bits()).collect();
+    times.dedup();
     println!(
-        "undistort: {} points, {} firing times, {} knots",
+        "undistort: {} points, {} firing times, {} exact transforms, {} knots",
         points.len(),
+        times.len(),
         st.transforms,
         traj.knots().len()
     );

@@ -854,6 +854,19 @@ mod tests {
     use crate::testutil::{G, Helix};
 
     const T0: u64 = 7_000_000_000;
+
+    /// Two threads' pieces, run one after the other in reverse.
+    struct Two;
+    impl Parallel for Two {
+        fn width(&self) -> usize {
+            2
+        }
+        fn run(&self, jobs: &mut [crate::parallel::Job<'_>]) {
+            for j in jobs.iter_mut().rev() {
+                j();
+            }
+        }
+    }
     const SCAN: f64 = 0.1;
 
     fn ext() -> (UnitQuaternion<f64>, V3) {
@@ -1005,17 +1018,6 @@ mod tests {
     /// points and normals of one call, bit for bit, also in pieces on threads.
     #[test]
     fn points_then_normals_equal_both_at_once() {
-        struct Two;
-        impl Parallel for Two {
-            fn width(&self) -> usize {
-                2
-            }
-            fn run(&self, jobs: &mut [crate::parallel::Job<'_>]) {
-                for j in jobs.iter_mut().rev() {
-                    j();
-                }
-            }
-        }
         let h = Helix::standard();
         let t_start = 3.0;
         let (pts, ns, _) = scan(&h, t_start);
@@ -1140,17 +1142,6 @@ mod tests {
     /// for bit, points and table-turned normals alike, and in pieces on threads.
     #[test]
     fn points_moved_together_equal_points_moved_alone() {
-        struct Two;
-        impl Parallel for Two {
-            fn width(&self) -> usize {
-                2
-            }
-            fn run(&self, jobs: &mut [crate::parallel::Job<'_>]) {
-                for j in jobs.iter_mut().rev() {
-                    j();
-                }
-            }
-        }
         let h = Helix::standard();
         let mut traj = ImuTrajectory::<64>::new();
         let f = propagate(&h, 3.0, &mut traj);
