@@ -780,7 +780,8 @@ fn lanes(
     let mut ok = true;
     for p in block {
         let t = p.t as f64;
-        ok &= p.xyz[0].is_finite() & p.xyz[1].is_finite() & p.xyz[2].is_finite();
+        // An infinite time can lie in the segment before the first knot (no lower end).
+        ok &= p.xyz[0].is_finite() & p.xyz[1].is_finite() & p.xyz[2].is_finite() & p.t.is_finite();
         ok &= (sg.lo <= t) & (t < sg.hi);
     }
     if !ok {
@@ -1163,12 +1164,23 @@ mod tests {
                 if rng.uniform() < 0.01 {
                     p.xyz[1] = f32::NAN;
                 }
+                // Infinite times among those before the first knot, whose segment has no
+                // lower end.
+                if c < 100 && rng.uniform() < 0.05 {
+                    p.t = if r % 2 == 0 { f32::NEG_INFINITY } else { f32::INFINITY };
+                }
                 pts.push(p);
             }
         }
+        // A whole block of infinite times right after a point before the first knot: the
+        // extrapolation's segment there has no lower end.
+        for t in [-0.015, f32::NEG_INFINITY, f32::NEG_INFINITY, f32::NEG_INFINITY, f32::NEG_INFINITY, -0.015]
+        {
+            pts.push(ScanPoint { xyz: [3.0, 4.0, 1.5], t, ..Default::default() });
+        }
         let normals: Vec<[f32; 3]> =
             (0..pts.len()).map(|i| if i % 13 == 0 { [0.0; 3] } else { [0.6, 0.0, 0.8] }).collect();
-        let t_max = pts.iter().map(|p| p.t).fold(0.0f32, f32::max);
+        let t_max = pts.iter().map(|p| p.t).filter(|t| t.is_finite()).fold(0.0f32, f32::max);
         let mut table = NormalRotations::new();
         traj.normal_rotations(x, 0.0, t_max, &mut table).unwrap();
         let (mut p1, mut n1) = (pts.clone(), normals.clone());
@@ -1186,7 +1198,7 @@ mod tests {
         let mut n3 = normals.clone();
         table.rotate(&p3, &mut n3);
         assert_eq!(n1, n3);
-        assert_eq!(st.invalid as usize, pts.iter().filter(|p| p.xyz[1].is_nan()).count());
+        assert_eq!(st.invalid as usize, pts.iter().filter(|p| p.xyz[1].is_nan() || !p.t.is_finite()).count());
         assert_eq!(st.moved + st.invalid, pts.len() as u32);
         assert!(st.extrapolated > 0);
     }
