@@ -431,7 +431,7 @@ impl<const N: usize> ImuTrajectory<N> {
         let n = points.as_ref().len();
         let mut i = 0;
         while i < n {
-            // Eight points at a time where they can go together: moved forwards, their normals
+            // Four points at a time where they can go together: moved forwards, their normals
             // (if any) turned by the table.
             if MOVE && !INVERSE && i + LANES <= n && (normals.is_none() || table.is_some()) {
                 let block: Option<[ScanPoint; LANES]> = points.as_ref()[i..i + LANES].try_into().ok();
@@ -665,9 +665,7 @@ impl Segment {
 
     /// The rotation `A` of the exact transform at `t` ([`Self::exact`]'s).
     fn rotation(&self, t: f64) -> M3 {
-        let tau = t - self.t0;
-        let (c1, c2) = so3::rodrigues_coeffs(self.rate * tau.abs());
-        self.m[0] + self.m[1] * (c1 * tau) + self.m[2] * (c2 * tau * tau)
+        self.exact(t - self.t0).0
     }
 
     /// The exact transform `(A, b)` at `tau` seconds from the segment's knot: the rotation
