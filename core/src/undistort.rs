@@ -80,6 +80,8 @@ pub enum UndistortError {
     NoPoses,
     /// The normals slice is not as long as the points slice.
     LengthMismatch,
+    /// A time range that is not finite (NaN or infinite).
+    NonFiniteTime,
 }
 
 impl core::fmt::Display for UndistortError {
@@ -87,6 +89,7 @@ impl core::fmt::Display for UndistortError {
         match self {
             Self::NoPoses => f.write_str("no IMU poses recorded for the scan"),
             Self::LengthMismatch => f.write_str("normals and points differ in length"),
+            Self::NonFiniteTime => f.write_str("the time range is not finite"),
         }
     }
 }
@@ -220,7 +223,11 @@ impl<const N: usize> ImuTrajectory<N> {
     /// end knot b)`. Between knots `a` and `b`: `R = a.rot Exp(ω τ)` with `ω = b.omega` and a
     /// Hermite position; before the first knot (or with one knot) back along the first
     /// segment's rate, after the last along its rate, both at constant velocity (`b` is `None`).
+    /// `None` without knots, and for a NaN `t` (it lies in no segment).
     fn locate(&self, t: f64) -> Option<(f64, f64, Knot, V3, Option<Knot>)> {
+        if t.is_nan() {
+            return None;
+        }
         let ks = &self.knots[..];
         let first = *ks.first()?;
         let last = ks[ks.len() - 1];
@@ -237,7 +244,7 @@ impl<const N: usize> ImuTrajectory<N> {
     }
 
     /// The interpolated IMU pose (world from IMU) at `t` seconds since the scan start, and
-    /// whether it was extrapolated.
+    /// whether it was extrapolated; `None` without knots or for a NaN `t`.
     pub fn pose_at(&self, t: f64) -> Option<(M3, V3, bool)> {
         let (_, _, a, omega, end) = self.locate(t)?;
         let tau = t - a.t;
@@ -369,7 +376,8 @@ impl<const N: usize> ImuTrajectory<N> {
 
     /// Fills `out`, the table of [`NormalRotations`] for points timed `t_lo..=t_hi` (seconds
     /// since the scan start) undistorted to the end state `end`: the rotation each knot time's
-    /// transform gives (as [`Self::undistort`] computes it), rounded to f32.
+    /// transform gives (as [`Self::undistort`] computes it), rounded to f32. A bound that is
+    /// not finite is [`UndistortError::NonFiniteTime`] (`out` is left as it was).
     pub fn normal_rotations(
         &self,
         end: &State,
@@ -379,6 +387,9 @@ impl<const N: usize> ImuTrajectory<N> {
     ) -> Result<(), UndistortError> {
         if self.knots.is_empty() {
             return Err(UndistortError::NoPoses);
+        }
+        if !(t_lo.is_finite() && t_hi.is_finite()) {
+            return Err(UndistortError::NonFiniteTime);
         }
         let frame = Self::frame(end);
         let span = if t_hi > t_lo { t_hi - t_lo } else { 0.0 };
@@ -1095,6 +1106,17 @@ mod tests {
         let mut one = [ns[0]];
         flat.rotate(&p2[..1], &mut one);
         assert!(one[0].iter().all(|v| v.is_finite()));
+        // Bounds that are not finite are an error, not a panic, and leave the table as it was.
+        let before = (flat.t0, flat.inv_step, flat.rot);
+        for (lo, hi) in [(0.0, f32::NAN), (f32::NAN, 0.1), (f32::NEG_INFINITY, 0.1), (0.0, f32::INFINITY)] {
+            assert_eq!(
+                traj.normal_rotations(f.state(), lo, hi, &mut flat),
+                Err(UndistortError::NonFiniteTime)
+            );
+            assert_eq!((flat.t0, flat.inv_step, flat.rot), before);
+        }
+        assert_eq!(traj.pose_at(f64::NAN), None);
+        assert!(traj.pose_at(f64::INFINITY).is_some_and(|(_, _, extrapolated)| extrapolated));
     }
 
     /// The segment evaluation is the documented formula with `pose_at`, regrouped: on times
