@@ -9,8 +9,12 @@ use super::{
 };
 
 /// Lanes of the median (i16): 16 neighbouring columns, two SSE2 registers or one AVX2 register
-/// per operation.
+/// per operation; on arm64 8, one NEON register, so that a window's 25 values fit in its 32
+/// registers.
+#[cfg(not(target_arch = "aarch64"))]
 pub(super) const QLANES: usize = 16;
+#[cfg(target_arch = "aarch64")]
+pub(super) const QLANES: usize = 8;
 /// One vector of quantised normal components.
 pub(super) type Lane = [i16; QLANES];
 

@@ -37,14 +37,19 @@ pub(super) enum Cx {
 // instructions on every target. Written per lane they were left to LLVM's vectoriser, which in
 // an arm64 build of `82166eb` (a change elsewhere in the crate) left the whole median network
 // of the general path on scalar registers: `median_group` 13.1 -> 28.8 M instructions a scan.
+#[cfg(not(target_arch = "aarch64"))]
+type Wide = wide::i16x16;
+#[cfg(target_arch = "aarch64")]
+type Wide = wide::i16x8;
+
 #[inline(always)]
 fn lmin(a: Lane, b: Lane) -> Lane {
-    wide::i16x16::new(a).min(wide::i16x16::new(b)).to_array()
+    Wide::new(a).min(Wide::new(b)).to_array()
 }
 
 #[inline(always)]
 fn lmax(a: Lane, b: Lane) -> Lane {
-    wide::i16x16::new(a).max(wide::i16x16::new(b)).to_array()
+    Wide::new(a).max(Wide::new(b)).to_array()
 }
 
 /// Defines a selection network both as data (for the exhaustive tests) and as straight-line code

@@ -2,6 +2,10 @@
 //! inverse matrix in the scaled local frame; built once in f64, only read per scan.
 
 use super::median::QLANES;
+
+/// The fewest columns a layout may have: the most lanes of the median on any target.
+const MIN_COLS: usize = 16;
+const _: () = assert!(QLANES <= MIN_COLS);
 use super::{ConfigError, KEY_SCALE, PAD, RingFalsConfig};
 use crate::range_image::{MAX_COLS, MAX_ROWS, RangeImageLayout};
 
@@ -186,7 +190,8 @@ impl RingTable {
             return Err(TableError::ColumnStride);
         }
         let cols = layout.cols() / stride;
-        if cols < QLANES {
+        // 16 on every target (at least the median's lanes), so that a layout works everywhere.
+        if cols < MIN_COLS {
             return Err(TableError::TooFewCols);
         }
         let step = layout.column_step() * stride as f64;
