@@ -90,12 +90,12 @@
 //! (per scan only `+ - * /`, comparisons, integer operations and, for a point that shares its
 //! pixel, the correctly rounded `libm::sqrtf`; no FMA contraction, no reassociation). The inner loops are written over planar buffers without branches so that they
 //! auto-vectorise (SSE2 on x86-64, NEON on aarch64, AVX2 where the build enables it); the median
-//! runs on normals quantised to 1/32000 (0.002 degrees), 16 columns at a time in 16-bit lanes,
-//! with selection networks. Where every window of the 16 lies on one surface and lacks at most
-//! twelve pixels, the windows share their columns sorted once per row (127 min/max per channel
-//! for up to four missing, 156 for more); elsewhere each window's left-out pixels become
-//! -inf/+inf sentinels of a full 25-value network (190). All give the exact lower median of the
-//! pixels kept.
+//! runs on normals quantised to 1/32000 (0.002 degrees), 16 columns at a time in 16-bit lanes (8
+//! on arm64, one NEON register), with selection networks. Where every window of a group lies on
+//! one surface and lacks at most twelve pixels, the windows share their columns sorted once per
+//! row (127 min/max per channel for up to four missing, 156 for more); elsewhere each window's
+//! left-out pixels become -inf/+inf sentinels of a full 25-value network (190). All give the
+//! exact lower median of the pixels kept.
 
 // Index loops over planar buffers are what auto-vectorises; `!(a <= b)` is deliberate
 // wherever a NaN must count as failing the test.

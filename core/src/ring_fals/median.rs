@@ -1,5 +1,6 @@
-//! Stage 3, the 5x5 median over the valid pixels on the centre's surface, 16 columns at a time;
-//! separate from the solve because it works on quantised lanes through the selection networks.
+//! Stage 3, the 5x5 median over the valid pixels on the centre's surface, 16 columns at a time
+//! (8 on arm64: `QLANES`); separate from the solve because it works on quantised lanes through
+//! the selection networks.
 
 use super::networks::{median25, ranks25_presorted, ranks25_presorted_wide, sort5};
 use super::solve::rsqrt_norm;
@@ -95,8 +96,8 @@ impl<const P: usize> RingFals<P> {
                 pads.map(|pr| (c..c + 5).filter(|&pc| pad_sentinel(pr, pc) == i16::MIN).count() as i16).sum()
             };
             let (neg_even, neg_odd) = (neg(0), neg(1));
-            // Groups of 16 columns; the last group is moved left to end at the last column and
-            // skips the lanes the previous group already did.
+            // Groups of `QLANES` columns; the last group is moved left to end at the last column
+            // and skips the lanes the previous group already did.
             let mut c0 = 0;
             while c0 < cols {
                 let c0_eff = c0.min(cols - QLANES);

@@ -17,8 +17,8 @@ pub enum TableError {
     Config(ConfigError),
     /// The layout has fewer than 2 rows: one row of returns cannot define a plane.
     TooFewRows,
-    /// The layout has fewer than 16 columns (the median works on 16 columns at a time), after
-    /// the column stride.
+    /// The layout has fewer than 16 columns (the median works on up to 16 columns at a time),
+    /// after the column stride.
     TooFewCols,
     /// The layout's columns are not a multiple of the configuration's `column_stride`.
     ColumnStride,
