@@ -1,7 +1,7 @@
 //! `loglio ros2` against an independent DDS publisher: a Cyclone DDS (Python) node declares
 //! `sensor_msgs/PointCloud2`, `sensor_msgs/Imu` and `tf2_msgs/TFMessage` with its own IDL types
-//! and publishes a simulated drive paced by its stamps: Velodyne driver clouds (`x, y, z, intensity`
-//! float32, `ring` uint16, `time` float32 seconds after the header stamp) on
+//! and publishes a simulated drive paced by its stamps: Velodyne driver clouds (`x, y, z,
+//! intensity` float32, `ring` uint16, `time` float32 seconds after the header stamp) on
 //! `/velodyne_points` and the IMU on `/imu/data`, reliable as the Velodyne driver publishes; or
 //! ouster-ros's clouds (`t` uint32 ns, `ring` from the highest beam, 48-byte points) and IMU,
 //! best-effort as its sensor-data QoS; and the rig's extrinsic on `/tf_static` (transient

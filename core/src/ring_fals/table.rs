@@ -2,12 +2,12 @@
 //! inverse matrix in the scaled local frame; built once in f64, only read per scan.
 
 use super::median::QLANES;
+use super::{ConfigError, KEY_SCALE, PAD, RingFalsConfig};
+use crate::range_image::{MAX_COLS, MAX_ROWS, RangeImageLayout};
 
 /// The fewest columns a layout may have: the most lanes of the median on any target.
 const MIN_COLS: usize = 16;
 const _: () = assert!(QLANES <= MIN_COLS);
-use super::{ConfigError, KEY_SCALE, PAD, RingFalsConfig};
-use crate::range_image::{MAX_COLS, MAX_ROWS, RangeImageLayout};
 
 /// Why a [`RingTable`] could not be built.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
