@@ -18,6 +18,11 @@ pub(super) const QLANES: usize = 16;
 pub(super) const QLANES: usize = 8;
 /// One vector of quantised normal components.
 pub(super) type Lane = [i16; QLANES];
+/// `wide`'s vector of `QLANES` i16, through which the networks' comparators go.
+#[cfg(not(target_arch = "aarch64"))]
+pub(super) type WideLane = wide::i16x16;
+#[cfg(target_arch = "aarch64")]
+pub(super) type WideLane = wide::i16x8;
 
 impl<const P: usize> RingFals<P> {
     /// Stage 3: the 5x5 median over valid pixels (per channel, columns wrapped, rows cut at the

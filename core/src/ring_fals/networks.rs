@@ -1,7 +1,7 @@
 //! The sorting and selection networks of the median, each as data and as straight-line lane code;
 //! separate so that the tests check the data exhaustively (0-1 principle) apart from its use.
 
-use super::median::Lane;
+use super::median::{Lane, WideLane};
 
 /// Optimal 9-comparator sorting network for 5 values.
 #[inline(always)]
@@ -33,23 +33,18 @@ pub(super) enum Cx {
     H,
 }
 
-// The comparators' 16-lane minimum and maximum through `wide`: one or two vector
+// The comparators' `QLANES`-lane minimum and maximum through `wide`: one or two vector
 // instructions on every target. Written per lane they were left to LLVM's vectoriser, which in
 // an arm64 build of `82166eb` (a change elsewhere in the crate) left the whole median network
 // of the general path on scalar registers: `median_group` 13.1 -> 28.8 M instructions a scan.
-#[cfg(not(target_arch = "aarch64"))]
-type Wide = wide::i16x16;
-#[cfg(target_arch = "aarch64")]
-type Wide = wide::i16x8;
-
 #[inline(always)]
 fn lmin(a: Lane, b: Lane) -> Lane {
-    Wide::new(a).min(Wide::new(b)).to_array()
+    WideLane::new(a).min(WideLane::new(b)).to_array()
 }
 
 #[inline(always)]
 fn lmax(a: Lane, b: Lane) -> Lane {
-    Wide::new(a).max(Wide::new(b)).to_array()
+    WideLane::new(a).max(WideLane::new(b)).to_array()
 }
 
 /// Defines a selection network both as data (for the exhaustive tests) and as straight-line code
